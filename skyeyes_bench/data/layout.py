@@ -1,0 +1,449 @@
+"""Read, validate and write the canonical dataset layout.
+
+```
+<root>/dataset.json   {"name", "protocol": "<id>@<N>", "splits": {"train": [...], "test": [...]},
+                       "scenes": [...], "meta": {...}}
+<root>/<scene>/scene.json
+    {"intrinsics": {"ground": {width, height, fx, fy, cx, cy}, "aerial": {...}},
+     "aerial": [{"file", "c2w"}...],
+     "ground": [{"file", "c2w", "sequence", "index"}...], "meta": {...}}
+<root>/<scene>/aerial/*.png, ground/*.png          8-bit sRGB
+<root>/<scene>/ground_depth/*.exr, aerial_depth/   float32 metres, same stem as the image
+<root>/<scene>/ground_semantics/*.png, aerial_semantics/   8-bit labels
+```
+
+A scene is one lane; a sequence is the ordered ground frames of one lane at one yaw offset.
+A frame may carry its own "intrinsics" (same keys) overriding its group's.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .. import fileio
+from ..cameras import Camera, K_from_dict, rigid_problem
+from ..errors import UserError, ValidationError
+
+DATASET_FILE = "dataset.json"
+SCENE_FILE = "scene.json"
+KINDS = ("ground", "aerial")
+LAYERS = ("depth", "semantics")
+_LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
+_INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+
+
+def layer_file(file: str, layer: str) -> str:
+    """`ground/000012.png` -> `ground_depth/000012.exr` (same stem, DESIGN.md)."""
+    folder, _, name = file.rpartition("/")
+    return f"{folder}_{layer}/{Path(name).stem}{_LAYER_EXT[layer]}"
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One posed image. Pixels load lazily (`image()`, `depth()`, `semantics()`)."""
+
+    scene_root: Path
+    kind: str  # "ground" | "aerial"
+    file: str  # relative to the scene folder
+    c2w: np.ndarray  # [4, 4]
+    intrinsics: dict  # width, height, fx, fy, cx, cy
+    sequence: str | None = None
+    index: int | None = None
+
+    @property
+    def path(self) -> Path:
+        return self.scene_root / self.file
+
+    @property
+    def stem(self) -> str:
+        return Path(self.file).stem
+
+    @property
+    def width(self) -> int:
+        return int(self.intrinsics["width"])
+
+    @property
+    def height(self) -> int:
+        return int(self.intrinsics["height"])
+
+    def camera(self) -> Camera:
+        return Camera(K_from_dict(self.intrinsics), self.c2w, self.width, self.height)
+
+    def image(self) -> np.ndarray:
+        """float32 [H, W, 3] in [0, 1]."""
+        return fileio.read_image(self.path)
+
+    def layer_path(self, layer: str) -> Path:
+        return self.scene_root / layer_file(self.file, layer)
+
+    def depth(self) -> np.ndarray | None:
+        """float32 [H, W] planar depth in metres (inf = sky), or None if the layer is absent."""
+        p = self.layer_path("depth")
+        return fileio.read_depth(p) if p.exists() else None
+
+    def semantics(self) -> np.ndarray | None:
+        """uint8 [H, W] labels, or None if the layer is absent."""
+        p = self.layer_path("semantics")
+        return fileio.read_labels(p) if p.exists() else None
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """The ordered ground frames of one lane at one yaw offset."""
+
+    scene: str
+    name: str
+    frames: tuple[Frame, ...]
+
+    @property
+    def id(self) -> str:
+        return f"{self.scene}/{self.name}"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return iter(self.frames)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    name: str
+    root: Path
+    aerial: tuple[Frame, ...]
+    ground: tuple[Frame, ...]
+    meta: dict = field(default_factory=dict)
+
+    @cached_property
+    def sequences(self) -> dict[str, Sequence]:
+        groups: dict[str, list[Frame]] = {}
+        for f in self.ground:
+            groups.setdefault(str(f.sequence), []).append(f)
+        return {
+            name: Sequence(self.name, name, tuple(sorted(fs, key=lambda f: int(f.index or 0))))
+            for name, fs in sorted(groups.items())
+        }
+
+    def layers(self) -> dict[str, bool]:
+        """Which optional layers exist, e.g. {"ground_depth": True, "aerial_semantics": False}."""
+        return {f"{k}_{layer}": (self.root / f"{k}_{layer}").is_dir() for k in KINDS for layer in LAYERS}
+
+
+@dataclass(frozen=True, eq=False)
+class Dataset:
+    root: Path
+    name: str
+    protocol: str  # "<id>@<N>"
+    splits: dict[str, tuple[str, ...]]
+    scenes: dict[str, Scene]
+    meta: dict = field(default_factory=dict)
+
+    def split(self, name: str) -> list[Scene]:
+        if name not in self.splits:
+            raise UserError(f"{self.root / DATASET_FILE}: no split {name!r} (splits: {', '.join(self.splits)})")
+        return [self.scenes[s] for s in self.splits[name]]
+
+    def sequences(self, split: str) -> list[Sequence]:
+        return [seq for scene in self.split(split) for seq in scene.sequences.values()]
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"name": self.name, "protocol": self.protocol, "root": str(self.root), "splits": {}}
+        for split, names in self.splits.items():
+            scenes = [self.scenes[n] for n in names]
+            out["splits"][split] = {
+                "scenes": len(scenes),
+                "sequences": sum(len(s.sequences) for s in scenes),
+                "ground_frames": sum(len(s.ground) for s in scenes),
+                "aerial_frames": sum(len(s.aerial) for s in scenes),
+            }
+        sizes = {(f.width, f.height, f.kind) for s in self.scenes.values() for f in (*s.ground[:1], *s.aerial[:1])}
+        out["resolution"] = {k: f"{w}x{h}" for w, h, k in sorted(sizes)}
+        lengths = [len(q) for s in self.scenes.values() for q in s.sequences.values()]
+        out["sequence_length"] = {"min": min(lengths), "max": max(lengths)} if lengths else {}
+        layers: dict[str, bool] = {}
+        for s in self.scenes.values():
+            for k, v in s.layers().items():
+                layers[k] = layers.get(k, True) and v
+        out["layers"] = layers
+        return out
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _intrinsics_problem(d: Any, where: str) -> str | None:
+    if not isinstance(d, dict):
+        return f"{where}: expected a table with {', '.join(_INTRINSIC_KEYS)}"
+    missing = [k for k in _INTRINSIC_KEYS if k not in d]
+    if missing:
+        return f"{where}: missing {', '.join(missing)}"
+    try:
+        w, h, fx, fy, cx, cy = (float(d[k]) for k in _INTRINSIC_KEYS)
+    except (TypeError, ValueError):
+        return f"{where}: values must be numbers"
+    if w < 1 or h < 1 or w != int(w) or h != int(h):
+        return f"{where}: width/height must be positive integers, got {d['width']}x{d['height']}"
+    if not (fx > 0 and fy > 0 and np.isfinite(fx) and np.isfinite(fy)):
+        return f"{where}: focal lengths must be positive, got fx={fx}, fy={fy}"
+    if not (0 < cx < w and 0 < cy < h):
+        return f"{where}: principal point ({cx}, {cy}) lies outside the {int(w)}x{int(h)} image"
+    return None
+
+
+def _load_scene(root: Path, name: str, problems: list[str], check_files: bool) -> Scene | None:
+    sdir = root / name
+    sfile = sdir / SCENE_FILE
+    if not sfile.is_file():
+        problems.append(f"{sfile}: missing (scene {name!r} is listed in {DATASET_FILE})")
+        return None
+    try:
+        raw = fileio.read_json(sfile)
+    except UserError as e:
+        problems.append(str(e))
+        return None
+    if not isinstance(raw, dict):
+        problems.append(f"{sfile}: expected a JSON object")
+        return None
+    intr = raw.get("intrinsics")
+    if not isinstance(intr, dict):
+        problems.append(f"{sfile}: field 'intrinsics' missing (expected {{'ground': {{...}}, 'aerial': {{...}}}})")
+        return None
+    frames: dict[str, list[Frame]] = {k: [] for k in KINDS}
+    for kind in KINDS:
+        group = intr.get(kind)
+        p = _intrinsics_problem(group, f"{sfile}: field 'intrinsics.{kind}'")
+        if p:
+            problems.append(p)
+            continue
+        entries = raw.get(kind)
+        if not isinstance(entries, list):
+            problems.append(f"{sfile}: field '{kind}' must be a list of frames")
+            continue
+        for i, e in enumerate(entries):
+            where = f"{sfile}: {kind}[{i}]"
+            if not isinstance(e, dict) or not isinstance(e.get("file"), str):
+                problems.append(f"{where}: expected an object with 'file' and 'c2w'")
+                continue
+            where = f"{sfile}: {kind}[{i}] ({e['file']})"
+            fi = e.get("intrinsics", group)
+            if "intrinsics" in e and (p := _intrinsics_problem(fi, f"{where} field 'intrinsics'")):
+                problems.append(p)
+                continue
+            try:
+                c2w = np.asarray(e.get("c2w"), dtype=np.float64)
+            except (TypeError, ValueError):
+                c2w = np.full((1,), np.nan)
+            if p := rigid_problem(c2w):
+                problems.append(f"{where}: field 'c2w' is not a rigid transform: {p}")
+                continue
+            seq, idx = e.get("sequence"), e.get("index")
+            if kind == "ground":
+                if not isinstance(seq, str) or not seq:
+                    problems.append(f"{where}: field 'sequence' must be a non-empty string")
+                    continue
+                if not isinstance(idx, int) or isinstance(idx, bool) or idx < 0:
+                    problems.append(f"{where}: field 'index' must be an integer >= 0")
+                    continue
+            if Path(e["file"]).is_absolute() or ".." in Path(e["file"]).parts:
+                problems.append(f"{where}: field 'file' must be a relative path inside the scene folder")
+                continue
+            frame = Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
+            if check_files:
+                _check_frame_files(frame, problems)
+            frames[kind].append(frame)
+    scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), raw.get("meta", {}) or {})
+    for seq in scene.sequences.values():
+        idx = [f.index for f in seq.frames]
+        if idx != list(range(len(idx))):
+            dup = sorted({i for i in idx if idx.count(i) > 1})
+            gaps = sorted(set(range(max(idx) + 1)) - set(idx))
+            what = f"duplicate indices {dup[:5]}" if dup else f"missing indices {gaps[:5]}"
+            problems.append(f"{sfile}: sequence {seq.name!r} has gaps ({what}; expected 0..{len(idx) - 1})")
+    if not scene.ground:
+        problems.append(f"{sfile}: scene has no ground frames")
+    return scene
+
+
+def _check_frame_files(frame: Frame, problems: list[str]) -> None:
+    if not frame.path.is_file():
+        problems.append(f"{frame.path}: missing file")
+        return
+    try:
+        w, h, c, _ = fileio.image_header(frame.path)
+    except UserError as e:
+        problems.append(str(e))
+        return
+    if (w, h) != (frame.width, frame.height):
+        problems.append(f"{frame.path}: image is {w}x{h}, intrinsics say {frame.width}x{frame.height}")
+    if c not in (3, 4):
+        problems.append(f"{frame.path}: expected an RGB image, got {c} channel(s)")
+    for layer in LAYERS:
+        lp = frame.layer_path(layer)
+        if lp.parent.is_dir():
+            if not lp.is_file():
+                problems.append(f"{lp}: missing ({lp.parent.name}/ exists, so every {frame.kind} frame needs one)")
+                continue
+            try:
+                lw, lh, _, _ = fileio.image_header(lp)
+            except UserError as e:
+                problems.append(str(e))
+                continue
+            if (lw, lh) != (w, h):
+                problems.append(f"{lp}: {layer} is {lw}x{lh}, its image is {w}x{h}")
+
+
+def validate_dataset(root: str | os.PathLike, *, check_files: bool = True) -> tuple[Dataset | None, list[str]]:
+    """Read a dataset and collect every problem (no exception for bad data)."""
+    root = Path(root)
+    problems: list[str] = []
+    dfile = root / DATASET_FILE
+    if not root.is_dir():
+        return None, [f"{root}: not a folder"]
+    if not dfile.is_file():
+        return None, [f"{dfile}: missing (not a dataset folder; expected the canonical layout of DESIGN.md)"]
+    try:
+        raw = fileio.read_json(dfile)
+    except UserError as e:
+        return None, [str(e)]
+    if not isinstance(raw, dict):
+        return None, [f"{dfile}: expected a JSON object"]
+    for key, typ in (("name", str), ("protocol", str), ("splits", dict), ("scenes", list)):
+        if not isinstance(raw.get(key), typ):
+            problems.append(f"{dfile}: field '{key}' missing or not a {typ.__name__}")
+    if problems:
+        return None, problems
+    names = raw["scenes"]
+    if len(set(names)) != len(names) or not all(isinstance(n, str) and n and "/" not in n for n in names):
+        return None, [f"{dfile}: field 'scenes' must list unique scene folder names"]
+    splits: dict[str, tuple[str, ...]] = {}
+    for split, members in raw["splits"].items():
+        if not isinstance(members, list):
+            problems.append(f"{dfile}: field 'splits.{split}' must be a list of scene names")
+            continue
+        for m in members:
+            if m not in names:
+                problems.append(f"{dfile}: split {split!r} names unknown scene {m!r}")
+        splits[split] = tuple(m for m in members if m in names)
+    scenes = {}
+    for n in names:
+        s = _load_scene(root, n, problems, check_files)
+        if s is not None:
+            scenes[n] = s
+    if problems:
+        return None, problems
+    ds = Dataset(root, raw["name"], raw["protocol"], splits, scenes, raw.get("meta", {}) or {})
+    return ds, []
+
+
+def open_dataset(root: str | os.PathLike, *, check_files: bool = True) -> Dataset:
+    """Open and validate a dataset; raises ValidationError listing every problem."""
+    ds, problems = validate_dataset(root, check_files=check_files)
+    if problems:
+        raise ValidationError(f"dataset {root}", problems)
+    assert ds is not None
+    return ds
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _c2w_list(c2w: np.ndarray) -> list[list[float]]:
+    m = np.asarray(c2w, dtype=np.float64)
+    assert m.shape == (4, 4), m.shape
+    return [[float(v) for v in row] for row in m]
+
+
+class SceneWriter:
+    """Adds frames to one scene folder; `DatasetWriter.scene()` makes it."""
+
+    def __init__(self, root: Path, name: str, intrinsics: dict[str, dict], meta: dict | None):
+        self.root = root / name
+        self.name = name
+        self.intrinsics = {k: dict(v) for k, v in intrinsics.items()}
+        self.meta = dict(meta or {})
+        self.entries: dict[str, list[dict]] = {k: [] for k in KINDS}
+        self.root.mkdir(parents=True, exist_ok=False)
+
+    def _add(self, kind: str, image, c2w, depth, semantics, extra: dict, file: str | None) -> str:
+        file = file or f"{kind}/{len(self.entries[kind]):06d}.png"
+        (self.root / kind).mkdir(exist_ok=True)
+        if isinstance(image, (str, os.PathLike)):
+            _copy(Path(image), self.root / file)
+        else:
+            fileio.write_image(self.root / file, image)
+        if depth is not None:
+            fileio.write_depth(self.root / layer_file(file, "depth"), depth)
+        if semantics is not None:
+            fileio.write_labels(self.root / layer_file(file, "semantics"), semantics)
+        self.entries[kind].append({"file": file, "c2w": _c2w_list(c2w), **extra})
+        return file
+
+    def add_aerial(self, image, c2w, *, depth=None, semantics=None, file: str | None = None, **extra) -> str:
+        """image: float [H, W, 3] in [0,1], uint8, or a path to an 8-bit PNG to copy."""
+        return self._add("aerial", image, c2w, depth, semantics, extra, file)
+
+    def add_ground(self, image, c2w, *, sequence: str, index: int, depth=None, semantics=None,
+                   file: str | None = None, **extra) -> str:
+        return self._add("ground", image, c2w, depth, semantics, {"sequence": sequence, "index": int(index), **extra}, file)
+
+    def close(self) -> None:
+        fileio.write_json(self.root / SCENE_FILE, {"intrinsics": self.intrinsics, **self.entries, "meta": self.meta})
+
+
+def _copy(src: Path, dst: Path) -> None:
+    import shutil
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dst)
+
+
+class DatasetWriter:
+    """Writes a dataset into a temporary folder and moves it into place only when complete.
+
+    ```
+    with DatasetWriter(out, name="synthtown-small", protocol="synthtown@1") as w:
+        s = w.scene("train-0-lane00", {"ground": {...}, "aerial": {...}}, meta={...})
+        s.add_ground(img, c2w, sequence="yaw000", index=0, depth=d)
+        s.close()
+        w.finish(splits={"train": [...], "test": [...]}, meta={...})
+    ```
+    """
+
+    def __init__(self, root: str | os.PathLike, *, name: str, protocol: str, overwrite: bool = False):
+        self.final = Path(root)
+        self.name, self.protocol, self.overwrite = name, protocol, overwrite
+        self.scenes: list[str] = []
+        self._ctx = None
+        self._finished = False
+
+    def __enter__(self) -> "DatasetWriter":
+        self._ctx = fileio.atomic_dir(self.final, overwrite=self.overwrite)
+        self.root = self._ctx.__enter__()
+        return self
+
+    def scene(self, name: str, intrinsics: dict[str, dict], meta: dict | None = None) -> SceneWriter:
+        if name in self.scenes:
+            raise ValueError(f"scene {name!r} written twice")
+        self.scenes.append(name)
+        return SceneWriter(self.root, name, intrinsics, meta)
+
+    def finish(self, splits: dict[str, list[str]], meta: dict | None = None) -> None:
+        fileio.write_json(self.root / DATASET_FILE, {
+            "name": self.name, "protocol": self.protocol, "splits": splits,
+            "scenes": self.scenes, "meta": dict(meta or {}),
+        })
+        self._finished = True
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None and not self._finished:
+            exc_type = RuntimeError
+            exc = RuntimeError("DatasetWriter closed without finish(): nothing was written")
+            self._ctx.__exit__(exc_type, exc, tb)
+            raise exc
+        return self._ctx.__exit__(exc_type, exc, tb)

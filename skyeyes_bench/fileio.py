@@ -1,0 +1,211 @@
+"""File I/O at the edges: atomic writes, JSON, 8-bit sRGB PNG and float32 EXR depth.
+
+Everything that writes goes through a temporary file in the destination folder followed by
+`os.replace`, so a crash never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .errors import UserError
+
+#: Largest image we agree to decode (pixels). Guards against decompression bombs.
+MAX_PIXELS = 8192 * 8192
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success rename it to `path`, else delete it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary folder beside `path`; on success move it to `path` as a whole.
+
+    An existing `path` is refused unless `overwrite` (then it is replaced only after the new
+    content is complete).
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise UserError(f"{path}: already exists; pass --force to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    try:
+        yield tmp
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, allow_nan=True) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except json.JSONDecodeError as e:
+        raise UserError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+# --------------------------------------------------------------------------- images
+
+
+def _oiio():
+    import OpenImageIO as oiio  # noqa: N813  (heavy import, kept lazy)
+
+    return oiio
+
+
+def image_header(path: str | os.PathLike) -> tuple[int, int, int, str]:
+    """(width, height, channels, pixel format) from the file header, without decoding pixels."""
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        return spec.width, spec.height, spec.nchannels, str(spec.format)
+    finally:
+        inp.close()
+
+
+def _read_pixels(path: str | os.PathLike, fmt: str) -> np.ndarray:
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        if spec.width * spec.height > MAX_PIXELS:
+            raise UserError(
+                f"{path}: image of {spec.width}x{spec.height} exceeds the {MAX_PIXELS} pixel limit"
+            )
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
+            raise UserError(f"{path}: cannot decode image ({inp.geterror().strip() or 'truncated?'})")
+        if inp.has_error:
+            raise UserError(f"{path}: cannot decode image ({inp.geterror().strip()})")
+    finally:
+        inp.close()
+    return np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
+
+
+def read_image_uint8(path: str | os.PathLike) -> np.ndarray:
+    """8-bit image as uint8 [H, W, C] (C as stored)."""
+    return _read_pixels(path, "uint8")
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """8-bit sRGB image as float32 [H, W, 3] in [0, 1]. Grey is expanded, alpha dropped."""
+    px = read_image_uint8(path)
+    if px.shape[2] == 1:
+        px = np.repeat(px, 3, axis=2)
+    elif px.shape[2] == 4:
+        px = px[..., :3]
+    elif px.shape[2] != 3:
+        raise UserError(f"{path}: expected an RGB image, got {px.shape[2]} channels")
+    return px.astype(np.float32) / 255.0
+
+
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    """float [0,1] -> uint8 with rounding; uint8 passes through."""
+    if img.dtype == np.uint8:
+        return img
+    return np.clip(np.rint(np.asarray(img, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _write_pixels(path: str | os.PathLike, pixels: np.ndarray, fmt: str, attrs: dict | None = None) -> None:
+    oiio = _oiio()
+    path = Path(path)
+    assert pixels.ndim == 3, pixels.shape  # [H, W, C]: a 2-D array scrambles 1-channel writes
+    h, w, c = pixels.shape
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(path))  # format chosen from the final name's extension
+        if out is None:
+            raise UserError(f"{path}: cannot write this image format ({oiio.geterror().strip()})")
+        spec = oiio.ImageSpec(w, h, c, fmt)
+        for k, v in (attrs or {}).items():
+            spec.attribute(k, v)
+        if not out.open(str(tmp), spec):
+            raise OSError(f"{path}: cannot open for writing: {out.geterror()}")
+        ok = out.write_image(np.ascontiguousarray(pixels))
+        out.close()
+        if not ok:
+            raise OSError(f"{path}: write failed: {out.geterror()}")
+
+
+def write_image(path: str | os.PathLike, img: np.ndarray) -> None:
+    """Write an 8-bit PNG from float [0,1] or uint8, [H, W, 3] or [H, W] (grey / labels)."""
+    px = to_uint8(img)
+    if px.ndim == 2:
+        px = px[..., None]
+    _write_pixels(path, px, "uint8")
+
+
+def write_labels(path: str | os.PathLike, labels: np.ndarray) -> None:
+    """Write integer labels [H, W] (0..255) as a 1-channel 8-bit PNG."""
+    assert labels.ndim == 2, labels.shape
+    if labels.min(initial=0) < 0 or labels.max(initial=0) > 255:
+        raise ValueError("labels must lie in 0..255")
+    _write_pixels(path, labels.astype(np.uint8)[..., None], "uint8")
+
+
+def read_labels(path: str | os.PathLike) -> np.ndarray:
+    return _read_pixels(path, "uint8")[..., 0]
+
+
+def write_depth(path: str | os.PathLike, depth: np.ndarray) -> None:
+    """Write float32 depth [H, W] in metres as a 1-channel EXR (inf allowed for sky)."""
+    assert depth.ndim == 2, depth.shape  # [H, W]
+    _write_pixels(path, depth.astype(np.float32)[..., None], "float", {"compression": "zip"})
+
+
+def read_depth(path: str | os.PathLike) -> np.ndarray:
+    """float32 depth [H, W] in metres from an EXR (first channel)."""
+    return _read_pixels(path, "float")[..., 0].astype(np.float32)

@@ -1,0 +1,273 @@
+"""Versioned evaluation protocols: `protocols/<id>/v<N>.toml` -> frozen `Protocol`.
+
+A protocol is data, never code. A change makes a new version; old versions stay loadable.
+Its `sha256` is taken over the canonical JSON of the parsed content, so formatting and
+comments in the TOML do not change it but any value does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import UserError
+from .paths import protocols_dir
+
+_VERSION_FILE = re.compile(r"^v(\d+)\.toml$")
+_REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
+
+#: Metric names a protocol may ask for, and the settings each one accepts.
+METRIC_KEYS: dict[str, set[str]] = {
+    "psnr": {"aggregate"},
+    "ssim": {"aggregate", "window", "sigma", "k1", "k2"},
+    "lpips": {"aggregate", "extractor"},
+    "fid": {"extractor", "resize"},
+    "kid": {"extractor", "resize", "subset_size", "num_subsets"},
+    "fvd": {"extractor", "resize", "clip_length", "clip_stride"},
+    "kvd": {"extractor", "resize", "clip_length", "clip_stride", "subset_size", "num_subsets"},
+}
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    source: str  # "synthtown" | "carla" | "citysample"
+    train: tuple[str, ...]  # towns / regions that make the train split
+    test: tuple[str, ...]  # held out
+    width: int  # ground and aerial image size, pixels
+    height: int
+    fov_deg: float  # horizontal field of view of ground and aerial cameras
+    default_location: str = ""  # "" none; "cache:<name>" = `<cache>/data/<name>`
+
+
+@dataclass(frozen=True)
+class CaptureSpec:
+    ground_height_m: float
+    ground_pitch_deg: float
+    ground_step_m: float
+    yaws_deg: tuple[float, ...]
+    aerial_height_m: float
+    aerial_pitch_deg: float
+    sequence: str  # prose: what one sequence is
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    name: str
+    extractor: str | None = None  # registry id of the feature extractor
+    resize: str | None = None  # resize mode before the extractor ("clean-bicubic", ...)
+    aggregate: str | None = None  # how per-frame values become one (psnr: inf handling)
+    window: int | None = None  # SSIM Gaussian window size
+    sigma: float | None = None
+    k1: float | None = None
+    k2: float | None = None
+    subset_size: int | None = None  # KID/KVD subsets
+    num_subsets: int | None = None
+    clip_length: int | None = None  # FVD/KVD clip length in frames
+    clip_stride: int | None = None  # frames between clip starts within a sequence
+
+
+@dataclass(frozen=True)
+class StatsSpec:
+    bootstrap_resamples: int
+    interval: float  # e.g. 0.95
+    seed: int
+    cluster: str  # resampling unit: "sequence"
+    emcee_walkers: int
+    emcee_steps: int
+    emcee_burn: int
+
+
+@dataclass(frozen=True)
+class Protocol:
+    id: str
+    version: int
+    title: str
+    description: str
+    reference: str
+    data: DataSpec
+    capture: CaptureSpec
+    metrics: tuple[MetricSpec, ...]
+    statistics: StatsSpec
+    sha256: str = field(default="", compare=False)
+    path: str = field(default="", compare=False)
+
+    @property
+    def ref(self) -> str:
+        """`id@version`, the name that goes into every cache key and result file."""
+        return f"{self.id}@{self.version}"
+
+    def metric(self, name: str) -> MetricSpec | None:
+        return next((m for m in self.metrics if m.name == name), None)
+
+    @property
+    def metric_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.metrics)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d.pop("sha256"), d.pop("path")
+        d["metrics"] = {m.pop("name"): {k: v for k, v in m.items() if v is not None} for m in d["metrics"]}
+        return d
+
+
+# --------------------------------------------------------------------------- validation
+
+_SECTIONS: dict[str, type] = {"data": DataSpec, "capture": CaptureSpec, "statistics": StatsSpec}
+_TOP = {"id", "version", "title", "description", "reference", "data", "capture", "metrics", "statistics"}
+
+
+def _type_ok(value: Any, annotation: str) -> bool:
+    base = annotation.replace(" | None", "")
+    if base == "str":
+        return isinstance(value, str)
+    if base == "int":
+        return isinstance(value, int) and not isinstance(value, bool)
+    if base == "float":
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if base.startswith("tuple[str"):
+        return isinstance(value, list) and all(isinstance(v, str) for v in value)
+    if base.startswith("tuple[float"):
+        return isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    raise AssertionError(annotation)
+
+
+def _convert(value: Any, annotation: str) -> Any:
+    base = annotation.replace(" | None", "")
+    if base == "float":
+        return float(value)
+    if base.startswith("tuple[float"):
+        return tuple(float(v) for v in value)
+    if base.startswith("tuple"):
+        return tuple(value)
+    return value
+
+
+def _build(cls: type, table: Any, where: str, file: str, extra: dict | None = None) -> Any:
+    if not isinstance(table, dict):
+        raise UserError(f"{file}: [{where}] must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = dict(extra or {})
+    for key, value in table.items():
+        if key not in fields or key in kwargs:
+            known = ", ".join(k for k in fields if k not in (extra or {}))
+            raise UserError(f"{file}: unknown key '{where}.{key}' (known: {known})")
+        ann = str(fields[key].type)
+        if not _type_ok(value, ann):
+            raise UserError(f"{file}: key '{where}.{key}' must be {ann.replace(' | None', '')}, got {value!r}")
+        kwargs[key] = _convert(value, ann)
+    for name, f in fields.items():
+        if name not in kwargs and f.default is dataclasses.MISSING:
+            raise UserError(f"{file}: missing key '{where}.{name}'")
+    return cls(**kwargs)
+
+
+def canonical_sha256(content: dict[str, Any]) -> str:
+    """sha256 of the canonical JSON (sorted keys, no whitespace) of a parsed protocol."""
+    blob = json.dumps(content, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
+    """Validate a parsed TOML table; every error names the file and key."""
+    for key in raw:
+        if key not in _TOP:
+            raise UserError(f"{file}: unknown key '{key}' (known: {', '.join(sorted(_TOP))})")
+    for key in ("id", "version", "title", "description", "reference"):
+        if key not in raw:
+            raise UserError(f"{file}: missing key '{key}'")
+    for key, typ in (("id", str), ("title", str), ("description", str), ("reference", str)):
+        if not isinstance(raw[key], typ):
+            raise UserError(f"{file}: key '{key}' must be str, got {raw[key]!r}")
+    if not isinstance(raw["version"], int) or isinstance(raw["version"], bool) or raw["version"] < 1:
+        raise UserError(f"{file}: key 'version' must be an int >= 1, got {raw['version']!r}")
+    for section in ("data", "capture", "metrics", "statistics"):
+        if section not in raw:
+            raise UserError(f"{file}: missing table [{section}]")
+    sections = {name: _build(cls, raw[name], name, file) for name, cls in _SECTIONS.items()}
+    if not isinstance(raw["metrics"], dict) or not raw["metrics"]:
+        raise UserError(f"{file}: [metrics] must be a non-empty table of [metrics.<name>] tables")
+    metrics = []
+    for name, table in raw["metrics"].items():
+        if name not in METRIC_KEYS:
+            raise UserError(f"{file}: unknown metric 'metrics.{name}' (known: {', '.join(METRIC_KEYS)})")
+        if isinstance(table, dict):
+            for key in table:
+                if key not in METRIC_KEYS[name]:
+                    allowed = ", ".join(sorted(METRIC_KEYS[name]))
+                    raise UserError(f"{file}: unknown key 'metrics.{name}.{key}' (known: {allowed})")
+        metrics.append(_build(MetricSpec, table, f"metrics.{name}", file, extra={"name": name}))
+    for m in metrics:
+        if m.name in ("fvd", "kvd") and (m.clip_length or 0) < 2:
+            raise UserError(f"{file}: key 'metrics.{m.name}.clip_length' must be >= 2")
+        if m.name in ("fid", "kid", "fvd", "kvd", "lpips") and not m.extractor:
+            raise UserError(f"{file}: missing key 'metrics.{m.name}.extractor'")
+    stats = sections["statistics"]
+    if not 0 < stats.interval < 1:
+        raise UserError(f"{file}: key 'statistics.interval' must lie in (0, 1), got {stats.interval}")
+    data = sections["data"]
+    if data.width < 1 or data.height < 1:
+        raise UserError(f"{file}: keys 'data.width' and 'data.height' must be positive")
+    proto = Protocol(
+        id=raw["id"], version=raw["version"], title=raw["title"], description=raw["description"],
+        reference=raw["reference"], data=data, capture=sections["capture"],
+        metrics=tuple(metrics), statistics=stats,
+    )
+    return dataclasses.replace(proto, sha256=canonical_sha256(proto.to_dict()), path=file)
+
+
+# --------------------------------------------------------------------------- registry of files
+
+
+def available(root: Path | None = None) -> dict[str, list[int]]:
+    """{protocol id: sorted versions} found under the protocols folder."""
+    root = root or protocols_dir()
+    out: dict[str, list[int]] = {}
+    if root.is_dir():
+        for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+            versions = sorted(int(m.group(1)) for f in sub.iterdir() if (m := _VERSION_FILE.match(f.name)))
+            if versions:
+                out[sub.name] = versions
+    return out
+
+
+def load_protocol_file(path: str | Path) -> Protocol:
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: protocol file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: not valid TOML ({e})") from None
+    proto = parse_protocol(raw, str(path))
+    m = _VERSION_FILE.match(path.name)
+    if m and (int(m.group(1)) != proto.version or path.parent.name != proto.id):
+        raise UserError(
+            f"{path}: file says id={proto.id!r} version={proto.version}, "
+            f"expected id={path.parent.name!r} version={int(m.group(1))} from its path"
+        )
+    return proto
+
+
+def load_protocol(ref: str, root: Path | None = None) -> Protocol:
+    """`load_protocol("carla-town04@1")`; without `@N`, the latest version."""
+    m = _REF.match(ref.strip())
+    if not m:
+        raise UserError(f"protocol reference {ref!r}: expected 'ID' or 'ID@N' (e.g. 'synthtown@1')")
+    pid, version = m.group(1), m.group(2)
+    known = available(root)
+    if pid not in known:
+        raise UserError(f"unknown protocol {pid!r}; known: {', '.join(known) or '(none)'}")
+    v = int(version) if version else known[pid][-1]
+    if v not in known[pid]:
+        raise UserError(f"protocol {pid!r} has no version {v}; versions: {', '.join(map(str, known[pid]))}")
+    return load_protocol_file((root or protocols_dir()) / pid / f"v{v}.toml")
+
+
+def list_protocols(root: Path | None = None) -> list[Protocol]:
+    return [load_protocol(f"{pid}@{v}", root) for pid, vs in available(root).items() for v in vs]

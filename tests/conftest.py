@@ -1,0 +1,33 @@
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(autouse=True)
+def _isolated_cache(tmp_path_factory, monkeypatch):
+    """Each test gets its own cache dir unless it asks otherwise (no writes to ~/.cache)."""
+    if "SKYEYES_TEST_SHARED_CACHE" not in os.environ:
+        monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path_factory.mktemp("cache")))
+    yield
+
+
+def run_cli(*args: str, check: int | None = 0):
+    """Run `skyeyes-bench ARGS` in-process; return (rc, stdout, stderr)."""
+    import contextlib
+    import io
+
+    from skyeyes_bench.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(list(args))
+        except SystemExit as e:  # argparse
+            rc = e.code if isinstance(e.code, int) else 2
+    if check is not None:
+        assert rc == check, f"rc={rc}\nstdout:\n{out.getvalue()}\nstderr:\n{err.getvalue()}"
+    return rc, out.getvalue(), err.getvalue()

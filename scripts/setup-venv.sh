@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create (or update) the project's virtual environment in .venv.
+# Create (or update) the project's virtual environment in .venv. Idempotent: a stamp of
+# pyproject.toml and this script skips the installs when nothing changed.
 # torch is installed first and pinned: on this machine `torch==2.13.0` is a local CPU build,
 # while an unpinned torch would pull a multi-GB CUDA build. The project itself declares
 # torch>=2.4 so users elsewhere keep their own build.
@@ -14,8 +15,11 @@ want=$(cat pyproject.toml scripts/setup-venv.sh | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   exit 0
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
-.venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | grep -v "^WARNING: Location" || true
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev,reference]" 2>&1 | grep -v "^WARNING: Location" || true
-.venv/bin/python -c "import torch, skyeyes_bench" >/dev/null
+pipq() {  # pip, quiet, without this machine's noise about missing local mirrors
+  .venv/bin/python -m pip install -q --disable-pip-version-check "$@" 2> >(grep -v "^WARNING: Location" >&2)
+}
+pipq --upgrade pip
+pipq "torch==2.13.0"
+pipq -e ".[dev,reference]"
+(cd / && "$OLDPWD/.venv/bin/python" -c "import torch, skyeyes_bench, reference") >/dev/null
 echo "$want" > "$stamp"

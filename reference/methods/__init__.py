@@ -1,0 +1,18 @@
+"""Registry of reference methods: id -> lazy "module:Class" (a `reference.method.Method`)."""
+
+from __future__ import annotations
+
+METHODS: dict[str, str] = {
+    "gaussians3d": "reference.methods.gaussians3d:Gaussians3D",
+    "sugar": "reference.methods.sugar:SuGaR",
+    "skyeyes": "reference.methods.skyeyes:Skyeyes",
+    "skyeyes-no-vcm": "reference.methods.skyeyes:SkyeyesNoVCM",
+    "controlnet": "reference.methods.controlnet:ControlNetBaseline",
+}
+
+
+def get_method_class(name: str):
+    """The Method class for `name`; a lookup miss lists the known ids."""
+    from skyeyes_bench.registry import load_entry_point, lookup
+
+    return load_entry_point(lookup(METHODS, name, "method"))

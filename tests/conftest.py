@@ -31,3 +31,12 @@ def run_cli(*args: str, check: int | None = 0):
     if check is not None:
         assert rc == check, f"rc={rc}\nstdout:\n{out.getvalue()}\nstderr:\n{err.getvalue()}"
     return rc, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="session")
+def synthtown_smoke(tmp_path_factory) -> Path:
+    """The SynthTown `smoke` dataset, generated once per test session (read-only: don't modify)."""
+    from skyeyes_bench.data.synthtown import generate_dataset
+
+    out = tmp_path_factory.mktemp("synthtown") / "synthtown-smoke"
+    return generate_dataset(out, preset="smoke", seed=0, progress=False)

@@ -19,7 +19,7 @@ from typing import Any
 from .errors import UserError
 from .paths import protocols_dir
 
-_VERSION_FILE = re.compile(r"^v(\d+)\.toml$")
+_VERSION_FILE = re.compile(r"^v([1-9]\d*)\.toml$")  # v1.toml, v2.toml ... (no v01)
 _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 
 #: Metric names a protocol may ask for, and the settings each one accepts.
@@ -210,9 +210,26 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     stats = sections["statistics"]
     if not 0 < stats.interval < 1:
         raise UserError(f"{file}: key 'statistics.interval' must lie in (0, 1), got {stats.interval}")
+    for key in ("bootstrap_resamples", "emcee_walkers", "emcee_steps"):
+        if getattr(stats, key) < 1:
+            raise UserError(f"{file}: key 'statistics.{key}' must be >= 1, got {getattr(stats, key)}")
+    if not 0 <= stats.emcee_burn < stats.emcee_steps:
+        raise UserError(f"{file}: key 'statistics.emcee_burn' must lie in [0, emcee_steps), got {stats.emcee_burn}")
     data = sections["data"]
     if data.width < 1 or data.height < 1:
         raise UserError(f"{file}: keys 'data.width' and 'data.height' must be positive")
+    if not 0 < data.fov_deg < 180:
+        raise UserError(f"{file}: key 'data.fov_deg' must lie in (0, 180), got {data.fov_deg}")
+    capture = sections["capture"]
+    if not capture.yaws_deg:
+        raise UserError(f"{file}: key 'capture.yaws_deg' must list at least one yaw")
+    if not capture.ground_step_m > 0:
+        raise UserError(f"{file}: key 'capture.ground_step_m' must be > 0, got {capture.ground_step_m}")
+    for m in metrics:
+        for key in ("window", "subset_size", "num_subsets", "clip_stride"):
+            v = getattr(m, key)
+            if v is not None and v < 1:
+                raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must be >= 1, got {v}")
     proto = Protocol(
         id=raw["id"], version=raw["version"], title=raw["title"], description=raw["description"],
         reference=raw["reference"], data=data, capture=sections["capture"],
@@ -244,6 +261,8 @@ def load_protocol_file(path: str | Path) -> Protocol:
         raise UserError(f"{path}: protocol file not found") from None
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: cannot read protocol file ({e})") from None
     proto = parse_protocol(raw, str(path))
     m = _VERSION_FILE.match(path.name)
     if m and (int(m.group(1)) != proto.version or path.parent.name != proto.id):

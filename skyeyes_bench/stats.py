@@ -1,0 +1,389 @@
+"""Honest statistics for results: clustered bootstrap over sequences and a Bayesian paired
+comparison of two methods.
+
+Frames within one sequence (a drive along a lane at one yaw) are strongly correlated, so the
+resampling unit is the **sequence**: a bootstrap resample draws K sequence ids with replacement
+from the K test sequences; a per-frame metric is the mean over all frames of the drawn sequences
+(with multiplicity); a set metric (FID, KID, FVD, KVD) is recomputed from the features of the
+drawn sequences. The same drawn ids are used for the submission side and the ground-truth side
+(paired), and, in `compare`, for both methods.
+
+Pure functions on arrays; no file I/O here.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Metrics for which a lower value is better (everything else: higher is better).
+LOWER_IS_BETTER = frozenset({"lpips", "fid", "kid", "fvd", "kvd"})
+#: Metrics with one value per frame; the others are set metrics over all frames / clips.
+FRAME_METRICS = ("psnr", "ssim", "lpips")
+SET_METRICS = ("fid", "kid", "fvd", "kvd")
+
+
+def higher_is_better(metric: str) -> bool:
+    return metric not in LOWER_IS_BETTER
+
+
+# --------------------------------------------------------------------------- resampling
+
+
+def resample_indices(n_clusters: int, resamples: int, seed: int) -> np.ndarray:
+    """Sequence ids drawn with replacement: int64 [R, K] for K = n_clusters."""
+    assert n_clusters >= 1 and resamples >= 1
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, n_clusters, size=(resamples, n_clusters))
+
+
+def resample_counts(idx: np.ndarray, n_clusters: int) -> np.ndarray:
+    """How often each cluster is drawn in each resample: float64 [R, K] from idx [R, K]."""
+    r = idx.shape[0]
+    counts = np.zeros((r, n_clusters))
+    np.add.at(counts, (np.repeat(np.arange(r), idx.shape[1]), idx.ravel()), 1.0)
+    return counts
+
+
+def percentile_interval(samples: np.ndarray, level: float) -> tuple[float, float]:
+    """Percentile interval of bootstrap samples [R]. +inf samples sort last (an interval may
+    end at +inf); NaN samples are an error of the caller."""
+    s = np.sort(np.asarray(samples, dtype=np.float64))
+    assert not np.isnan(s).any(), "NaN in bootstrap samples"
+    a = (1.0 - level) / 2.0
+    # NOTE: 'inverted_cdf' picks actual sample values, so infinities never mix with finite
+    # values in an interpolation (which would give NaN).
+    lo, hi = np.quantile(s, [a, 1.0 - a], method="inverted_cdf")
+    return float(lo), float(hi)
+
+
+def frame_metric_samples(values: np.ndarray, clusters: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Mean of per-frame values over each resample's frames.
+
+    Args:
+        values: [N] per-frame values (may hold +inf, e.g. PSNR of an exact frame).
+        clusters: [N] int, the sequence id (0..K-1) of each frame.
+        counts: [R, K] how often each sequence is drawn.
+    Returns:
+        [R] resampled means; +inf where a drawn sequence holds an infinite value.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    k = counts.shape[1]
+    n_per = np.bincount(clusters, minlength=k).astype(np.float64)
+    inf_per = np.bincount(clusters, weights=np.isposinf(values), minlength=k) > 0
+    ninf_per = np.bincount(clusters, weights=np.isneginf(values), minlength=k) > 0
+    sums = np.bincount(clusters, weights=np.where(np.isfinite(values), values, 0.0), minlength=k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (counts @ sums) / (counts @ n_per)
+    pos = (counts[:, inf_per] > 0).any(axis=1)
+    neg = (counts[:, ninf_per] > 0).any(axis=1)
+    out[pos] = np.inf
+    out[neg] = -np.inf
+    out[pos & neg] = np.nan  # +inf and -inf in one mean: undefined (not produced by our metrics)
+    return out
+
+
+def sequence_psnr(psnrs: np.ndarray, clusters: np.ndarray, k: int) -> np.ndarray:
+    """Per-sequence PSNR from the sequence's mean MSE: [K] from per-frame PSNR [N].
+
+    This is finite unless every frame of the sequence is exact (then +inf), which is what makes
+    per-sequence differences between two methods usable in a paired comparison.
+    """
+    mse = np.power(10.0, -np.asarray(psnrs, dtype=np.float64) / 10.0)  # +inf PSNR -> MSE 0
+    mean_mse = np.bincount(clusters, weights=mse, minlength=k) / np.bincount(clusters, minlength=k)
+    with np.errstate(divide="ignore"):
+        return -10.0 * np.log10(mean_mse)
+
+
+# --------------------------------------------------------------------------- set metrics
+
+
+class FrechetBootstrap:
+    """Fréchet distance between two feature sets under resampling weights, recomputed exactly
+    per resample from Gram matrices computed once.
+
+    With A = W1^(1/2) (X1 - mu1) / sqrt(n1 - 1) (so cov1 = A^T A) and B likewise,
+    tr sqrtm(cov1 cov2) equals the nuclear norm of A B^T (the nonzero eigenvalues of
+    A^T A B^T B are those of (A B^T)(A B^T)^T). When frames are fewer than feature dimensions
+    this works in frame space (N x N) instead of D x D; otherwise on covariances directly.
+    """
+
+    def __init__(self, x1: np.ndarray, x2: np.ndarray):
+        # x1: [N1, D] submission features; x2: [N2, D] ground-truth features
+        self.x1 = np.asarray(x1, dtype=np.float64)
+        self.x2 = np.asarray(x2, dtype=np.float64)
+        assert self.x1.ndim == 2 and self.x2.ndim == 2 and self.x1.shape[1] == self.x2.shape[1]
+        self.d = self.x1.shape[1]
+        self.gram = max(len(self.x1), len(self.x2)) <= self.d
+        if self.gram:
+            self.g11 = self.x1 @ self.x1.T  # [N1, N1]
+            self.g22 = self.x2 @ self.x2.T  # [N2, N2]
+            self.g12 = self.x1 @ self.x2.T  # [N1, N2]
+
+    def __call__(self, w1: np.ndarray, w2: np.ndarray) -> float:
+        """FID for row weights w1 [N1], w2 [N2] (resample multiplicities; zero rows dropped)."""
+        w1 = np.asarray(w1, dtype=np.float64)
+        w2 = np.asarray(w2, dtype=np.float64)
+        n1, n2 = w1.sum(), w2.sum()
+        if n1 < 2 or n2 < 2:
+            return math.nan
+        if not self.gram:
+            return self._covariance_route(w1, w2, n1, n2)
+        k1, k2 = np.flatnonzero(w1), np.flatnonzero(w2)
+        w1, w2 = w1[k1], w2[k2]
+        g11 = self.g11[np.ix_(k1, k1)]
+        g22 = self.g22[np.ix_(k2, k2)]
+        g12 = self.g12[np.ix_(k1, k2)]
+        mu11 = w1 @ g11 @ w1 / n1**2  # |mu1|^2
+        mu22 = w2 @ g22 @ w2 / n2**2
+        mu12 = w1 @ g12 @ w2 / (n1 * n2)
+        tr1 = (w1 @ np.diag(g11) - n1 * mu11) / (n1 - 1)
+        tr2 = (w2 @ np.diag(g22) - n2 * mu22) / (n2 - 1)
+        # centred cross Gram (X1 - mu1)(X2 - mu2)^T
+        c = g12 - (g12 @ w2 / n2)[:, None] - (w1 @ g12 / n1)[None, :] + mu12
+        m = np.sqrt(w1)[:, None] * c * np.sqrt(w2)[None, :] / math.sqrt((n1 - 1) * (n2 - 1))
+        mm = m @ m.T if m.shape[0] <= m.shape[1] else m.T @ m
+        tr_sqrt = np.sqrt(np.clip(np.linalg.eigvalsh(mm), 0.0, None)).sum()
+        return float(mu11 + mu22 - 2 * mu12 + tr1 + tr2 - 2 * tr_sqrt)
+
+    def _covariance_route(self, w1, w2, n1, n2) -> float:
+        mu1 = w1 @ self.x1 / n1
+        mu2 = w2 @ self.x2 / n2
+        c1 = self.x1 - mu1
+        c2 = self.x2 - mu2
+        s1 = (c1 * w1[:, None]).T @ c1 / (n1 - 1)
+        s2 = (c2 * w2[:, None]).T @ c2 / (n2 - 1)
+        return frechet_eigh(mu1, s1, mu2, s2)
+
+
+def frechet_eigh(mu1: np.ndarray, s1: np.ndarray, mu2: np.ndarray, s2: np.ndarray) -> float:
+    """Fréchet distance via symmetric eigendecompositions (stable for PSD covariances [D, D]):
+    tr sqrtm(s1 s2) = tr sqrtm(s1^(1/2) s2 s1^(1/2))."""
+    lam, v = np.linalg.eigh(s1)
+    r1 = (v * np.sqrt(np.clip(lam, 0.0, None))) @ v.T
+    inner = np.linalg.eigvalsh(r1 @ s2 @ r1)
+    tr_sqrt = np.sqrt(np.clip(inner, 0.0, None)).sum()
+    diff = mu1 - mu2
+    return float(diff @ diff + np.trace(s1) + np.trace(s2) - 2 * tr_sqrt)
+
+
+def polynomial_kernel(x: np.ndarray, y: np.ndarray, *, degree: int = 3, gamma: float | None = None,
+                      coef0: float = 1.0) -> np.ndarray:
+    """k(x, y) = (gamma x.y + coef0)^degree, gamma = 1/D by default (KID, Bińkowski et al. 2018).
+
+    x: [N, D], y: [M, D] -> [N, M]."""
+    gamma = 1.0 / x.shape[1] if gamma is None else gamma
+    return (gamma * (np.asarray(x, np.float64) @ np.asarray(y, np.float64).T) + coef0) ** degree
+
+
+class MMDBootstrap:
+    """Unbiased MMD^2 (polynomial kernel) under resampling weights, from kernel matrices computed
+    once. A frame drawn c times counts as c distinct samples; the U-statistic leaves out only
+    identical instances (i == j), not copies of the same frame.
+
+    NOTE: the point estimate of KID/KVD follows the protocol (mean over random subsets of at
+    most `subset_size`); the bootstrap recomputes the full-sample unbiased MMD^2, which is the
+    quantity that subset average estimates, at O(N^2) per resample instead of O(S m^2 D).
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, *, degree: int = 3, gamma: float | None = None,
+                 coef0: float = 1.0):
+        # x: [N1, D] submission features, y: [N2, D] ground truth
+        kw = dict(degree=degree, gamma=gamma, coef0=coef0)
+        self.kxx = polynomial_kernel(x, x, **kw)
+        self.kyy = polynomial_kernel(y, y, **kw)
+        self.kxy = polynomial_kernel(x, y, **kw)
+
+    def __call__(self, w1: np.ndarray, w2: np.ndarray) -> float:
+        w1 = np.asarray(w1, dtype=np.float64)
+        w2 = np.asarray(w2, dtype=np.float64)
+        n, m = w1.sum(), w2.sum()
+        if n < 2 or m < 2:
+            return math.nan
+        sxx = w1 @ self.kxx @ w1 - w1 @ np.diag(self.kxx)
+        syy = w2 @ self.kyy @ w2 - w2 @ np.diag(self.kyy)
+        sxy = w1 @ self.kxy @ w2
+        return float(sxx / (n * (n - 1)) + syy / (m * (m - 1)) - 2 * sxy / (n * m))
+
+
+def set_metric_samples(fn, clusters1: np.ndarray, clusters2: np.ndarray, counts: np.ndarray,
+                       progress=None) -> np.ndarray:
+    """Evaluate a weighted set metric `fn(w1, w2)` for each resample.
+
+    Args:
+        fn: FrechetBootstrap or MMDBootstrap (or any callable on row weights).
+        clusters1: [N1] sequence id of each submission feature row; clusters2: [N2] ground truth.
+        counts: [R, K] resample multiplicities of each sequence.
+        progress: optional callable advanced once per resample.
+    Returns:
+        [R] metric values.
+    """
+    out = np.empty(counts.shape[0])
+    for r, c in enumerate(counts):
+        out[r] = fn(c[clusters1], c[clusters2])
+        if progress is not None:
+            progress(1)
+    return out
+
+
+# --------------------------------------------------------------------------- Bayesian model
+
+
+def hdi(samples: np.ndarray, mass: float = 0.95) -> tuple[float, float]:
+    """Shortest interval holding `mass` of the samples [S] (highest-density for unimodal)."""
+    s = np.sort(np.asarray(samples, dtype=np.float64))
+    n = len(s)
+    k = max(1, int(math.ceil(mass * n)))
+    if k >= n:
+        return float(s[0]), float(s[-1])
+    widths = s[k - 1:] - s[: n - k + 1]
+    i = int(np.argmin(widths))
+    return float(s[i]), float(s[i + k - 1])
+
+
+@dataclass(frozen=True)
+class StudentTPosterior:
+    mu: np.ndarray  # [S] posterior samples of the mean difference
+    sigma: np.ndarray  # [S]
+    nu: np.ndarray  # [S]
+    acceptance: float  # mean acceptance fraction over walkers
+    autocorr: float  # largest integrated autocorrelation time (steps) over parameters
+    kept_steps: int  # steps per walker after burn-in
+    warnings: tuple[str, ...]
+
+
+# NOTE: priors after Kruschke (2013), "Bayesian estimation supersedes the t test" (BEST):
+# mu ~ Normal(mean(d), (1000 sd(d))^2), sigma ~ Uniform(sd/1000, 1000 sd), nu - 1 ~ Exp(mean 29).
+_NU_MEAN = 29.0
+
+
+def _log_prob_factory(d: np.ndarray):
+    from scipy.special import gammaln
+
+    d = np.asarray(d, dtype=np.float64)
+    m, s = float(d.mean()), float(d.std(ddof=1))
+    lo, hi = math.log(s / 1000.0), math.log(s * 1000.0)
+    prior_sd = 1000.0 * s
+
+    def log_prob(theta: np.ndarray) -> np.ndarray:
+        # theta: [W, 3] = (mu, log sigma, log(nu - 1)); vectorised over walkers
+        mu, ls, lnu = theta[:, 0], theta[:, 1], theta[:, 2]
+        ok = (ls > lo) & (ls < hi) & (lnu > -10) & (lnu < 10)
+        sigma = np.exp(np.clip(ls, lo, hi))
+        nu1 = np.exp(np.clip(lnu, -10, 10))
+        nu = nu1 + 1.0
+        lp = -0.5 * ((mu - m) / prior_sd) ** 2  # Normal prior on mu
+        lp = lp + ls  # Uniform prior on sigma, expressed in log sigma (Jacobian sigma)
+        lp = lp - nu1 / _NU_MEAN + lnu  # Exponential prior on nu - 1, in log(nu - 1)
+        z = (d[None, :] - mu[:, None]) / sigma[:, None]
+        ll = (gammaln((nu + 1) / 2) - gammaln(nu / 2) - 0.5 * np.log(nu * np.pi) - ls)[:, None] \
+            - (nu[:, None] + 1) / 2 * np.log1p(z**2 / nu[:, None])
+        out = lp + ll.sum(axis=1)
+        return np.where(ok, out, -np.inf)
+
+    return log_prob, m, s
+
+
+def student_t_posterior(d: np.ndarray, *, walkers: int, steps: int, burn: int, seed: int) -> StudentTPosterior:
+    """Sample the posterior of a Student-t model of per-sequence differences d [K] with emcee.
+
+    Requires K >= 2 and sd(d) > 0 (callers handle the degenerate cases). Convergence is checked:
+    mean acceptance fraction in (0.2, 0.8), kept chain longer than 50 autocorrelation times;
+    otherwise a warning is recorded (and emitted).
+    """
+    import emcee
+
+    d = np.asarray(d, dtype=np.float64)
+    assert d.ndim == 1 and len(d) >= 2
+    log_prob, m, s = _log_prob_factory(d)
+    assert s > 0
+    rng = np.random.default_rng(seed)
+    k = len(d)
+    start = np.column_stack([
+        m + s / math.sqrt(k) * rng.standard_normal(walkers),
+        math.log(s) + 0.1 * rng.standard_normal(walkers),
+        math.log(_NU_MEAN) + 0.1 * rng.standard_normal(walkers),
+    ])
+    # NOTE: differential-evolution moves (ter Braak 2006, as in emcee's docs) mix this 3-parameter
+    # model about 3x faster than the default stretch move (autocorrelation ~12 vs ~35 steps).
+    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(walkers, 3, log_prob, vectorize=True, moves=moves)
+    sampler.random_state = np.random.RandomState(seed).get_state()  # deterministic proposals
+    sampler.run_mcmc(start, steps, progress=False)
+    chain = sampler.get_chain(discard=burn, flat=True)
+    acc = float(np.mean(sampler.acceptance_fraction))
+    kept = steps - burn
+    tau = sampler.get_autocorr_time(discard=burn, tol=0)
+    tau_max = float(np.max(tau))
+    notes = []
+    if not 0.2 < acc < 0.8:
+        notes.append(f"emcee acceptance fraction {acc:.2f} outside (0.2, 0.8)")
+    if not np.isfinite(tau_max) or kept <= 50 * tau_max:
+        notes.append(f"chain of {kept} steps is not > 50 autocorrelation times ({tau_max:.1f})")
+    for n in notes:
+        warnings.warn(n, RuntimeWarning, stacklevel=2)
+    return StudentTPosterior(chain[:, 0], np.exp(chain[:, 1]), np.exp(chain[:, 2]) + 1.0,
+                             acc, tau_max, kept, tuple(notes))
+
+
+# --------------------------------------------------------------------------- paired comparison
+
+
+def advantage(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
+    """Signed difference so that > 0 means A is better: A - B if higher is better, else B - A.
+
+    Infinities (PSNR of exactly reproduced sequences): inf - inf (both exact) is a tie, 0;
+    inf - finite is +inf (A exact, B not) and stays infinite.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        d = a - b if higher_is_better(metric) else b - a
+    both = np.isinf(a) & np.isinf(b) & (np.sign(a) == np.sign(b))
+    return np.where(both, 0.0, d)
+
+
+def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples: int, level: float,
+                         seed: int, walkers: int, steps: int, burn: int) -> dict:
+    """Paired comparison of per-sequence values a [K], b [K] of one metric (same sequence order).
+
+    Returns a JSON-able dict: mean advantage of A (> 0: A better), its clustered-bootstrap
+    interval, and the Student-t posterior summary (P(A better), 95% HDI of mu), or the reason
+    the model was not fitted.
+    """
+    d = advantage(a, b, metric)
+    k = len(d)
+    out: dict = {"metric": metric, "higher_is_better": higher_is_better(metric), "sequences": k,
+                 "advantage_mean": float(np.mean(d)) if not np.isnan(d).any() else math.nan}
+    counts = resample_counts(resample_indices(k, resamples, seed), k)
+    samples = frame_metric_samples(d, np.arange(k), counts)
+    out["bootstrap_interval"] = list(percentile_interval(samples, level)) if not np.isnan(samples).any() else None
+    out["level"] = level
+    bayes: dict = {"fitted": False}
+    n_inf = int(np.isinf(d).sum())
+    if n_inf:
+        bayes["note"] = (f"{n_inf} sequence(s) have an infinite difference (one method reproduces every "
+                         f"frame exactly, the other does not); a Student-t model of finite differences "
+                         f"does not apply")
+        bayes["p_a_better"] = 1.0 if (d > 0).all() else 0.0 if (d < 0).all() else None
+    elif k == 1:
+        bayes["note"] = "one sequence: the spread of differences cannot be estimated; no interval"
+        bayes["p_a_better"] = None
+    elif float(np.std(d)) <= 1e-12 * max(1.0, float(np.abs(d).max())):
+        # Zero variance: every sequence differs by the same amount (identical methods: 0).
+        # A Student-t posterior would collapse to a point (sigma -> 0); report that point.
+        bayes.update(note="zero variance: every per-sequence difference is equal; the posterior is a "
+                          "point mass at that value (no sampling)",
+                     mu_mean=float(d[0]), hdi=[float(d[0])] * 2,
+                     p_a_better=0.5 if d[0] == 0 else float(d[0] > 0))
+    else:
+        post = student_t_posterior(d, walkers=walkers, steps=steps, burn=burn, seed=seed)
+        bayes.update(fitted=True, mu_mean=float(post.mu.mean()), hdi=list(hdi(post.mu, 0.95)),
+                     p_a_better=float(np.mean(post.mu > 0)), sigma_mean=float(post.sigma.mean()),
+                     nu_median=float(np.median(post.nu)), acceptance=post.acceptance,
+                     autocorr_steps=post.autocorr, kept_steps=post.kept_steps, warnings=list(post.warnings))
+    out["bayes"] = bayes
+    return out

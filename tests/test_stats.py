@@ -1,0 +1,150 @@
+"""skyeyes_bench.stats: clustered bootstrap, set-metric resampling, Bayesian comparison.
+
+Each fast path is checked against a slow, independent computation (materialised resamples,
+scipy's sqrtm, explicit U-statistics)."""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.stats
+
+from skyeyes_bench import stats
+
+
+def _slow_fid(x, y):
+    mu1, mu2 = x.mean(0), y.mean(0)
+    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
+    covmean = scipy.linalg.sqrtm(s1 @ s2).real
+    return float(((mu1 - mu2) ** 2).sum() + np.trace(s1) + np.trace(s2) - 2 * np.trace(covmean))
+
+
+def _slow_mmd(x, y):
+    d = x.shape[1]
+    k = lambda a, b: (a @ b.T / d + 1.0) ** 3  # noqa: E731
+    kxx, kyy, kxy = k(x, x), k(y, y), k(x, y)
+    n, m = len(x), len(y)
+    return float((kxx.sum() - np.trace(kxx)) / (n * (n - 1)) + (kyy.sum() - np.trace(kyy)) / (m * (m - 1))
+                 - 2 * kxy.mean())
+
+
+def test_frame_metric_samples_match_materialised_resamples():
+    rng = np.random.default_rng(1)
+    k = 5
+    clusters = np.repeat(np.arange(k), [3, 4, 2, 5, 1])
+    values = rng.normal(size=len(clusters))
+    idx = stats.resample_indices(k, 50, seed=3)
+    got = stats.frame_metric_samples(values, clusters, stats.resample_counts(idx, k))
+    want = [np.concatenate([values[clusters == s] for s in row]).mean() for row in idx]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_frame_metric_samples_propagate_inf_only_when_drawn():
+    clusters = np.array([0, 0, 1, 1])
+    values = np.array([30.0, np.inf, 20.0, 22.0])
+    counts = np.array([[2.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    got = stats.frame_metric_samples(values, clusters, counts)
+    assert got[0] == np.inf and got[2] == np.inf
+    assert got[1] == pytest.approx(21.0)
+    lo, hi = stats.percentile_interval(np.array([1.0, 2.0, np.inf, np.inf]), 0.5)
+    assert (lo, hi) == (1.0, np.inf)
+
+
+def test_sequence_psnr_from_mean_mse():
+    clusters = np.array([0, 0, 1, 1])
+    psnr = np.array([20.0, 30.0, np.inf, np.inf])
+    got = stats.sequence_psnr(psnr, clusters, 2)
+    assert got[0] == pytest.approx(-10 * math.log10((0.01 + 0.001) / 2))
+    assert got[1] == np.inf
+
+
+@pytest.mark.parametrize("n, d", [(12, 40), (60, 6)])  # Gram route (N <= D) and covariance route
+def test_frechet_bootstrap_matches_sqrtm_on_materialised_resample(n, d):
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(n, d))
+    y = rng.normal(loc=0.3, size=(n, d)) * 1.5
+    fb = stats.FrechetBootstrap(x, y)
+    w = rng.integers(0, 3, size=n).astype(float)
+    w[:3] = 1
+    got = fb(w, w)
+    xr, yr = np.repeat(x, w.astype(int), axis=0), np.repeat(y, w.astype(int), axis=0)
+    assert got == pytest.approx(_slow_fid(xr, yr), rel=1e-6, abs=1e-8)
+    assert fb(np.ones(n), np.ones(n)) == pytest.approx(_slow_fid(x, y), rel=1e-6)
+    assert stats.FrechetBootstrap(x, x)(w, w) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_mmd_bootstrap_matches_explicit_u_statistic():
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(size=(15, 8)), rng.normal(0.5, size=(15, 8))
+    mb = stats.MMDBootstrap(x, y)
+    assert mb(np.ones(15), np.ones(15)) == pytest.approx(_slow_mmd(x, y), rel=1e-10)
+    w = rng.integers(0, 3, size=15).astype(float)
+    w[:2] = 1
+    xr, yr = np.repeat(x, w.astype(int), axis=0), np.repeat(y, w.astype(int), axis=0)
+    assert mb(w, w) == pytest.approx(_slow_mmd(xr, yr), rel=1e-10)
+
+
+def test_hdi_of_normal_samples():
+    s = np.random.default_rng(0).normal(size=200_000)
+    lo, hi = stats.hdi(s, 0.95)
+    assert lo == pytest.approx(-1.96, abs=0.03) and hi == pytest.approx(1.96, abs=0.03)
+
+
+_FAST = dict(resamples=500, level=0.95, seed=0, walkers=16, steps=1500, burn=300)
+
+
+def test_compare_identical_methods_zero_variance():
+    a = np.array([25.0, 27.0, 30.0, 26.0])
+    out = stats.compare_per_sequence(a, a.copy(), "psnr", **_FAST)
+    assert out["advantage_mean"] == 0.0
+    assert out["bootstrap_interval"] == [0.0, 0.0]
+    b = out["bayes"]
+    assert b["p_a_better"] == 0.5 and b["hdi"] == [0.0, 0.0] and "zero variance" in b["note"]
+    assert not b["fitted"]
+
+
+def test_compare_one_sequence():
+    out = stats.compare_per_sequence(np.array([0.3]), np.array([0.5]), "lpips", **_FAST)
+    assert out["advantage_mean"] == pytest.approx(0.2)  # lower LPIPS is better: A better
+    assert out["bootstrap_interval"] == pytest.approx([0.2, 0.2])
+    assert out["bayes"]["p_a_better"] is None and "one sequence" in out["bayes"]["note"]
+
+
+def test_compare_clear_difference_and_sign_convention():
+    rng = np.random.default_rng(5)
+    b = rng.normal(0.5, 0.05, size=20)
+    a = b - 0.1 + rng.normal(0, 0.01, size=20)  # A has lower LPIPS: better
+    out = stats.compare_per_sequence(a, b, "lpips", **_FAST)
+    assert out["bayes"]["fitted"]
+    assert out["bayes"]["p_a_better"] > 0.99
+    lo, hi = out["bayes"]["hdi"]
+    d = b - a  # independent reference: the classical t interval of the mean difference
+    half = scipy.stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d))
+    assert lo == pytest.approx(d.mean() - half, abs=0.3 * half)
+    assert hi == pytest.approx(d.mean() + half, abs=0.3 * half)
+    assert 0.2 < out["bayes"]["acceptance"] < 0.8
+    out2 = stats.compare_per_sequence(b, a, "lpips", **_FAST)
+    assert out2["bayes"]["p_a_better"] < 0.01
+
+
+def test_compare_heavy_outlier_is_robust():
+    rng = np.random.default_rng(7)
+    d = rng.normal(0.5, 0.1, size=20)
+    d[0] = 50.0  # one broken sequence
+    out = stats.compare_per_sequence(d, np.zeros(20), "psnr", **_FAST)
+    assert out["advantage_mean"] == pytest.approx(d.mean())  # ~3: dragged by the outlier
+    lo, hi = out["bayes"]["hdi"]
+    assert lo < 0.5 < hi and hi < 1.0  # the Student-t posterior is not
+    assert out["bayes"]["nu_median"] < 10  # heavy tails inferred
+
+
+def test_compare_psnr_inf():
+    a = np.array([np.inf, np.inf, 30.0])
+    b = np.array([np.inf, 28.0, 29.0])
+    out = stats.compare_per_sequence(a, b, "psnr", **_FAST)
+    assert out["bootstrap_interval"][1] == np.inf
+    assert not out["bayes"]["fitted"] and "infinite" in out["bayes"]["note"]
+    assert out["bayes"]["p_a_better"] is None  # one tie (0), one +inf, one +1: not all > 0
+    d = stats.advantage(a, b, "psnr")
+    np.testing.assert_array_equal(d, [0.0, np.inf, 1.0])

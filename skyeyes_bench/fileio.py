@@ -102,12 +102,17 @@ def _oiio():
     return oiio
 
 
+def _one_line(msg: str) -> str:
+    """OpenImageIO errors span several lines; user errors are one line."""
+    return "; ".join(part.strip() for part in str(msg).splitlines() if part.strip())
+
+
 def image_header(path: str | os.PathLike) -> tuple[int, int, int, str]:
     """(width, height, channels, pixel format) from the file header, without decoding pixels."""
     oiio = _oiio()
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise UserError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+        raise UserError(f"{path}: cannot open image ({_one_line(oiio.geterror()) or 'unknown format'})")
     try:
         spec = inp.spec()
         return spec.width, spec.height, spec.nchannels, str(spec.format)
@@ -119,7 +124,7 @@ def _read_pixels(path: str | os.PathLike, fmt: str) -> np.ndarray:
     oiio = _oiio()
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise UserError(f"{path}: cannot open image ({oiio.geterror().strip() or 'unknown format'})")
+        raise UserError(f"{path}: cannot open image ({_one_line(oiio.geterror()) or 'unknown format'})")
     try:
         spec = inp.spec()
         if spec.width * spec.height > MAX_PIXELS:
@@ -128,9 +133,9 @@ def _read_pixels(path: str | os.PathLike, fmt: str) -> np.ndarray:
             )
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
-            raise UserError(f"{path}: cannot decode image ({inp.geterror().strip() or 'truncated?'})")
+            raise UserError(f"{path}: cannot decode image ({_one_line(inp.geterror()) or 'truncated?'})")
         if inp.has_error:
-            raise UserError(f"{path}: cannot decode image ({inp.geterror().strip()})")
+            raise UserError(f"{path}: cannot decode image ({_one_line(inp.geterror())})")
     finally:
         inp.close()
     return np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
@@ -168,7 +173,7 @@ def _write_pixels(path: str | os.PathLike, pixels: np.ndarray, fmt: str, attrs: 
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))  # format chosen from the final name's extension
         if out is None:
-            raise UserError(f"{path}: cannot write this image format ({oiio.geterror().strip()})")
+            raise UserError(f"{path}: cannot write this image format ({_one_line(oiio.geterror())})")
         spec = oiio.ImageSpec(w, h, c, fmt)
         for k, v in (attrs or {}).items():
             spec.attribute(k, v)

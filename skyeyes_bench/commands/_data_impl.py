@@ -6,7 +6,7 @@ from ..data.layout import open_dataset
 
 
 def check_cmd(args) -> int:
-    ds = open_dataset(args.root)
+    ds = open_dataset(args.root, check_pixels=not args.quick)
     s = ds.summary()
     if args.json:
         print(json.dumps(s, indent=2))

@@ -14,6 +14,8 @@ def register(sub) -> None:
                       "print every problem, or a summary of scenes, sequences and frames per split.")
     q.add_argument("root", metavar="DIR", help="dataset folder (holds dataset.json)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON")
+    q.add_argument("--quick", action="store_true",
+                   help="read image headers only (default: decode every image, finding truncated files)")
     q.set_defaults(handler="skyeyes_bench.commands._data_impl:check_cmd")
 
     # Further actions register themselves from their own modules (kept apart so that each

@@ -19,6 +19,7 @@ A frame may carry its own "intrinsics" (same keys) overriding its group's.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -36,6 +37,7 @@ KINDS = ("ground", "aerial")
 LAYERS = ("depth", "semantics")
 _LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+_PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$")
 
 
 def layer_file(file: str, layer: str) -> str:
@@ -196,7 +198,8 @@ def _intrinsics_problem(d: Any, where: str) -> str | None:
     return None
 
 
-def _load_scene(root: Path, name: str, problems: list[str], check_files: bool) -> Scene | None:
+def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
+                check_pixels: bool = False) -> Scene | None:
     sdir = root / name
     sfile = sdir / SCENE_FILE
     if not sfile.is_file():
@@ -215,6 +218,8 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool) -
         problems.append(f"{sfile}: field 'intrinsics' missing (expected {{'ground': {{...}}, 'aerial': {{...}}}})")
         return None
     frames: dict[str, list[Frame]] = {k: [] for k in KINDS}
+    seen_files: dict[str, int] = {}
+    rejected_seqs: set[str] = set()
     for kind in KINDS:
         group = intr.get(kind)
         p = _intrinsics_problem(group, f"{sfile}: field 'intrinsics.{kind}'")
@@ -225,20 +230,29 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool) -
         if not isinstance(entries, list):
             problems.append(f"{sfile}: field '{kind}' must be a list of frames")
             continue
+        accepted: set[int] = set()
         for i, e in enumerate(entries):
             where = f"{sfile}: {kind}[{i}]"
             if not isinstance(e, dict) or not isinstance(e.get("file"), str):
                 problems.append(f"{where}: expected an object with 'file' and 'c2w'")
                 continue
             where = f"{sfile}: {kind}[{i}] ({e['file']})"
+            if e["file"] in seen_files:
+                problems.append(f"{where}: field 'file' repeats {kind}[{seen_files[e['file']]}]'s file")
+                continue
+            seen_files[e["file"]] = i
             fi = e.get("intrinsics", group)
             if "intrinsics" in e and (p := _intrinsics_problem(fi, f"{where} field 'intrinsics'")):
                 problems.append(p)
                 continue
+            if "c2w" not in e:
+                problems.append(f"{where}: field 'c2w' missing (expected a 4x4 camera-to-world matrix)")
+                continue
             try:
-                c2w = np.asarray(e.get("c2w"), dtype=np.float64)
+                c2w = np.asarray(e["c2w"], dtype=np.float64)
             except (TypeError, ValueError):
-                c2w = np.full((1,), np.nan)
+                problems.append(f"{where}: field 'c2w' must be a 4x4 array of numbers")
+                continue
             if p := rigid_problem(c2w):
                 problems.append(f"{where}: field 'c2w' is not a rigid transform: {p}")
                 continue
@@ -255,27 +269,42 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool) -
                 continue
             frame = Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
             if check_files:
-                _check_frame_files(frame, problems)
+                _check_frame_files(frame, problems, check_pixels)
             frames[kind].append(frame)
-    scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), raw.get("meta", {}) or {})
+            accepted.add(i)
+        if kind == "ground":  # a rejected frame leaves a hole in its sequence: reported already
+            rejected_seqs.update(str(e.get("sequence")) for i, e in enumerate(entries)
+                                 if i not in accepted and isinstance(e, dict))
+    meta = raw.get("meta", {})
+    if meta is None:
+        meta = {}
+    if not isinstance(meta, dict):
+        problems.append(f"{sfile}: field 'meta' must be an object")
+        meta = {}
+    scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), meta)
     for seq in scene.sequences.values():
+        if seq.name in rejected_seqs:
+            continue
         idx = [f.index for f in seq.frames]
         if idx != list(range(len(idx))):
             dup = sorted({i for i in idx if idx.count(i) > 1})
             gaps = sorted(set(range(max(idx) + 1)) - set(idx))
-            what = f"duplicate indices {dup[:5]}" if dup else f"missing indices {gaps[:5]}"
-            problems.append(f"{sfile}: sequence {seq.name!r} has gaps ({what}; expected 0..{len(idx) - 1})")
+            what = "; ".join(w for w in (f"duplicate indices {dup[:5]}" if dup else "",
+                                         f"missing indices {gaps[:5]}" if gaps else "") if w)
+            problems.append(f"{sfile}: sequence {seq.name!r} is not numbered 0..n-1 ({what}; field 'index')")
     if not scene.ground:
         problems.append(f"{sfile}: scene has no ground frames")
     return scene
 
 
-def _check_frame_files(frame: Frame, problems: list[str]) -> None:
+def _check_frame_files(frame: Frame, problems: list[str], check_pixels: bool = False) -> None:
     if not frame.path.is_file():
         problems.append(f"{frame.path}: missing file")
         return
     try:
         w, h, c, _ = fileio.image_header(frame.path)
+        if check_pixels:  # a truncated PNG has an intact header; only decoding finds it
+            fileio.read_image_uint8(frame.path)
     except UserError as e:
         problems.append(str(e))
         return
@@ -291,6 +320,8 @@ def _check_frame_files(frame: Frame, problems: list[str]) -> None:
                 continue
             try:
                 lw, lh, _, _ = fileio.image_header(lp)
+                if check_pixels:
+                    (fileio.read_depth if layer == "depth" else fileio.read_labels)(lp)
             except UserError as e:
                 problems.append(str(e))
                 continue
@@ -298,8 +329,14 @@ def _check_frame_files(frame: Frame, problems: list[str]) -> None:
                 problems.append(f"{lp}: {layer} is {lw}x{lh}, its image is {w}x{h}")
 
 
-def validate_dataset(root: str | os.PathLike, *, check_files: bool = True) -> tuple[Dataset | None, list[str]]:
-    """Read a dataset and collect every problem (no exception for bad data)."""
+def validate_dataset(root: str | os.PathLike, *, check_files: bool = True,
+                     check_pixels: bool = False) -> tuple[Dataset | None, list[str]]:
+    """Read a dataset and collect every problem (no exception for bad data).
+
+    Args:
+        check_files: check that every image exists and its header matches the intrinsics.
+        check_pixels: also decode every image and layer (finds truncated files; slow).
+    """
     root = Path(root)
     problems: list[str] = []
     dfile = root / DATASET_FILE
@@ -318,21 +355,28 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True) -> tu
             problems.append(f"{dfile}: field '{key}' missing or not a {typ.__name__}")
     if problems:
         return None, problems
+    if not _PROTOCOL_REF.match(raw["protocol"]):
+        problems.append(f"{dfile}: field 'protocol' is {raw['protocol']!r}, expected '<id>@<N>' (e.g. 'synthtown@1')")
     names = raw["scenes"]
     if len(set(names)) != len(names) or not all(isinstance(n, str) and n and "/" not in n for n in names):
         return None, [f"{dfile}: field 'scenes' must list unique scene folder names"]
     splits: dict[str, tuple[str, ...]] = {}
     for split, members in raw["splits"].items():
-        if not isinstance(members, list):
+        if not isinstance(members, list) or not all(isinstance(m, str) for m in members):
             problems.append(f"{dfile}: field 'splits.{split}' must be a list of scene names")
             continue
         for m in members:
             if m not in names:
-                problems.append(f"{dfile}: split {split!r} names unknown scene {m!r}")
-        splits[split] = tuple(m for m in members if m in names)
+                problems.append(f"{dfile}: split {split!r} names unknown scene {m!r} (field 'splits.{split}')")
+        for m in sorted({m for m in members if members.count(m) > 1}):
+            problems.append(f"{dfile}: split {split!r} lists scene {m!r} more than once (field 'splits.{split}')")
+        for other, taken in splits.items():
+            for m in sorted(set(members) & set(taken)):
+                problems.append(f"{dfile}: scene {m!r} is in both split {other!r} and split {split!r}")
+        splits[split] = tuple(dict.fromkeys(m for m in members if m in names))
     scenes = {}
     for n in names:
-        s = _load_scene(root, n, problems, check_files)
+        s = _load_scene(root, n, problems, check_files, check_pixels)
         if s is not None:
             scenes[n] = s
     if problems:
@@ -341,9 +385,9 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True) -> tu
     return ds, []
 
 
-def open_dataset(root: str | os.PathLike, *, check_files: bool = True) -> Dataset:
+def open_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pixels: bool = False) -> Dataset:
     """Open and validate a dataset; raises ValidationError listing every problem."""
-    ds, problems = validate_dataset(root, check_files=check_files)
+    ds, problems = validate_dataset(root, check_files=check_files, check_pixels=check_pixels)
     if problems:
         raise ValidationError(f"dataset {root}", problems)
     assert ds is not None
@@ -368,6 +412,7 @@ class SceneWriter:
         self.intrinsics = {k: dict(v) for k, v in intrinsics.items()}
         self.meta = dict(meta or {})
         self.entries: dict[str, list[dict]] = {k: [] for k in KINDS}
+        self.closed = False
         self.root.mkdir(parents=True, exist_ok=False)
 
     def _add(self, kind: str, image, c2w, depth, semantics, extra: dict, file: str | None) -> str:
@@ -393,7 +438,9 @@ class SceneWriter:
         return self._add("ground", image, c2w, depth, semantics, {"sequence": sequence, "index": int(index), **extra}, file)
 
     def close(self) -> None:
+        """Write scene.json (`DatasetWriter.finish` does it for scenes not closed yet)."""
         fileio.write_json(self.root / SCENE_FILE, {"intrinsics": self.intrinsics, **self.entries, "meta": self.meta})
+        self.closed = True
 
 
 def _copy(src: Path, dst: Path) -> None:
@@ -415,10 +462,14 @@ class DatasetWriter:
     ```
     """
 
-    def __init__(self, root: str | os.PathLike, *, name: str, protocol: str, overwrite: bool = False):
+    def __init__(self, root: str | os.PathLike, *, name: str, protocol: str, overwrite: bool = False,
+                 validate: bool = False):
+        """validate: run `validate_dataset` on the finished folder before moving it into place;
+        any problem raises ValidationError and nothing is written."""
         self.final = Path(root)
-        self.name, self.protocol, self.overwrite = name, protocol, overwrite
+        self.name, self.protocol, self.overwrite, self.validate = name, protocol, overwrite, validate
         self.scenes: list[str] = []
+        self._writers: list[SceneWriter] = []
         self._ctx = None
         self._finished = False
 
@@ -431,9 +482,14 @@ class DatasetWriter:
         if name in self.scenes:
             raise ValueError(f"scene {name!r} written twice")
         self.scenes.append(name)
-        return SceneWriter(self.root, name, intrinsics, meta)
+        writer = SceneWriter(self.root, name, intrinsics, meta)
+        self._writers.append(writer)
+        return writer
 
     def finish(self, splits: dict[str, list[str]], meta: dict | None = None) -> None:
+        for writer in self._writers:
+            if not writer.closed:
+                writer.close()
         fileio.write_json(self.root / DATASET_FILE, {
             "name": self.name, "protocol": self.protocol, "splits": splits,
             "scenes": self.scenes, "meta": dict(meta or {}),
@@ -446,4 +502,10 @@ class DatasetWriter:
             exc = RuntimeError("DatasetWriter closed without finish(): nothing was written")
             self._ctx.__exit__(exc_type, exc, tb)
             raise exc
+        if exc_type is None and self.validate:
+            _, problems = validate_dataset(self.root, check_pixels=False)
+            if problems:
+                exc = ValidationError(f"dataset {self.final} (not written)", problems)
+                self._ctx.__exit__(type(exc), exc, None)
+                raise exc
         return self._ctx.__exit__(exc_type, exc, tb)

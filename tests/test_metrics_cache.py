@@ -1,0 +1,81 @@
+"""Feature cache: keyed by content, second call extracts nothing, corruption detected and recomputed."""
+
+import numpy as np
+import pytest
+
+from skyeyes_bench import paths
+from skyeyes_bench.fileio import read_image, write_image
+from skyeyes_bench.metrics import cache
+from skyeyes_bench.metrics.extractors import get_extractor
+
+
+@pytest.fixture
+def frames(tmp_path):
+    rng = np.random.default_rng(0)
+    out = []
+    for i in range(6):
+        p = tmp_path / f"f{i}.png"
+        write_image(p, rng.random((24, 32, 3)))
+        out.append(p)
+    return out
+
+
+def test_image_features_cached_and_equal_direct(frames, monkeypatch):
+    direct = get_extractor("random-image-64").features(np.stack([read_image(p) for p in frames]))
+    a = cache.extract_image_features("random-image-64", frames, batch_size=4, progress=False)
+    assert cache.last_call == {"hits": 0, "misses": 6, "corrupt": 0}
+    assert np.allclose(a, direct, rtol=1e-6, atol=1e-7)
+    ex = get_extractor("random-image-64")
+    monkeypatch.setattr(type(ex), "features", lambda self, x: pytest.fail("extracted again"))
+    b = cache.extract_image_features("random-image-64", frames[::-1], progress=False)
+    assert cache.last_call["hits"] == 6 and cache.last_call["misses"] == 0
+    assert np.array_equal(b, a[::-1])
+
+
+def test_cache_key_is_content_not_path(frames, tmp_path):
+    cache.extract_image_features("random-image-64", frames[:2], progress=False)
+    copy = tmp_path / "elsewhere.png"
+    copy.write_bytes(frames[0].read_bytes())
+    cache.extract_image_features("random-image-64", [copy], progress=False)
+    assert cache.last_call["hits"] == 1
+    # different content -> miss
+    write_image(frames[1], np.zeros((24, 32, 3)))
+    cache.extract_image_features("random-image-64", [frames[1]], progress=False)
+    assert cache.last_call["misses"] == 1
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "empty"])
+def test_corrupted_entry_detected_and_recomputed(frames, damage):
+    a = cache.extract_image_features("random-image-64", frames, progress=False)
+    entries = sorted((paths.features_dir() / "random-image-64").rglob("*.f64"))
+    assert len(entries) == 6
+    e = entries[0]
+    data = bytearray(e.read_bytes())
+    if damage == "truncate":
+        e.write_bytes(bytes(data[:-5]))
+    elif damage == "flip":
+        data[3] ^= 0xFF
+        e.write_bytes(bytes(data))
+    else:
+        e.write_bytes(b"")
+    b = cache.extract_image_features("random-image-64", frames, progress=False)
+    assert cache.last_call == {"hits": 5, "misses": 1, "corrupt": 1}
+    assert np.array_equal(a, b)
+    cache.extract_image_features("random-image-64", frames, progress=False)
+    assert cache.last_call["hits"] == 6  # repaired
+
+
+def test_clip_features_keyed_by_ordered_members(frames):
+    clips = [frames[0:3], frames[3:6]]
+    a = cache.extract_clip_features("random-video-64", clips, batch_size=1, progress=False)
+    direct = get_extractor("random-video-64").features(np.stack([[read_image(p) for p in c] for c in clips]))
+    assert np.allclose(a, direct, rtol=1e-6, atol=1e-7)
+    cache.extract_clip_features("random-video-64", clips, progress=False)
+    assert cache.last_call["hits"] == 2
+    cache.extract_clip_features("random-video-64", [frames[0:3][::-1]], progress=False)
+    assert cache.last_call["misses"] == 1  # order matters
+
+
+def test_wrong_kind_rejected(frames):
+    with pytest.raises(ValueError):
+        cache.extract_image_features("random-video-64", frames, progress=False)

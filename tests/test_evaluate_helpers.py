@@ -37,7 +37,7 @@ aggregate = "mean"
 
 [metrics.ssim]
 aggregate = "mean"
-window = 7
+window = 11
 sigma = 1.5
 k1 = 0.01
 k2 = 0.03
@@ -76,8 +76,8 @@ interval = 0.95
 seed = 0
 cluster = "sequence"
 emcee_walkers = 16
-emcee_steps = 1500
-emcee_burn = 300
+emcee_steps = 1000
+emcee_burn = 200
 """
 
 

@@ -1,0 +1,14 @@
+"""`skyeyes-bench merge PARTS... --out results.json`: combine sharded evaluations."""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser("merge", help="merge the partial results of `evaluate --shard I/N`",
+                       description="Merge the N partial results of `skyeyes-bench evaluate --shard I/N` "
+                       "(per-frame values and features) into results equal to an unsharded run.")
+    p.add_argument("parts", nargs="+", metavar="PART", help="partial results JSON files (all N shards)")
+    p.add_argument("--out", required=True, metavar="FILE", help="results file to write")
+    p.add_argument("--force", action="store_true", help="replace an existing results file")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(handler="skyeyes_bench.commands._merge_impl:merge_cmd")

@@ -1,0 +1,191 @@
+"""evaluate / merge / compare on a tiny dataset with the test protocol (random-* extractors).
+
+Expected values come from independent computations: scikit-image PSNR/SSIM, scipy sqrtm FID."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import scipy.linalg
+from conftest import run_cli
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
+
+from skyeyes_bench import fileio
+from skyeyes_bench.data.layout import open_dataset
+from skyeyes_bench.errors import UserError
+from skyeyes_bench.evaluate import evaluate, features_path, merge, read_results
+from skyeyes_bench.submission import expected_frames, write_template
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("ds") / "evaltiny")
+
+
+@pytest.fixture
+def proto(tmp_path, monkeypatch):
+    return install_test_protocol(tmp_path, monkeypatch)
+
+
+def _fid(x, y):
+    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
+    return float(((x.mean(0) - y.mean(0)) ** 2).sum() + np.trace(s1) + np.trace(s2)
+                 - 2 * np.trace(scipy.linalg.sqrtm(s1 @ s2).real))
+
+
+def test_perfect_and_blurred(tiny, proto, tmp_path):
+    ds = open_dataset(tiny)
+    perfect = write_template(ds, tmp_path / "gt", from_ground_truth=True)
+    blur = blurred_submission(ds, tmp_path / "blur", sigma=1.0)
+    rp = evaluate(perfect, data=tiny, out=tmp_path / "gt.json", progress=False)
+    rb = evaluate(blur, data=tiny, out=tmp_path / "blur.json", progress=False)
+    mp, mb = rp["metrics"], rb["metrics"]
+    assert list(mp) == ["psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"]
+    # perfect: PSNR inf, SSIM 1, FID / FVD 0
+    assert mp["psnr"]["value"] == math.inf and mp["psnr"]["infinite_frames"] == 64
+    assert mp["ssim"]["value"] == pytest.approx(1.0, abs=1e-12)
+    assert mp["fid"]["value"] == pytest.approx(0.0, abs=1e-6)
+    assert mp["fvd"]["value"] == pytest.approx(0.0, abs=1e-6)
+    # LPIPS weights are absent here: reported unavailable with the reason and the fix
+    assert mp["lpips"]["status"] == "unavailable" and mp["lpips"]["reason"] and mp["lpips"]["fix"]
+    # blurred: strictly worse on every metric
+    assert mb["psnr"]["value"] < math.inf and mb["ssim"]["value"] < mp["ssim"]["value"]
+    for m in ("fid", "kid", "fvd", "kvd"):
+        assert mb[m]["value"] > mp[m]["value"] + 1e-9, m
+    # the numbers, recomputed independently
+    scene, f = expected_frames(ds)[9]
+    pred = fileio.read_image(blur / scene / f.file).astype(np.float64)
+    gt = f.image().astype(np.float64)
+    rec = next(r for r in rb["frames"] if r["scene"] == scene and r["file"] == f.file)
+    assert rec["psnr"] == pytest.approx(peak_signal_noise_ratio(gt, pred, data_range=1.0), rel=1e-6)
+    want = structural_similarity(gt, pred, win_size=11, gaussian_weights=True, sigma=1.5, data_range=1.0,
+                                 channel_axis=2, use_sample_covariance=False)
+    assert rec["ssim"] == pytest.approx(want, abs=1e-5)
+    assert mb["psnr"]["value"] == pytest.approx(np.mean([r["psnr"] for r in rb["frames"]]))
+    _, feats = read_results(tmp_path / "blur.json", features=True)
+    x = feats["random-image-64"]
+    assert x["sub"].shape == (64, 64)
+    assert mb["fid"]["value"] == pytest.approx(_fid(x["sub"], x["gt"]), rel=1e-5)
+    v = feats["random-video-64"]
+    assert v["sub"].shape == (16, 64)  # 4 sequences x 16 frames / clips of 4 every 4
+    assert mb["fvd"]["value"] == pytest.approx(_fid(v["sub"], v["gt"]), rel=1e-5)
+    # intervals: contain the point value for means; ordered
+    for m in ("psnr", "ssim", "fid", "kid"):
+        lo, hi = mb[m]["interval"]
+        assert lo <= hi
+    lo, hi = mb["psnr"]["interval"]
+    assert lo <= mb["psnr"]["value"] <= hi
+    # self-description
+    assert rb["protocol"]["ref"] == "evaltest@1" and len(rb["protocol"]["sha256"]) == 64
+    assert rb["extractors"]["random-image-64"]["status"] == "ok"
+    assert rb["sha256"]["ground_truth"] == rp["sha256"]["ground_truth"]
+    assert rb["sha256"]["submission_frames"] != rp["sha256"]["submission_frames"]
+    assert rb["submission"]["timings"]["fit_s"] == 1.0
+    assert set(rb["sequences"]) == {f"test-0-lane0{i}/yaw{q:03d}" for i in (0, 1) for q in (0, 90)}
+    assert {"validate_s", "frame_metrics_s", "features_s", "bootstrap_s", "total_s"} <= set(rb["timing_s"])
+    on_disk = json.loads((tmp_path / "blur.json").read_text())
+    assert on_disk["metrics"]["fid"]["value"] == mb["fid"]["value"]
+
+
+def test_existing_results_need_force(tiny, proto, tmp_path):
+    ds = open_dataset(tiny)
+    blur = blurred_submission(ds, tmp_path / "blur")
+    out = tmp_path / "r.json"
+    out.write_text("{}")
+    rc, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
+    assert "already exists; pass --force" in err and out.read_text() == "{}"
+    run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", "--force")
+    assert json.loads(out.read_text())["format"] == "skyeyes-bench/results@1"
+    assert features_path(out).is_file()
+
+
+def test_shards_merge_to_the_unsharded_numbers(tiny, proto, tmp_path):
+    ds = open_dataset(tiny)
+    blur = blurred_submission(ds, tmp_path / "blur")
+    full = evaluate(blur, data=tiny, out=tmp_path / "full.json", progress=False)
+    parts = []
+    for i in (1, 0, 2):  # order does not matter; 3 shards over 4 sequences
+        p = tmp_path / f"part{i}.json"
+        run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(p), "--shard", f"{i}/3", "--quiet")
+        parts.append(str(p))
+    rc, out, err = run_cli("merge", *parts[:2], "--out", str(tmp_path / "m.json"), "--quiet", check=2)
+    assert "shards 2/3 missing" in err
+    run_cli("merge", *parts, "--out", str(tmp_path / "merged.json"), "--quiet")
+    merged, _ = read_results(tmp_path / "merged.json")
+    for name, m in full["metrics"].items():
+        if m["status"] != "ok":
+            assert merged["metrics"][name]["status"] == "unavailable"
+            continue
+        assert merged["metrics"][name]["value"] == pytest.approx(m["value"], rel=1e-9, abs=1e-12), name
+        assert merged["metrics"][name]["interval"] == pytest.approx(m["interval"], rel=1e-9, abs=1e-12), name
+    assert merged["sequences"] == full["sequences"]
+    assert merged["sha256"] == full["sha256"]
+
+
+def test_official_protocol_refuses_random_extractors():
+    from skyeyes_bench.evaluate import _check_extractors
+    from skyeyes_bench.protocol import load_protocol
+
+    p = load_protocol("synthtown@1")
+    bad = p.__class__(**{**p.__dict__, "metrics": tuple(
+        m.__class__(**{**m.__dict__, "extractor": "random-image-64"}) if m.name == "fid" else m
+        for m in p.metrics)})
+    with pytest.raises(UserError, match="test-only"):
+        _check_extractors(bad)
+
+
+def test_compare_cli(tiny, proto, tmp_path):
+    ds = open_dataset(tiny)
+    perfect = write_template(ds, tmp_path / "gt", from_ground_truth=True)
+    evaluate(perfect, data=tiny, out=tmp_path / "gt.json", progress=False)
+    evaluate(blurred_submission(ds, tmp_path / "b1", sigma=0.7), data=tiny, out=tmp_path / "b1.json",
+             progress=False)
+    evaluate(blurred_submission(ds, tmp_path / "b2", sigma=1.5), data=tiny, out=tmp_path / "b2.json",
+             progress=False)
+    rc, out, err = run_cli("compare", str(tmp_path / "b1.json"), str(tmp_path / "b2.json"), "--json")
+    res = json.loads(out)
+    for m in ("psnr", "ssim"):
+        assert res["metrics"][m]["bayes"]["p_a_better"] > 0.99, m  # less blur is better
+        assert res["metrics"][m]["bootstrap_interval"][0] > 0
+    for m in ("fid", "fvd"):
+        assert res["metrics"][m]["advantage_mean"] > 0 and res["metrics"][m]["bootstrap_interval"][0] > 0
+    assert res["metrics"]["lpips"]["status"] == "skipped"
+    # identical: zero difference, P = 0.5, said so
+    rc, out, err = run_cli("compare", str(tmp_path / "b1.json"), str(tmp_path / "b1.json"), "--json")
+    res = json.loads(out)
+    assert res["metrics"]["ssim"]["bayes"]["p_a_better"] == 0.5 and res["metrics"]["ssim"]["advantage_mean"] == 0
+    assert res["metrics"]["fid"]["bootstrap_interval"] == [0.0, 0.0]
+    # perfect vs blurred: PSNR differences are +inf on every sequence
+    rc, out, err = run_cli("compare", str(tmp_path / "gt.json"), str(tmp_path / "b1.json"))
+    assert "infinite difference" in out
+    # different protocol version: refused, saying why
+    doc = json.loads((tmp_path / "b2.json").read_text())
+    doc["protocol"]["ref"] = "evaltest@2"
+    (tmp_path / "b2v2.json").write_text(json.dumps(doc))
+    rc, out, err = run_cli("compare", str(tmp_path / "b1.json"), str(tmp_path / "b2v2.json"), check=2)
+    assert "different protocols or protocol versions" in err
+    doc = json.loads((tmp_path / "b2.json").read_text())
+    doc["extractors"]["random-image-64"]["weights_sha256"] = "f" * 64
+    (tmp_path / "b2x.json").write_text(json.dumps(doc))
+    rc, out, err = run_cli("compare", str(tmp_path / "b1.json"), str(tmp_path / "b2x.json"), check=2)
+    assert "extractor random-image-64 used different weights" in err
+
+
+def test_smoke_end_to_end(synthtown_smoke, tmp_path):
+    """The real SynthTown smoke data under the official synthtown@1 protocol: the ground truth
+    scores PSNR inf and SSIM 1; metrics without weights are reported unavailable."""
+    sub = tmp_path / "gt"
+    run_cli("submission", "template", "--data", str(synthtown_smoke), "--out", str(sub), "--from-ground-truth")
+    out = tmp_path / "gt.json"
+    rc, text, err = run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(out), "--quiet")
+    res, _ = read_results(out)
+    assert res["protocol"]["ref"] == "synthtown@1"
+    assert res["metrics"]["psnr"]["value"] == math.inf
+    assert res["metrics"]["ssim"]["value"] == pytest.approx(1.0, abs=1e-12)
+    for m, v in res["metrics"].items():
+        if v["status"] == "unavailable":
+            assert v["reason"] and v["fix"], m
+            assert f"{m:<6} unavailable" in text

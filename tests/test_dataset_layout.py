@@ -123,6 +123,12 @@ def test_summary(ds_root):
     assert s["resolution"] == {"aerial": "16x12", "ground": "16x12"}
     assert s["sequence_length"] == {"min": 3, "max": 3}
     assert s["layers"]["ground_depth"] is True and s["layers"]["aerial_depth"] is False
+    p, raw = _scene_json(ds_root)
+    raw["ground"][1]["intrinsics"] = _intr(32, 24)  # one frame of another size (image too)
+    p.write_text(json.dumps(raw))
+    fileio.write_image(ds_root / "test-0-lane00" / raw["ground"][1]["file"], np.zeros((24, 32, 3)))
+    fileio.write_depth(ds_root / "test-0-lane00" / "ground_depth" / "000001.exr", np.ones((24, 32)))
+    assert open_dataset(ds_root).summary()["resolution"] == {"aerial": "16x12", "ground": "16x12, 32x24"}
 
 
 def test_data_check_cli(ds_root):

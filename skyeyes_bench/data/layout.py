@@ -165,8 +165,9 @@ class Dataset:
                 "ground_frames": sum(len(s.ground) for s in scenes),
                 "aerial_frames": sum(len(s.aerial) for s in scenes),
             }
-        sizes = {(f.width, f.height, f.kind) for s in self.scenes.values() for f in (*s.ground[:1], *s.aerial[:1])}
-        out["resolution"] = {k: f"{w}x{h}" for w, h, k in sorted(sizes)}
+        sizes = {(f.kind, f.width, f.height) for s in self.scenes.values() for f in (*s.ground, *s.aerial)}
+        out["resolution"] = {k: ", ".join(f"{w}x{h}" for kk, w, h in sorted(sizes) if kk == k)
+                             for k in sorted({k for k, _, _ in sizes})}
         lengths = [len(q) for s in self.scenes.values() for q in s.sequences.values()]
         out["sequence_length"] = {"min": min(lengths), "max": max(lengths)} if lengths else {}
         layers: dict[str, bool] = {}

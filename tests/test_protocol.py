@@ -179,3 +179,9 @@ def test_protocols_list_and_show_cli(protos):
     assert d["metrics"]["ssim"] == {"aggregate": "mean", "window": 11, "sigma": 1.5, "k1": 0.01, "k2": 0.03}
     rc, _, err = run_cli("protocols", "show", "nope", check=2)
     assert err.startswith("skyeyes-bench: error: unknown protocol 'nope'")
+
+
+def test_protocols_list_names_a_broken_file(protos):
+    f = _write_variant(protos, "seed = 0\n", "seed = 0.5\n")
+    rc, out, err = run_cli("protocols", "list", check=2)
+    assert err.strip() == (f"skyeyes-bench: error: {f}: key 'statistics.seed' must be int, got 0.5")

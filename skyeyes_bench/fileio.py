@@ -122,7 +122,11 @@ def image_header(path: str | os.PathLike) -> tuple[int, int, int, str]:
 
 def _read_pixels(path: str | os.PathLike, fmt: str) -> np.ndarray:
     oiio = _oiio()
-    inp = oiio.ImageInput.open(str(path))
+    # PNG alpha is unassociated; without this OpenImageIO premultiplies colour by alpha on read,
+    # so dropping alpha would leave darkened RGB.
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise UserError(f"{path}: cannot open image ({_one_line(oiio.geterror()) or 'unknown format'})")
     try:

@@ -389,3 +389,26 @@ def test_resample_step():
     assert resample_step(0.5, 2.0) == 4
     assert resample_step(5.0, 2.0) is None
     assert resample_step(3.0, 2.0) is None
+
+
+def _png_rgba(path: Path, px: np.ndarray):
+    """A plain RGBA PNG written with zlib (independent of OpenImageIO)."""
+    import struct
+    import zlib
+
+    h, w, _ = px.shape
+    raw = b"".join(b"\x00" + px[i].tobytes() for i in range(h))
+
+    def chunk(tag, data):
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def test_rgba_png_colour_not_premultiplied(tmp_path):
+    px = np.random.default_rng(0).integers(0, 256, (H, W, 4), dtype=np.uint8)
+    px[..., 3] = 100  # translucent: RGB must still come back as stored
+    _png_rgba(tmp_path / "a.png", px)
+    np.testing.assert_array_equal(fileio.read_image_uint8(tmp_path / "a.png"), px)
+    np.testing.assert_array_equal(np.rint(fileio.read_image(tmp_path / "a.png") * 255), px[..., :3])

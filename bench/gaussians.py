@@ -1,0 +1,116 @@
+"""Benchmarks of the CPU Gaussian splatting (issue 6). Prints figures; not a test.
+
+    python bench/gaussians.py raster            # fwd / fwd+bwd ms, peak RSS
+    python bench/gaussians.py raster --sizes 128 --counts 50000
+    python bench/gaussians.py fit --preset small   # held-out aerial / ground PSNR vs seconds
+
+Caveat: the machine has 2 cores shared with other jobs; figures vary by tens of percent.
+Peak RSS is the process's high-water mark (resource.getrusage), so run one case per process
+(`--counts N --sizes S`) to attribute it to that case; the default loop runs each case in a
+fresh subprocess for that reason.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import subprocess
+import sys
+import time
+
+
+def synthetic_scene(n: int, size: int, overlap: float = 150.0, seed: int = 0):
+    """n Gaussians in front of a 90-degree camera, sized so ~`overlap` cover each pixel."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    f = size / 2.0  # 90 degree horizontal fov
+    z = 4.0 + 2.0 * torch.rand(n, generator=g)
+    x = (torch.rand(n, generator=g) * 2 - 1) * z
+    y = (torch.rand(n, generator=g) * 2 - 1) * z
+    means = torch.stack([x, y, z], -1)
+    # Support area pi * 9 * sigma^2 per Gaussian (3-sigma ellipse) -> sigma in px for `overlap`.
+    sigma_px = math.sqrt(overlap * size * size / n / (9 * math.pi))
+    scales = (sigma_px * z / f)[:, None] * (0.7 + 0.6 * torch.rand(n, 3, generator=g))
+    quats = torch.randn(n, 4, generator=g)
+    opac = 0.05 + 0.5 * torch.rand(n, generator=g)
+    sh = 0.3 * torch.randn(n, 16, 3, generator=g)
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    return means, quats, scales, opac, sh, torch.eye(4), K
+
+
+def raster_case(n: int, size: int, reps: int) -> dict:
+    import torch
+
+    from reference.common.gaussians import rasterize
+    from reference.common.gaussians.raster import bin_tiles
+    from reference.common.gaussians.project import project
+
+    means, quats, scales, opac, sh, view, K = synthetic_scene(n, size)
+    proj = project(means, quats, scales, view, K, size, size)
+    ids, starts, _, _ = bin_tiles(proj["means2d"], proj["radii"], proj["depths"], proj["valid"], size, size)
+    pairs_per_px = len(ids) * 64 / (size * size)
+    c = proj["conics"]
+    det = (c[:, 0] * c[:, 2] - c[:, 1] ** 2).clamp_min(1e-12)
+    overlap = float((9 * math.pi / det.sqrt())[proj["valid"]].sum()) / (size * size)
+    params = [t.clone().requires_grad_() for t in (means, quats, scales, opac, sh)]
+    fwd, both = [], []
+    for r in range(reps + 1):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            rasterize(*params, view, K, size, size)
+        t1 = time.perf_counter()
+        out = rasterize(*params, view, K, size, size)
+        (out["rgb"].sum() + out["alpha"].sum()).backward()
+        t2 = time.perf_counter()
+        if r:  # first repetition warms up allocator and threads
+            fwd.append(t1 - t0)
+            both.append(t2 - t1)
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"n": n, "size": size, "overlap_per_px": round(overlap, 1), "tile_pairs_per_px": round(pairs_per_px, 1),
+            "fwd_ms": round(1000 * min(fwd), 1), "fwd_bwd_ms": round(1000 * min(both), 1),
+            "peak_rss_mb": round(rss_mb), "threads": torch.get_num_threads()}
+
+
+def cmd_raster(args) -> None:
+    if args.one:
+        print(json.dumps(raster_case(args.counts[0], args.sizes[0], args.reps)))
+        return
+    print("Reference prototype (issue 6): 50k@128 fwd+bwd 364 ms / 1.1 GB; 200k@256 2.26 s / 3.8 GB")
+    print(f"{'N':>7} {'size':>5} {'overlap/px':>10} {'fwd ms':>8} {'fwd+bwd ms':>10} {'peak RSS MB':>11}")
+    for size in args.sizes:
+        for n in args.counts:
+            cmd = [sys.executable, __file__, "raster", "--one", "--counts", str(n), "--sizes", str(size), "--reps", str(args.reps)]
+            r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+            print(f"{r['n']:>7} {r['size']:>5} {r['overlap_per_px']:>10} {r['fwd_ms']:>8} {r['fwd_bwd_ms']:>10} {r['peak_rss_mb']:>11}")
+
+
+def cmd_fit(args) -> None:
+    from reference.methods.gaussians3d import fit_curve
+
+    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("raster")
+    r.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    r.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000, 200_000])
+    r.add_argument("--reps", type=int, default=3)
+    r.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    r.set_defaults(fn=cmd_raster)
+    f = sub.add_parser("fit")
+    f.add_argument("--preset", default="smoke")
+    f.add_argument("--method", default="gaussians3d")
+    f.add_argument("--data", default=None)
+    f.add_argument("--seconds", type=float, default=None)
+    f.set_defaults(fn=cmd_fit)
+    args = p.parse_args()
+    args.fn(args)
+
+
+if __name__ == "__main__":
+    main()

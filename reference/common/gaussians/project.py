@@ -1,0 +1,161 @@
+"""Per-Gaussian stage of splatting: 3D covariance, EWA projection, culling, SH colour.
+
+Everything here is O(N) and differentiated by plain autograd; it runs in float64 internally so
+needle-thin and huge covariances keep their determinant (float32 loses it to cancellation),
+and returns the dtype it was given.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+#: NOTE: 3DGS adds 0.3 px^2 to the projected covariance as a low-pass filter
+#: (diff-gaussian-rasterization, forward.cu `computeCov2D`).
+BLUR_PX2 = 0.3
+#: NOTE: 3DGS clamps the view-space x/z, y/z used by the EWA Jacobian to 1.3 x tan(fov/2).
+JACOBIAN_CLAMP = 1.3
+#: Support of a Gaussian: pixels within Mahalanobis distance 3 (the ellipse the 3DGS radius
+#: 3 sqrt(lambda_max) bounds). Using the ellipse, not the tile, makes images tile-independent.
+SUPPORT_SIGMA = 3.0
+
+# NOTE: real spherical-harmonics constants as in 3DGS (utils/sh_utils.py, forward.cu).
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def num_sh_bases(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z; normalised here)."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Sigma = R S S^T R^T [N, 3, 3] from quats [N, 4] (wxyz) and linear scales [N, 3] (m)."""
+    m = quat_to_rotmat(quats) * scales[:, None, :]  # R @ diag(s)
+    return m @ m.transpose(-1, -2)
+
+
+def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Colour [N, 3] from SH coefficients [N, K, 3] (K >= (degree+1)^2) and unit dirs [N, 3].
+
+    3DGS convention: returns SH value + 0.5, clamped at 0 (no upper clamp).
+    """
+    out = SH_C0 * sh[:, 0]
+    if degree > 0:
+        x, y, z = (d[:, None] for d in dirs.unbind(-1))
+        out = out - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+        if degree > 1:
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            out = (out + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5]
+                   + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6] + SH_C2[3] * xz * sh[:, 7]
+                   + SH_C2[4] * (xx - yy) * sh[:, 8])
+            if degree > 2:
+                out = (out + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
+                       + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
+                       + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
+                       + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
+                       + SH_C3[5] * z * (xx - yy) * sh[:, 14] + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15])
+    return (out + 0.5).clamp_min(0.0)
+
+
+def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor,
+            K: torch.Tensor, width: int, height: int, *, near: float = 0.01, far: float = 1e10,
+            blur: float = BLUR_PX2) -> dict[str, torch.Tensor]:
+    """EWA projection of 3D Gaussians to the image (pixel centres at +0.5, OpenCV camera).
+
+    Args:
+        means: [N, 3] world positions (m). quats: [N, 4] wxyz. scales: [N, 3] linear (m).
+        viewmat: [4, 4] world-to-camera. K: [3, 3] intrinsics (px).
+        near, far: planar depth range (m); centres outside it are culled.
+
+    Returns dict with means2d [N, 2] (px), conics [N, 3] (a, b, c of the inverse 2D covariance),
+    depths [N] (planar, m), radii [N] (px, 0 = culled), valid [N] bool. Culled entries hold
+    finite dummies so nothing downstream sees NaN.
+    """
+    dtype = means.dtype
+    f64 = torch.float64
+    means, quats, scales = means.to(f64), quats.to(f64), scales.to(f64)
+    viewmat, K = viewmat.to(f64), K.to(f64)
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    p = means @ R.T + t  # [N, 3] camera space
+    z = p[:, 2]
+    finite = torch.isfinite(p).all(-1) & torch.isfinite(scales).all(-1) & torch.isfinite(quats).all(-1)
+    valid = finite & (z > near) & (z < far)
+    one = torch.ones_like(z)
+    zs = torch.where(valid, z, one)
+    xs = torch.where(valid, p[:, 0], 0 * one)
+    ys = torch.where(valid, p[:, 1], 0 * one)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    means2d = torch.stack([fx * xs / zs + cx, fy * ys / zs + cy], -1)
+
+    # EWA Jacobian of the pinhole at the (clamped) centre; clamping keeps it sane for centres
+    # far outside the view (grazing ground views), as 3DGS does.
+    lim_x = JACOBIAN_CLAMP * (0.5 * width / fx)
+    lim_y = JACOBIAN_CLAMP * (0.5 * height / fy)
+    txz = (xs / zs).clamp(-lim_x, lim_x)
+    tyz = (ys / zs).clamp(-lim_y, lim_y)
+    zero = torch.zeros_like(zs)
+    J = torch.stack([
+        torch.stack([fx / zs, zero, -fx * txz / zs], -1),
+        torch.stack([zero, fy / zs, -fy * tyz / zs], -1),
+    ], -2)  # [N, 2, 3]
+    safe_scales = torch.where(finite[:, None], scales, torch.ones_like(scales))
+    safe_quats = torch.where(finite[:, None], quats, torch.ones_like(quats))
+    cov3d = covariance_3d(safe_quats, safe_scales)
+    T = J @ R  # [N, 2, 3]
+    cov2d = T @ cov3d @ T.transpose(-1, -2)
+    a = cov2d[:, 0, 0] + blur
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + blur
+    det = a * c - b * b
+    valid = valid & (det > 0) & torch.isfinite(det)
+    det = torch.where(valid, det, one)
+    a, b, c = (torch.where(valid, v, w) for v, w in ((a, one), (b, zero), (c, one)))
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+    mid = 0.5 * (a + c)
+    lam_max = mid + torch.sqrt((mid * mid - det).clamp_min(0.0))
+    radii = SUPPORT_SIGMA * torch.sqrt(lam_max.detach())
+    # Off-image: the support box misses the image entirely.
+    mx, my = means2d[:, 0].detach(), means2d[:, 1].detach()
+    on_image = (mx + radii > 0) & (mx - radii < width) & (my + radii > 0) & (my - radii < height)
+    valid = valid & on_image & torch.isfinite(radii)
+    radii = torch.where(valid, radii, torch.zeros_like(radii))
+    return {
+        "means2d": means2d.to(dtype), "conics": conics.to(dtype), "depths": zs.to(dtype),
+        "radii": radii.to(dtype), "valid": valid,
+    }
+
+
+def view_dirs(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """Unit directions [N, 3] from the camera centre to each mean (world frame)."""
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    campos = -(R.T @ t)
+    d = means - campos.to(means.dtype)
+    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def sh_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor, degree: int) -> torch.Tensor:
+    """RGB [N, 3] from SH [N, K, 3] seen from the camera of `viewmat` [4, 4]."""
+    if degree == 0:
+        return (SH_C0 * sh[:, 0] + 0.5).clamp_min(0.0)
+    return eval_sh(degree, sh, view_dirs(means.detach(), viewmat))
+
+
+def degree_for(num_bases: int) -> int:
+    d = int(round(math.sqrt(num_bases))) - 1
+    assert (d + 1) ** 2 == num_bases and 0 <= d <= 3, num_bases
+    return d

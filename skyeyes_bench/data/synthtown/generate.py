@@ -114,6 +114,8 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise UserError(f"seed {seed!r}: expected an integer >= 0")
     seed = int(seed)
+    if out.exists() and not overwrite:  # fail before rendering anything
+        raise UserError(f"{out}: already exists; pass --force to replace it")
     towns = plan(p, seed)
     jobs, where = [], []
     for ti, entry in enumerate(towns):

@@ -336,3 +336,29 @@ def make_lanes(town: Town, n: int, frames: int, step_m: float, seed: int) -> lis
     if len(lanes) < n:
         raise ValueError(f"town {town.name}: room for only {len(lanes)} lanes, {n} requested")
     return lanes
+
+
+def from_boxes(box_lo, box_hi, *, kind: int = BUILDING, ellipsoids=None, sun=(0.3, 0.2, 0.9),
+               name: str = "custom") -> Town:
+    """A town made of the given boxes (all of one kind, plain facades) on open land, no streets.
+
+    For tests and benchmarks: known geometry with the same renderer. box_lo/box_hi [N, 3];
+    ellipsoids: optional (centres [M, 3], radii [M, 3]); sun: direction towards the sun.
+    """
+    lo = np.asarray(box_lo, dtype=np.float64).reshape(-1, 3)
+    hi = np.asarray(box_hi, dtype=np.float64).reshape(-1, 3)
+    n = len(lo)
+    bld = {
+        "x0": lo[:, 0].copy(), "y0": lo[:, 1].copy(), "facade": np.tile([0.6, 0.55, 0.45], (n, 1)),
+        "window": np.tile([0.05, 0.06, 0.08], (n, 1)), "floor_h": np.full(n, 3.2), "win_dx": np.full(n, 3.0),
+        "win_w": np.full(n, 0.5), "win_h": np.full(n, 0.5), "shop": np.zeros(n), "band": np.zeros(n),
+        "roof": np.zeros(n), "roof_colour": np.tile(ROOF_COLOURS[0], (n, 1)), "door_dx": np.full(n, 0.5),
+    }
+    ec, er = (np.zeros((0, 3)), np.zeros((0, 3))) if ellipsoids is None else (
+        np.asarray(ellipsoids[0], dtype=np.float64).reshape(-1, 3), np.asarray(ellipsoids[1], dtype=np.float64).reshape(-1, 3))
+    s = np.asarray(sun, dtype=np.float64)
+    far = np.array([-1e5, 1e5])  # streets far away: the ground is open land everywhere near
+    return Town(name=name, seed=0, xs=far, ys=far, box_lo=lo, box_hi=hi, box_kind=np.full(n, kind, dtype=np.int64),
+                box_obj=np.arange(n, dtype=np.int64) if kind in (BUILDING, ROOFUNIT) else np.full(n, -1, dtype=np.int64),
+                box_colour=np.tile([0.5, 0.5, 0.5], (n, 1)), bld=bld, ell_centre=ec, ell_radii=er,
+                ell_colour=np.tile([0.05, 0.15, 0.03], (len(ec), 1)), sun=s / np.linalg.norm(s))

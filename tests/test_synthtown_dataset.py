@@ -1,0 +1,121 @@
+"""SynthTown datasets: layout validation, protocol structure, determinism, seeds, CLI, cache, gallery."""
+
+import filecmp
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+from skyeyes_bench import fileio, paths
+from skyeyes_bench.cameras import Camera
+from skyeyes_bench.data.layout import open_dataset
+from skyeyes_bench.data.synthtown import PRESETS, ensure_dataset
+from skyeyes_bench.data.synthtown import town as tw
+from skyeyes_bench.data.synthtown.render import LABELS, Scene, render
+from skyeyes_bench.protocol import load_protocol
+
+
+def test_smoke_dataset_opens_and_follows_the_protocol(synthtown_smoke):
+    ds = open_dataset(synthtown_smoke)  # raises ValidationError on any problem
+    proto = load_protocol("synthtown@1")
+    assert ds.protocol == "synthtown@1" and ds.name == "synthtown-smoke"
+    towns = {s: ds.scenes[s].meta["town"] for s in ds.scenes}
+    assert {towns[s] for s in ds.splits["train"]} <= set(proto.data.train)
+    assert {towns[s] for s in ds.splits["test"]} == set(proto.data.test)
+    assert ds.meta["official"] is False and ds.meta["preset"] == "smoke" and ds.meta["seed"] == 0
+    assert set(ds.meta["towns"]) == {"train-0", "test-0"}
+    for name, scene in ds.scenes.items():
+        assert name.startswith(scene.meta["town"] + "-lane")
+        assert sorted(scene.sequences) == [f"yaw{45 * k:03d}" for k in range(8)]
+        assert all(len(q) >= 16 for q in scene.sequences.values())  # FVD clips are 16 frames
+        assert all(scene.layers().values())
+        seq0 = scene.sequences["yaw000"]
+        c = [f.camera() for f in seq0]
+        # Every 2 m, 2 m high, pitch 0 (optical axis horizontal), yaw k*45 deg from the lane direction.
+        steps = np.linalg.norm(np.diff([x.center for x in c], axis=0), axis=1)
+        np.testing.assert_allclose(steps, proto.capture.ground_step_m, atol=1e-9)
+        np.testing.assert_allclose([x.center[2] for x in c], proto.capture.ground_height_m)
+        np.testing.assert_allclose([x.forward[2] for x in c], 0.0, atol=1e-12)
+        fwd_lane = (c[1].center - c[0].center) / 2.0
+        for k in range(8):
+            f = scene.sequences[f"yaw{45 * k:03d}"].frames[0].camera().forward
+            assert np.degrees(np.arccos(np.clip(f @ fwd_lane, -1, 1))) == pytest.approx(min(45 * k, 360 - 45 * k), abs=1e-6)
+        for a in scene.aerial:
+            ac = a.camera()
+            assert ac.center[2] == pytest.approx(proto.capture.aerial_height_m)
+            assert np.degrees(np.arcsin(ac.forward[2])) == pytest.approx(proto.capture.aerial_pitch_deg)
+            # Over a ground point of the lane.
+            assert min(np.linalg.norm(ac.center[:2] - x.center[:2]) for x in c) < 1e-9
+        f = seq0.frames[3]
+        depth, sem = f.depth(), f.semantics()
+        assert depth.dtype == np.float32 and not np.isnan(depth).any()
+        assert sem.max() < len(LABELS)
+        np.testing.assert_array_equal(np.isinf(depth), sem == 0)
+
+
+def test_same_seed_byte_identical_via_cli(synthtown_smoke, tmp_path):
+    out = tmp_path / "again"
+    rc, stdout, _ = run_cli("data", "synthtown", "--preset", "smoke", "--out", str(out), "--quiet")
+    assert "wrote" in stdout
+    cmp = filecmp.dircmp(synthtown_smoke, out)
+
+    def same(c):
+        assert not c.left_only and not c.right_only and not c.funny_files
+        _, mismatch, errors = filecmp.cmpfiles(c.left, c.right, c.common_files, shallow=False)
+        assert not mismatch and not errors, mismatch[:5]
+        for sub in c.subdirs.values():
+            same(sub)
+
+    same(cmp)
+    # Refuses to overwrite without --force: one-line error, exit 2.
+    rc, _, err = run_cli("data", "synthtown", "--preset", "smoke", "--out", str(out), check=2)
+    assert "already exists" in err and err.count("\n") == 1
+
+
+def test_other_seed_gives_another_town():
+    a, b = tw.make_town("test-0", 0, (3, 3)), tw.make_town("test-0", 1, (3, 3))
+    assert not np.array_equal(a.xs, b.xs) or a.box_lo.shape != b.box_lo.shape
+    again = tw.make_town("test-0", 0, (3, 3))
+    np.testing.assert_array_equal(a.box_lo, again.box_lo)
+    # Train and test towns of one seed differ too (the test town is held out).
+    c = tw.make_town("train-0", 0, (3, 3))
+    assert a.box_lo.shape != c.box_lo.shape or not np.array_equal(a.box_lo, c.box_lo)
+    cam = Camera.from_ypr([a.xs[1] + 1.75, 0.0, 2.0], 90.0, 0.0, fov_deg=90, width=32, height=32)
+    cam_b = Camera(cam.K, cam.c2w.copy(), 32, 32)
+    cam_b.c2w[0, 3] = b.xs[1] + 1.75
+    ia = render(Scene.from_town(a), cam, aa=1)[0]
+    ib = render(Scene.from_town(b), cam_b, aa=1)[0]
+    assert np.abs(ia - ib).mean() > 0.01
+
+
+def test_ensure_dataset_uses_the_cache_copy(synthtown_smoke):
+    target = paths.data_dir() / "synthtown-smoke"
+    shutil.copytree(synthtown_smoke, target)
+    before = (target / "dataset.json").stat().st_mtime_ns
+    assert ensure_dataset("smoke", progress=False) == target
+    assert (target / "dataset.json").stat().st_mtime_ns == before
+    rc, stdout, _ = run_cli("data", "synthtown", "--preset", "smoke")
+    assert stdout.startswith("exists")
+    # A non-dataset folder under the cache name is refused, not overwritten.
+    (paths.data_dir() / "synthtown-smoke-seed3").mkdir(parents=True)
+    rc, _, err = run_cli("data", "synthtown", "--preset", "smoke", "--seed", "3", check=2)
+    assert "no dataset.json" in err
+
+
+def test_gallery_from_dataset(synthtown_smoke, tmp_path):
+    out = tmp_path / "gallery.png"
+    run_cli("data", "gallery", "--dataset", str(synthtown_smoke), "--out", str(out), "--rows", "2")
+    w, h, c, _ = fileio.image_header(out)
+    assert w > 6 * 48 and h > 2 * 48 and c in (3, 4)
+
+
+def test_presets_are_consistent():
+    proto = load_protocol("synthtown@1")
+    assert PRESETS["small"].official and (PRESETS["small"].width, PRESETS["small"].height) == (proto.data.width, proto.data.height)
+    for p in PRESETS.values():
+        assert p.frames >= 16
+        assert {t for t, _ in p.lanes} == set(proto.data.train) | set(proto.data.test) or p.name == "smoke"
+        assert p.fov_deg == proto.data.fov_deg
+    assert PRESETS["paper"].width == 512

@@ -1,0 +1,272 @@
+"""The diffusion core: a diffusers UNet with a ControlNet branch, noise schedules, pixel codec.
+
+Without a pretrained checkpoint the model is trained from scratch in *pixel space*. Images are
+mapped to [-1, 1] and, when `patch > 1`, folded losslessly with a pixel-unshuffle
+(`[3, H, W] -> [3 p^2, H/p, W/p]`), so a 128x128 image costs the UNet about what a 64x64 one
+does. NOTE: measured here (bench/skyeyes.py, 2 CPU cores): a (32, 64, 128) UNet step at batch
+12 takes ~4.5x longer on 128x128x3 than on 64x64x12; a trained autoencoder would add a
+training stage and a reconstruction-error floor, the unshuffle has neither.
+
+Text conditioning: one embedding for the prompt "a realistic street view image" (Skyeyes
+Sec. 4.2). Offline there is no text encoder, so it is a learned "null" embedding
+`[1, 1, C]`; with `pretrained=DIR` (a local Stable Diffusion 1.5 diffusers folder) it is the
+frozen CLIP encoding of the prompt and the UNet works in the folder's VAE latent space.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: NOTE: the uniform prompt of Skyeyes, Sec. 4.2 (Implementation Details).
+PROMPT = "a realistic street view image"
+
+
+@dataclass(frozen=True)
+class CoreConfig:
+    """Architecture of the denoiser. Sizes in pixels; `channels` per UNet level."""
+
+    resolution: int = 64  # model input size in pixels (square); frames are resized to it
+    patch: int = 1  # pixel-unshuffle factor: the UNet sees [3 p^2, res/p, res/p]
+    channels: tuple[int, ...] = (32, 64, 128)
+    attention: tuple[bool, ...] = (False, True, True)  # transformer blocks (attn1 + attn2) per level
+    layers_per_block: int = 1
+    head_dim: int = 32
+    embed_dim: int = 64  # width of the prompt embedding (cross-attention dim)
+    norm_groups: int = 8
+    train_timesteps: int = 1000
+    # NOTE: Ho et al. 2020 linear schedule (1e-4 .. 0.02, T = 1000): alpha_bar_T = 4.0e-5, i.e.
+    # pure noise at t = T up to 0.6 % signal amplitude. We keep epsilon prediction (the paper's
+    # objective), for which a zero-terminal-SNR rescale (Lin et al. 2024) is ill-posed: at
+    # alpha_bar_T = 0 the image is not recoverable from an epsilon estimate.
+    beta_start: float = 1e-4
+    beta_end: float = 0.02
+    pretrained: str | None = None  # local SD1.5 diffusers folder (untested offline)
+
+    @property
+    def in_channels(self) -> int:
+        return 4 if self.pretrained else 3 * self.patch**2  # SD VAE latents have 4 channels
+
+    @property
+    def latent_size(self) -> int:
+        return self.resolution // (8 if self.pretrained else self.patch)
+
+
+def core_config_from_dict(d: dict) -> CoreConfig:
+    d = dict(d)
+    for k in ("channels", "attention"):
+        if k in d:
+            d[k] = tuple(d[k])
+    return CoreConfig(**d)
+
+
+# --------------------------------------------------------------------------- schedulers
+
+
+def train_scheduler(cfg: CoreConfig):
+    """DDPM (epsilon objective) for training."""
+    from diffusers import DDPMScheduler
+
+    return DDPMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
+                         beta_end=cfg.beta_end, beta_schedule="linear", prediction_type="epsilon",
+                         clip_sample=False)
+
+
+def sample_scheduler(cfg: CoreConfig):
+    """DDIM for sampling: trailing spacing so the first step is t = T - 1 (the noisiest), and
+    `set_alpha_to_one` so the last step lands on the clean image (alpha_bar = 1). In pixel
+    space the x0 estimate is clipped to the image range [-1, 1] at every step."""
+    from diffusers import DDIMScheduler
+
+    return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
+                         beta_end=cfg.beta_end, beta_schedule="linear", prediction_type="epsilon",
+                         clip_sample=cfg.pretrained is None, set_alpha_to_one=True,
+                         timestep_spacing="trailing")
+
+
+# --------------------------------------------------------------------------- pixel codec
+
+
+def resize(images: torch.Tensor, size: int) -> torch.Tensor:
+    """[N, 3, H, W] -> [N, 3, size, size], antialiased bilinear (identity if already that size)."""
+    if images.shape[-2:] == (size, size):
+        return images
+    return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+
+
+def encode(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+    """Images [N, 3, res, res] in [0, 1] -> model space [N, 3 p^2, res/p, res/p] in [-1, 1]
+    (or the VAE latent [N, 4, res/8, res/8] of a pretrained folder)."""
+    assert images.ndim == 4 and images.shape[1] == 3, images.shape
+    x = images * 2.0 - 1.0
+    if cfg.pretrained:
+        vae = _vae(cfg.pretrained)
+        with torch.no_grad():
+            return vae.encode(x).latent_dist.mean * vae.config.scaling_factor
+    return F.pixel_unshuffle(x, cfg.patch) if cfg.patch > 1 else x
+
+
+def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+    """Control images [N, 3, res, res] in [0, 1] -> what the ControlNet branch takes: the same
+    unshuffled pixels as the sample, or raw [0, 1] pixels for a pretrained ControlNet."""
+    return images if cfg.pretrained else encode(images, cfg)
+
+
+def decode(x: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+    """Model space [N, C, h, w] -> images [N, 3, res, res] in [0, 1] (clamped)."""
+    if cfg.pretrained:
+        vae = _vae(cfg.pretrained)
+        with torch.no_grad():
+            x = vae.decode(x / vae.config.scaling_factor).sample
+    elif cfg.patch > 1:
+        x = F.pixel_shuffle(x, cfg.patch)
+    return ((x + 1.0) / 2.0).clamp(0.0, 1.0)
+
+
+_VAES: dict = {}
+
+
+def _vae(root: str):
+    if root not in _VAES:
+        from diffusers import AutoencoderKL
+
+        _VAES[root] = AutoencoderKL.from_pretrained(Path(root) / "vae", local_files_only=True).eval()
+    return _VAES[root]
+
+
+def images_to_tensor(images) -> torch.Tensor:
+    """numpy float32 [N, H, W, 3] in [0, 1] -> torch [N, 3, H, W]."""
+    t = torch.as_tensor(images, dtype=torch.float32)
+    assert t.ndim == 4 and t.shape[-1] == 3, t.shape
+    return t.permute(0, 3, 1, 2).contiguous()
+
+
+def tensor_to_images(t: torch.Tensor):
+    """torch [N, 3, H, W] -> numpy float32 [N, H, W, 3]."""
+    return t.detach().permute(0, 2, 3, 1).contiguous().numpy().astype("float32")
+
+
+# --------------------------------------------------------------------------- model
+
+
+def build_unet(cfg: CoreConfig):
+    from diffusers import UNet2DConditionModel
+
+    down = tuple("CrossAttnDownBlock2D" if a else "DownBlock2D" for a in cfg.attention)
+    up = tuple("CrossAttnUpBlock2D" if a else "UpBlock2D" for a in reversed(cfg.attention))
+    return UNet2DConditionModel(
+        sample_size=cfg.latent_size, in_channels=cfg.in_channels, out_channels=cfg.in_channels,
+        down_block_types=down, up_block_types=up, mid_block_type="UNetMidBlock2DCrossAttn",
+        block_out_channels=tuple(cfg.channels), layers_per_block=cfg.layers_per_block,
+        cross_attention_dim=cfg.embed_dim, attention_head_dim=cfg.head_dim,
+        norm_num_groups=cfg.norm_groups,
+    )
+
+
+class ControlledUNet(nn.Module):
+    """UNet + optional ControlNet branch + the prompt embedding, as one module.
+
+    `forward(x_t, t, cond)` predicts the noise epsilon. The ControlNet branch is created by
+    `add_control()` (diffusers `ControlNetModel.from_unet`: a copy of the UNet's encoder and
+    middle block with zero-initialised output convolutions, so at creation the controlled
+    model predicts exactly what the UNet alone predicts).
+    """
+
+    def __init__(self, cfg: CoreConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.unet = build_unet(cfg)
+        self.controlnet = None
+        # Learned null embedding standing in for the text-encoded prompt. Small init so the
+        # cross-attention starts near a constant bias.
+        self.prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02)
+
+    def add_control(self) -> None:
+        from diffusers import ControlNetModel
+
+        self.controlnet = ControlNetModel.from_unet(
+            self.unet, conditioning_embedding_out_channels=(16,), conditioning_channels=self.cfg.in_channels)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
+        """x_t [B, C, h, w] noisy, t [B] integer timesteps, cond [B, C, h, w] (model space) -> eps [B, C, h, w]."""
+        b = x_t.shape[0]
+        assert t.shape == (b,), (t.shape, b)
+        emb = self.prompt.expand(b, -1, -1)
+        down = mid = None
+        if self.controlnet is not None:
+            assert cond is not None and cond.shape[0] == b, "a controlled model needs a condition"
+            down, mid = self.controlnet(x_t, t, encoder_hidden_states=emb, controlnet_cond=cond,
+                                        return_dict=False)
+        return self.unet(x_t, t, encoder_hidden_states=emb, down_block_additional_residuals=down,
+                         mid_block_additional_residual=mid, return_dict=False)[0]
+
+
+def build_model(cfg: CoreConfig, *, control: bool, seed: int = 0) -> ControlledUNet:
+    """A freshly initialised model (deterministic in `seed`)."""
+    if cfg.pretrained:
+        return load_pretrained(cfg, control=control)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = ControlledUNet(cfg)
+        if control:
+            model.add_control()
+    return model
+
+
+def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
+    """UNet (and ControlNet if the folder has one) from a local SD1.5 diffusers folder.
+
+    NOTE: this path cannot be exercised offline (no checkpoint, no `transformers`); it follows
+    the diffusers folder layout (unet/, text_encoder/, tokenizer/, vae/, optional controlnet/).
+    The VAE latent space (8x downsampling, 4 channels, scale 0.18215) replaces the pixel codec;
+    see `PretrainedCodec`.
+    """
+    from skyeyes_bench.errors import UserError
+
+    root = Path(cfg.pretrained)
+    if not (root / "unet" / "config.json").is_file():
+        raise UserError(f"{root}: not a diffusers Stable Diffusion folder (expected unet/config.json)")
+    try:
+        from transformers import CLIPTextModel, CLIPTokenizer
+    except ImportError:
+        raise UserError("--pretrained needs the 'transformers' package for the text encoder; pip install transformers") from None
+    from diffusers import ControlNetModel, UNet2DConditionModel
+
+    model = ControlledUNet.__new__(ControlledUNet)
+    nn.Module.__init__(model)
+    model.cfg = cfg
+    model.unet = UNet2DConditionModel.from_pretrained(root / "unet", local_files_only=True)
+    tok = CLIPTokenizer.from_pretrained(root / "tokenizer", local_files_only=True)
+    enc = CLIPTextModel.from_pretrained(root / "text_encoder", local_files_only=True)
+    with torch.no_grad():
+        ids = tok([PROMPT], padding="max_length", max_length=tok.model_max_length, return_tensors="pt").input_ids
+        emb = enc(ids)[0]  # [1, 77, 768]
+    model.prompt = nn.Parameter(emb, requires_grad=False)
+    model.controlnet = None
+    if control:
+        if (root / "controlnet" / "config.json").is_file():
+            model.controlnet = ControlNetModel.from_pretrained(root / "controlnet", local_files_only=True)
+        else:
+            model.controlnet = ControlNetModel.from_unet(model.unet)
+    return model
+
+
+def trainable(model: nn.Module, names: list[str] | None = None) -> list[nn.Parameter]:
+    """Freeze everything, then unfreeze parameters whose name starts with one of `names`
+    (all if None). Returns the unfrozen parameters in a stable order."""
+    out = []
+    for n, p in model.named_parameters():
+        on = names is None or any(n.startswith(k) for k in names)
+        p.requires_grad_(on)
+        if on:
+            out.append(p)
+    return out
+
+
+def replace_config(cfg: CoreConfig, **kw) -> CoreConfig:
+    return dataclasses.replace(cfg, **kw)

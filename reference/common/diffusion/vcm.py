@@ -1,0 +1,122 @@
+"""View consistency module (Skyeyes Sec. 3.3) as a diffusers attention processor.
+
+The self-attention layers (`attn1`) of the UNet and of the ControlNet branch are rewired to
+spatial-temporal attention over a clip of F frames: the queries of frame i attend to the keys
+and values of *all* F frames, with the layer's own (shared) projections:
+
+    Q = W_Q x_i,   K = W_K x_{1:F},   V = W_V x_{1:F}.
+
+Since every frame's queries see the same key set, this is one attention of the clip's F*L
+tokens over the same F*L tokens; the batch is laid out clip-major ([B*F, ...], frames of a
+clip adjacent). VCM adds no parameters: it changes the wiring, and training fine-tunes the
+attention projections of a copy of the frozen appearance control module.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class ClipContext:
+    """Shared, mutable number of frames per clip, read by every installed processor."""
+
+    def __init__(self, frames: int = 1):
+        self.frames = frames
+
+
+class ClipSelfAttnProcessor:
+    """Self-attention over all frames of a clip. Needs `ctx.frames` to divide the batch."""
+
+    def __init__(self, ctx: ClipContext):
+        self.ctx = ctx
+
+    def __call__(self, attn, hidden_states: torch.Tensor, encoder_hidden_states=None,
+                 attention_mask=None, temb=None, *args, **kwargs) -> torch.Tensor:
+        assert encoder_hidden_states is None, "VCM replaces self-attention only (attn1)"
+        assert attention_mask is None and attn.spatial_norm is None
+        residual = hidden_states
+        four_d = hidden_states.ndim == 4
+        if four_d:
+            bf, c, h, w = hidden_states.shape
+            hidden_states = hidden_states.view(bf, c, h * w).transpose(1, 2)
+        bf, length, _ = hidden_states.shape  # [B*F, L, C]
+        f = self.ctx.frames
+        assert bf % f == 0, f"batch {bf} is not a whole number of {f}-frame clips"
+        b = bf // f
+        if attn.group_norm is not None:
+            hidden_states = attn.group_norm(hidden_states.transpose(1, 2)).transpose(1, 2)
+        clip = hidden_states.reshape(b, f * length, -1)  # [B, F*L, C]: all tokens of a clip
+        q, k, v = attn.to_q(clip), attn.to_k(clip), attn.to_v(clip)  # [B, F*L, D]
+        heads = attn.heads
+        d = q.shape[-1] // heads
+        q, k, v = (x.view(b, f * length, heads, d).transpose(1, 2) for x in (q, k, v))  # [B, h, F*L, d]
+        out = F.scaled_dot_product_attention(q, k, v, scale=attn.scale)
+        out = out.transpose(1, 2).reshape(bf, length, heads * d)  # back to [B*F, L, D]
+        out = attn.to_out[1](attn.to_out[0](out))
+        if four_d:
+            out = out.transpose(-1, -2).reshape(bf, c, h, w)
+        if attn.residual_connection:
+            out = out + residual
+        return out / attn.rescale_output_factor
+
+
+def self_attention_layers(model: nn.Module) -> dict[str, nn.Module]:
+    """name -> Attention module of every `attn1` (self-attention) in `model`."""
+    return {n: m for n, m in model.named_modules() if n.endswith("attn1")}
+
+
+def install_vcm(model: nn.Module, ctx: ClipContext | None = None) -> ClipContext:
+    """Replace the processor of every `attn1` in `model` (UNet and ControlNet). Returns the context."""
+    ctx = ctx or ClipContext()
+    layers = self_attention_layers(model)
+    assert layers, "model has no self-attention layers"
+    proc = ClipSelfAttnProcessor(ctx)
+    for m in layers.values():
+        m.set_processor(proc)
+    model._vcm_context = ctx  # noqa: SLF001  (found again by `clip_frames`)
+    return ctx
+
+
+def vcm_parameter_names(model: nn.Module) -> list[str]:
+    """Prefixes of the parameters VCM fine-tunes: the projections of every `attn1`."""
+    return [f"{n}." for n in self_attention_layers(model)]
+
+
+@contextlib.contextmanager
+def clip_frames(model: nn.Module, frames: int) -> Iterator[None]:
+    """Within the block, the model's batch is read as clips of `frames` frames."""
+    ctx: ClipContext = model._vcm_context  # noqa: SLF001
+    old, ctx.frames = ctx.frames, frames
+    try:
+        yield
+    finally:
+        ctx.frames = old
+
+
+def reference_clip_attention(attn, x: torch.Tensor, frames: int) -> torch.Tensor:
+    """Slow reference: loop over query frames i, softmax(Q_i K_{1:F}^T / sqrt(d)) V_{1:F} per head.
+
+    x [B*F, L, C] -> [B*F, L, C_out]. For tests only (no group norm, no residual).
+    """
+    bf, length, _ = x.shape
+    b = bf // frames
+    d = attn.to_q.out_features // attn.heads
+    outs = []
+    for j in range(b):
+        xs = x[j * frames:(j + 1) * frames]  # [F, L, C]
+        kv = xs.reshape(1, frames * length, -1)[0]  # [F*L, C]
+        k, v = attn.to_k(kv), attn.to_v(kv)  # [F*L, D]
+        for i in range(frames):
+            q = attn.to_q(xs[i])  # [L, D]
+            heads = []
+            for h in range(attn.heads):
+                s = slice(h * d, (h + 1) * d)
+                w = torch.softmax(q[:, s] @ k[:, s].T * attn.scale, dim=-1)
+                heads.append(w @ v[:, s])
+            outs.append(attn.to_out[0](torch.cat(heads, dim=-1)))
+    return torch.stack(outs)

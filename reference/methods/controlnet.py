@@ -1,0 +1,18 @@
+"""ControlNet baseline (Skyeyes Tab. 1): the Skyeyes diffusion core conditioned on the aerial
+image instead of the Gaussian prior, frame by frame (no view consistency module).
+
+Which aerial image per ground frame: the aerial view whose camera centre is nearest the ground
+camera's (`skyeyes.nearest_aerial`). The base UNet stage is shared with Skyeyes (same cache key);
+only the ControlNet branch differs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .skyeyes import PRESETS, SkyeyesNoVCM
+
+
+class ControlNetBaseline(SkyeyesNoVCM):
+    name = "controlnet"
+    presets = {k: dataclasses.replace(v, vcm=False, condition="aerial") for k, v in PRESETS.items()}

@@ -1,0 +1,372 @@
+"""Skyeyes (WACV 2025): Gaussian prior -> appearance control module -> view consistency module.
+
+Stages (each cached by content hash under `<cache>/reference/diffusion/`, so `skyeyes`,
+`skyeyes-no-vcm` and `controlnet` share what they have in common):
+
+0. prior: the prior method (SuGaR) is fitted per lane on its *aerial* views only and rendered
+   at the lane's ground poses, for train and test lanes (`render_priors`).
+1. base: without a pretrained Stable Diffusion, a UNet is first trained unconditionally on the
+   train split's ground-truth ground frames (it stands in for the pretrained LDM).
+2. ACM: a ControlNet branch made from that UNet (`ControlNetModel.from_unet`, zero
+   convolutions) learns, UNet frozen, to denoise ground truth conditioned on its prior.
+3. VCM: a copy of the frozen ACM gets clip self-attention (`vcm.install_vcm`); its attn1
+   projections (UNet and ControlNet) are fine-tuned on 12-frame clips with first-frame
+   conditioning. VCM adds no new parameters.
+
+Inference: frame 1 from the ACM, then clips of 12 frames conditioned on the last generated
+frame, autoregressively. `SkyeyesNoVCM` is the paper's ablation (ACM frame by frame).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from reference.method import Method
+from skyeyes_bench import fileio
+from skyeyes_bench.data.layout import Dataset, Frame, Scene, Sequence
+from skyeyes_bench.paths import cache_dir
+
+from ..common.diffusion.core import CoreConfig
+
+# --------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class SkyeyesConfig:
+    """Everything a run depends on. Steps are optimiser iterations; batches count frames
+    (base, ACM) or 12-frame clips (VCM)."""
+
+    core: CoreConfig = field(default_factory=CoreConfig)
+    prior_method: str = "sugar"  # registry id of the prior (stage 0)
+    prior_preset: str = "smoke"
+    condition: str = "prior"  # "prior" (Skyeyes) | "aerial" (ControlNet baseline)
+    base_steps: int = 200
+    base_batch: int = 8
+    base_lr: float = 2e-4
+    acm_steps: int = 200
+    acm_batch: int = 8
+    acm_lr: float = 2e-4
+    vcm: bool = True
+    vcm_steps: int = 40
+    vcm_batch: int = 1
+    vcm_lr: float = 5e-5
+    clip_frames: int = 12  # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames"
+    sample_steps: int = 10  # DDIM steps
+    ckpt_every: int = 50
+    figure_frames: int = 6
+
+
+PRESETS: dict[str, SkyeyesConfig] = {
+    # CI: whole `reproduce --preset smoke` (SynthTown smoke, 48x48) in a few minutes.
+    "smoke": SkyeyesConfig(
+        core=CoreConfig(resolution=48, patch=1, channels=(32, 64, 64), attention=(False, False, True),
+                        head_dim=32, embed_dim=64),
+        prior_preset="smoke", base_steps=200, base_batch=8, acm_steps=200, acm_batch=8,
+        vcm_steps=40, vcm_batch=1, sample_steps=10),
+    # CPU default (SynthTown small, 128x128 folded to 64x64x12).
+    "small": SkyeyesConfig(
+        core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
+                        head_dim=32, embed_dim=64),
+        prior_preset="small", base_steps=800, base_batch=12, acm_steps=800, acm_batch=12,
+        vcm_steps=150, vcm_batch=1, sample_steps=20, ckpt_every=100),
+    # NOTE: Skyeyes Sec. 4.2: 512x512, ACM 30k iterations at batch 32, VCM 3k iterations at
+    # batch 2 (12-frame clips). GPU users; the base stage is skipped with --pretrained.
+    "paper": SkyeyesConfig(
+        core=CoreConfig(resolution=512, patch=4, channels=(128, 256, 512, 512),
+                        attention=(False, True, True, True), layers_per_block=2, head_dim=64,
+                        embed_dim=768, norm_groups=32),
+        prior_preset="paper", base_steps=30000, base_batch=32, acm_steps=30000, acm_batch=32,
+        vcm_steps=3000, vcm_batch=2, sample_steps=50, ckpt_every=1000),
+}
+
+
+def _sha(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _frame_key(scene: Scene, frame: Frame) -> str:
+    return f"{scene.name}/{frame.file}"
+
+
+# --------------------------------------------------------------------------- stage 0: priors
+
+
+def scene_aerial_hash(scene: Scene) -> str:
+    """Content hash of what a prior may use: scene.json (poses, intrinsics) and aerial pixels."""
+    h = hashlib.sha256((scene.root / "scene.json").read_bytes())
+    for f in scene.aerial:
+        h.update(fileio.sha256_file(f.path).encode())
+    return h.hexdigest()
+
+
+def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *,
+                  progress: bool = True) -> dict[str, np.ndarray]:
+    """Fit `prior_method` per scene and render every ground pose.
+
+    The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
+    `render_sequence`; renders are cached by (method, config, seed, scene content) hash under
+    `<cache>/reference/priors/`.
+
+    Returns:
+        {"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame.
+    """
+    from tqdm import tqdm
+
+    out: dict[str, np.ndarray] = {}
+    ident = {"method": prior_method.name, "version": prior_method.version,
+             "config": prior_method.config_dict(), "seed": prior_method.seed}
+    for scene in tqdm(scenes, desc="priors", disable=not progress, leave=False):
+        key = _sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
+        path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                for f in scene.ground:
+                    out[_frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
+            continue
+        prior_method.fit_scene(scene)
+        rendered: dict[str, np.ndarray] = {}
+        for seq in scene.sequences.values():
+            for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
+                rendered[frame.file] = fileio.to_uint8(np.asarray(img))
+        with fileio.atomic_path(path, suffix=".npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **rendered)
+        out.update({f"{scene.name}/{k}": v.astype(np.float32) / 255.0 for k, v in rendered.items()})
+    return out
+
+
+def nearest_aerial(scene: Scene, frame: Frame) -> Frame:
+    """The aerial view whose camera centre is nearest the ground camera's (the ControlNet
+    baseline's condition)."""
+    centres = np.stack([a.c2w[:3, 3] for a in scene.aerial])  # [A, 3]
+    return scene.aerial[int(np.argmin(np.linalg.norm(centres - frame.c2w[:3, 3], axis=1)))]
+
+
+def make_prior_method(config: SkyeyesConfig, workdir: Path, seed: int) -> Method:
+    from reference.methods import get_method_class
+
+    return get_method_class(config.prior_method).from_preset(config.prior_preset, workdir, seed=seed)
+
+
+# --------------------------------------------------------------------------- the method
+
+
+class Skyeyes(Method):
+    name = "skyeyes"
+    version = "0.1"
+    presets = PRESETS
+
+    def __init__(self, config: SkyeyesConfig, workdir: Path, *, seed: int = 0, prior_method: Method | None = None,
+                 progress: bool = True):
+        super().__init__(config, workdir, seed=seed)
+        self._prior = prior_method  # tests inject a stand-in; else built lazily from the registry
+        self.progress = progress
+        self.acm = None
+        self.vcm = None
+        self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, 3]
+        self.training: dict[str, Any] = {}
+        self._figure_written = False
+
+    # ---------------------------------------------------------------- helpers
+    @property
+    def prior(self) -> Method:
+        if self._prior is None:
+            self._prior = make_prior_method(self.config, self.workdir / "prior", self.seed)
+        return self._prior
+
+    def config_dict(self) -> dict:
+        d = dataclasses.asdict(self.config)
+        d["method"] = self.name
+        return d
+
+    def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
+        if self.config.condition == "aerial":
+            return {_frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}
+        return render_priors(dataset, scenes, self.prior, progress=self.progress)
+
+    def _to_model(self, images: list[np.ndarray]):
+        import torch
+
+        from ..common.diffusion.core import images_to_tensor, resize
+
+        cfg = self.config.core
+        return torch.cat([resize(images_to_tensor(im[None]), cfg.resolution) for im in images])
+
+    def _stage_ckpt(self, stage: str, key: dict) -> Path:
+        h = _sha({"stage": stage, **key})[:20]
+        return cache_dir() / "reference" / "diffusion" / f"{stage}-{h}" / "train.pt"
+
+    # ---------------------------------------------------------------- fit
+    def fit_train(self, dataset: Dataset) -> None:
+        import torch
+
+        from ..common.diffusion import core, train, vcm
+
+        cfg, c = self.config.core, self.config
+        scenes = dataset.split("train")
+        frames = [(s, f) for s in scenes for f in s.ground]
+        conds = self._conditions(dataset, scenes)
+        # 1. tensors in model space: targets and conditions, one row per train ground frame.
+        x0 = core.encode(self._to_model([f.image() for _, f in frames]), cfg)
+        cc = core.encode_cond(self._to_model([conds[_frame_key(s, f)] for s, f in frames]), cfg)
+        data_hash = hashlib.sha256(x0.numpy().tobytes()).hexdigest()
+        cond_hash = hashlib.sha256(cc.numpy().tobytes()).hexdigest()
+        sched = core.train_scheduler(cfg)
+        n = len(frames)
+
+        # 2. base UNet on ground truth (skipped when a pretrained UNet is given).
+        model = core.build_model(cfg, control=False, seed=self.seed)
+        base_key = {"core": dataclasses.asdict(cfg), "steps": c.base_steps, "batch": c.base_batch,
+                    "lr": c.base_lr, "seed": self.seed, "data": data_hash}
+        if not cfg.pretrained:
+            params = core.trainable(model, ["unet.", "prompt"])
+
+            def base_loss(g):
+                idx = torch.randint(0, n, (c.base_batch,), generator=g)
+                return train.eps_loss(model, sched, x0[idx], None, g)
+
+            self.training["base"] = self._run("base", model, params, base_loss, c.base_steps, c.base_lr, base_key)
+
+        # 3. ACM: ControlNet branch from the UNet, UNet frozen.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.seed + 1)
+            model.add_control()
+        acm_key = {"base": base_key, "steps": c.acm_steps, "batch": c.acm_batch, "lr": c.acm_lr,
+                   "condition": c.condition, "cond": cond_hash}
+        params = core.trainable(model, ["controlnet."])
+
+        def acm_loss(g):
+            idx = torch.randint(0, n, (c.acm_batch,), generator=g)
+            return train.eps_loss(model, sched, x0[idx], cc[idx], g)
+
+        self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key)
+        core.trainable(model, [])
+        self.acm = model
+
+        # 4. VCM: clip attention on a copy of the frozen ACM; fine-tune the attn1 projections.
+        if not c.vcm:
+            return
+        seqs = [[frames.index((s, f)) for f in q.frames] for s in scenes for q in s.sequences.values()]
+        seqs = [q for q in seqs if len(q) >= 2]
+        f_clip = min(c.clip_frames, min(len(q) for q in seqs))
+        vmodel = copy.deepcopy(model)
+        vcm.install_vcm(vmodel)
+        params = core.trainable(vmodel, vcm.vcm_parameter_names(vmodel))
+        vcm_key = {"acm": acm_key, "steps": c.vcm_steps, "batch": c.vcm_batch, "lr": c.vcm_lr, "frames": f_clip}
+
+        def vcm_loss(g):
+            rows = []
+            for _ in range(c.vcm_batch):
+                q = seqs[int(torch.randint(0, len(seqs), (1,), generator=g))]
+                s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g))
+                rows.append(q[s0:s0 + f_clip])
+            idx = torch.tensor(rows)  # [B, F]
+            with vcm.clip_frames(vmodel, f_clip):
+                return train.clip_eps_loss(vmodel, sched, x0[idx], cc[idx], g)
+
+        self.training["vcm"] = self._run("vcm", vmodel, params, vcm_loss, c.vcm_steps, c.vcm_lr, vcm_key)
+        core.trainable(vmodel, [])
+        self.vcm = vmodel
+
+    def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict) -> dict:
+        from ..common.diffusion import train
+
+        ckpt = self._stage_ckpt(stage, key)
+        res = train.train_loop(model, params, loss_fn, steps=steps, lr=lr, seed=self.seed, ckpt=ckpt,
+                               ckpt_every=self.config.ckpt_every, progress=self.progress, desc=stage)
+        tail = res["losses"][-max(1, steps // 10):]
+        summary = {"checkpoint": str(ckpt), "steps": res["steps"], "seconds": round(res["seconds"], 2),
+                   "it_per_s": round(res["steps"] / max(res["seconds"], 1e-9), 4),
+                   "final_loss": float(np.mean(tail)) if tail else None,
+                   "trainable_parameters": sum(p.numel() for p in params)}
+        fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
+        fileio.write_json(self.workdir / "config.json", self.config_dict())
+        return summary
+
+    def fit_scene(self, scene: Scene) -> None:
+        if self.acm is None:
+            raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
+        self.conds.update(self._conditions(None, [scene]))
+
+    # ---------------------------------------------------------------- render
+    def _generate(self, conds):
+        from ..common.diffusion import sample
+
+        seed = self._seq_seed
+        if self.config.vcm:
+            return sample.sample_sequence(self.acm, self.vcm, conds, steps=self.config.sample_steps, seed=seed,
+                                          clip=self.config.clip_frames)
+        return sample.sample_frames(self.acm, conds, steps=self.config.sample_steps, seed=seed)
+
+    def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
+        from ..common.diffusion import core
+
+        cfg = self.config.core
+        priors = [self.conds[_frame_key(scene, f)] for f in sequence.frames]
+        cc = core.encode_cond(self._to_model(priors), cfg)
+        # Seed per sequence from its id, so frames do not depend on rendering order.
+        self._seq_seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
+        x = self._generate(cc)
+        imgs = core.decode(x, cfg)  # [N, 3, res, res]
+        out = []
+        for f, img in zip(sequence.frames, imgs, strict=True):
+            img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
+                _resize_hw(img[None], f.height, f.width)[0]
+            out.append(core.tensor_to_images(img[None])[0])
+        if not self._figure_written:
+            self._figure_written = True
+            write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
+                         condition=self.config.condition)
+        yield from out
+
+
+def _resize_hw(images, h: int, w: int):
+    import torch.nn.functional as F
+
+    return F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+
+
+def write_figure(path: Path, scene: Scene, sequence: Sequence, conds: list[np.ndarray],
+                 generated: list[np.ndarray], n: int, *, condition: str = "prior") -> None:
+    """Rows: nearest aerial view, condition (prior), generated, ground truth; `n` frames spread
+    over the sequence. Ground-truth pixels are read here, after generation, for display only."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    idx = np.unique(np.linspace(0, len(sequence) - 1, min(n, len(sequence))).round().astype(int))
+    rows = [("aerial (nearest)", [nearest_aerial(scene, sequence.frames[i]).image() for i in idx]),
+            (condition, [conds[i] for i in idx]),
+            ("generated", [generated[i] for i in idx]),
+            ("ground truth", [sequence.frames[i].image() for i in idx])]
+    fig, axes = plt.subplots(len(rows), len(idx), figsize=(1.6 * len(idx), 1.7 * len(rows)), squeeze=False)
+    for r, (label, imgs) in enumerate(rows):
+        for col, (i, im) in enumerate(zip(idx, imgs)):
+            ax = axes[r][col]
+            ax.imshow(np.clip(im, 0, 1))
+            ax.set_xticks([]), ax.set_yticks([])
+            if col == 0:
+                ax.set_ylabel(label, fontsize=7)
+            if r == 0:
+                ax.set_title(f"{sequence.name} #{i}", fontsize=7)
+    fig.tight_layout()
+    with fileio.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+
+
+class SkyeyesNoVCM(Skyeyes):
+    """The paper's ablation: the appearance control module frame by frame (no VCM)."""
+
+    name = "skyeyes-no-vcm"
+    presets = {k: dataclasses.replace(v, vcm=False) for k, v in PRESETS.items()}

@@ -1,0 +1,152 @@
+"""Skyeyes / SkyeyesNoVCM / ControlNetBaseline end to end on a tiny hand-made dataset.
+
+The prior here is a STAND-IN (test only): the ground-truth frame blurred and noised. The real
+method uses the SuGaR prior, fitted on aerial views only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("diffusers")
+
+from reference.method import Method  # noqa: E402
+from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
+from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM, nearest_aerial, render_priors  # noqa: E402
+from reference.common.diffusion.core import CoreConfig  # noqa: E402
+from skyeyes_bench.cameras import Camera  # noqa: E402
+from skyeyes_bench.data.layout import DatasetWriter, open_dataset  # noqa: E402
+
+SIZE = 16
+
+
+def make_tiny_dataset(root: Path, frames: int = 6, seqs: int = 2) -> Path:
+    """Two lanes (train, test), smooth images that drift along each sequence."""
+    rng = np.random.default_rng(0)
+    intr = {"width": SIZE, "height": SIZE, "fx": SIZE / 2, "fy": SIZE / 2, "cx": SIZE / 2, "cy": SIZE / 2}
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
+    with DatasetWriter(root, name="tiny", protocol="synthtown@1") as w:
+        for sname in ["train-0-lane00", "test-0-lane00"]:
+            s = w.scene(sname, {"ground": intr, "aerial": intr})
+            for a in range(3):
+                cam = Camera.from_ypr([a * 4.0, 0, 52], 0, -45, fov_deg=90, width=SIZE, height=SIZE)
+                s.add_aerial(rng.random((SIZE, SIZE, 3)).astype(np.float32), cam.c2w)
+            for k in range(seqs):
+                for i in range(frames):
+                    cam = Camera.from_ypr([i * 2.0, 0, 2], 45 * k, 0, fov_deg=90, width=SIZE, height=SIZE)
+                    img = np.stack([(xx + 0.1 * i) % 1, yy, np.full_like(xx, 0.3 * k + 0.1)], -1)
+                    s.add_ground(img.astype(np.float32), cam.c2w, sequence=f"yaw{45 * k:03d}", index=i)
+            s.close()
+        w.finish(splits={"train": ["train-0-lane00"], "test": ["test-0-lane00"]})
+    return root
+
+
+class StandInPrior(Method):
+    """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised. Counts its calls."""
+
+    name = "stand-in-prior"
+    presets = {"default": {}}
+
+    def __init__(self, workdir: Path, seed: int = 0):
+        super().__init__({}, workdir, seed=seed)
+        self.fitted: list[str] = []
+
+    def config_dict(self) -> dict:
+        return {"blur": 3, "noise": 0.1}
+
+    def fit_scene(self, scene):
+        self.fitted.append(scene.name)
+
+    def render_sequence(self, scene, sequence):
+        from scipy.ndimage import uniform_filter
+
+        rng = np.random.default_rng(len(sequence.name))
+        for f in sequence.frames:
+            img = uniform_filter(f.image(), size=(3, 3, 1))
+            yield np.clip(img + rng.normal(0, 0.1, img.shape), 0, 1).astype(np.float32)
+
+
+TINY = dataclasses.replace(
+    PRESETS["smoke"],
+    core=CoreConfig(resolution=SIZE, channels=(16, 32), attention=(False, True), head_dim=8, embed_dim=16,
+                    norm_groups=4),
+    base_steps=4, base_batch=4, acm_steps=4, acm_batch=4, vcm_steps=2, vcm_batch=1, clip_frames=4,
+    sample_steps=3, ckpt_every=2, figure_frames=3)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: a second thread only adds synchronisation (and the cores are shared)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return make_tiny_dataset(tmp_path_factory.mktemp("tiny") / "ds")
+
+
+def _run(cls, tiny, workdir, **kw):
+    ds = open_dataset(tiny)
+    cfg = dataclasses.replace(TINY, **kw) if kw else TINY
+    if cls is not Skyeyes:
+        cfg = dataclasses.replace(cfg, vcm=False, condition="aerial" if cls is ControlNetBaseline else "prior")
+    prior = StandInPrior(workdir / "prior")
+    m = cls(cfg, workdir, seed=0, prior_method=prior, progress=False)
+    m.fit_train(ds)
+    out = {}
+    for scene in ds.split("test"):
+        m.fit_scene(scene)
+        for seq in scene.sequences.values():
+            out[seq.id] = np.stack(list(m.render_sequence(scene, seq)))
+    return m, prior, out
+
+
+@pytest.mark.parametrize("cls", [Skyeyes, SkyeyesNoVCM, ControlNetBaseline])
+def test_methods_render_every_frame(cls, tiny, tmp_path):
+    m, prior, out = _run(cls, tiny, tmp_path / "run")
+    ds = open_dataset(tiny)
+    for seq in ds.sequences("test"):
+        frames = out[seq.id]
+        assert frames.shape == (len(seq), SIZE, SIZE, 3) and frames.dtype == np.float32
+        assert np.isfinite(frames).all() and frames.min() >= 0 and frames.max() <= 1
+    assert (tmp_path / "run" / "figure.png").is_file()
+    assert (tmp_path / "run" / "config.json").is_file()
+    # the prior is fitted on train and test lanes (aerial views), the ControlNet needs none
+    assert prior.fitted == ([] if cls is ControlNetBaseline else ["train-0-lane00", "test-0-lane00"])
+
+
+def test_same_seed_same_frames_and_cached_stages(tiny, tmp_path):
+    _, _, a = _run(Skyeyes, tiny, tmp_path / "a")
+    _, prior, b = _run(Skyeyes, tiny, tmp_path / "b")  # stages and priors now come from the cache
+    assert prior.fitted == []
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_nearest_aerial_is_nearest(tiny):
+    ds = open_dataset(tiny)
+    scene = ds.scenes["test-0-lane00"]
+    for f in scene.ground:
+        d = [np.linalg.norm(a.c2w[:3, 3] - f.c2w[:3, 3]) for a in scene.aerial]
+        assert nearest_aerial(scene, f) is scene.aerial[int(np.argmin(d))]
+
+
+def test_render_priors_keys_and_cache(tiny, tmp_path):
+    ds = open_dataset(tiny)
+    prior = StandInPrior(tmp_path)
+    p1 = render_priors(ds, ds.split("train"), prior, progress=False)
+    p2 = render_priors(ds, ds.split("train"), prior, progress=False)
+    assert prior.fitted == ["train-0-lane00"]
+    assert set(p1) == {f"train-0-lane00/{f.file}" for f in ds.scenes["train-0-lane00"].ground}
+    for k in p1:
+        assert p1[k].shape == (SIZE, SIZE, 3)
+        np.testing.assert_array_equal(p1[k], p2[k])

@@ -53,7 +53,7 @@ resize = "none"
 [metrics.kid]
 extractor = "random-image-64"
 resize = "none"
-subset_size = 20
+subset_size = 100
 num_subsets = 5
 
 [metrics.fvd]
@@ -67,7 +67,7 @@ extractor = "random-video-64"
 resize = "none"
 clip_length = 4
 clip_stride = 4
-subset_size = 8
+subset_size = 20
 num_subsets = 5
 
 [statistics]

@@ -75,7 +75,7 @@ TINY = dataclasses.replace(
     core=CoreConfig(resolution=SIZE, channels=(16, 32), attention=(False, True), head_dim=8, embed_dim=16,
                     norm_groups=4),
     base_steps=4, base_batch=4, acm_steps=4, acm_batch=4, vcm_steps=2, vcm_batch=1, clip_frames=4,
-    sample_steps=3, ckpt_every=2, figure_frames=3)
+    sample_steps=4, ckpt_every=2, figure_frames=3)
 
 
 @pytest.fixture(autouse=True)

@@ -12,6 +12,17 @@ from .core import ControlledUNet, sample_scheduler
 from .vcm import clip_frames
 
 
+def _scheduler(cfg, steps: int):
+    # NOTE: diffusers' DDIMScheduler.step takes the previous timestep as t - T // n; with
+    # trailing spacing that is the next scheduled timestep (and the last step lands on
+    # alpha_bar = 1) only when n divides T. Otherwise frames would be denoised off-schedule.
+    if steps < 1 or cfg.train_timesteps % steps:
+        raise ValueError(f"DDIM steps {steps} must divide the {cfg.train_timesteps} training timesteps")
+    sched = sample_scheduler(cfg)
+    sched.set_timesteps(steps)
+    return sched
+
+
 @torch.no_grad()
 def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, generator: torch.Generator,
          shape: tuple[int, ...] | None = None) -> torch.Tensor:
@@ -24,8 +35,7 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
     Returns:
         [N, C, h, w] the generated frames.
     """
-    sched = sample_scheduler(model.cfg)
-    sched.set_timesteps(steps)
+    sched = _scheduler(model.cfg, steps)
     shape = tuple(conds.shape) if conds is not None else tuple(shape)
     x = torch.randn(shape, generator=generator) * sched.init_noise_sigma
     for t in sched.timesteps:
@@ -71,8 +81,7 @@ def ddim_clip(model: ControlledUNet, conds: torch.Tensor, first: torch.Tensor, *
               generator: torch.Generator) -> torch.Tensor:
     """One clip: conds [F, C, h, w] (the first is the given frame's), first [C, h, w] clean ->
     the F - 1 new frames [F - 1, C, h, w]."""
-    sched = sample_scheduler(model.cfg)
-    sched.set_timesteps(steps)
+    sched = _scheduler(model.cfg, steps)
     f = len(conds)
     x = torch.randn((f - 1, *first.shape), generator=generator) * sched.init_noise_sigma
     with clip_frames(model, f):

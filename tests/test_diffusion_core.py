@@ -1,0 +1,265 @@
+"""Diffusion core numerics: schedule endpoints, DDIM against closed forms, ControlNet zero init,
+VCM attention against a slow reference, first-frame conditioning, determinism, resume."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("diffusers")
+
+from reference.common.diffusion import core, sample, train, vcm  # noqa: E402
+
+TINY = core.CoreConfig(resolution=16, channels=(16, 32), attention=(False, True), head_dim=8, embed_dim=16,
+                       norm_groups=4)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _alpha_bar(cfg=TINY) -> np.ndarray:
+    """Closed form of the linear schedule (Ho et al. 2020), float64."""
+    betas = np.linspace(cfg.beta_start, cfg.beta_end, cfg.train_timesteps, dtype=np.float64)
+    return np.cumprod(1.0 - betas)
+
+
+# --------------------------------------------------------------------------- schedules
+
+
+def test_schedule_endpoints():
+    ab = _alpha_bar()
+    s = core.train_scheduler(TINY)
+    np.testing.assert_allclose(s.alphas_cumprod.double().numpy(), ab, rtol=1e-5)
+    assert s.alphas_cumprod[-1] < 1e-4  # pure noise at t = T, up to 1 % amplitude
+    assert s.alphas_cumprod[0] > 0.9998  # t = 0 is (almost) clean
+    assert s.config.prediction_type == "epsilon"
+
+
+def test_ddim_timesteps_trailing_and_last_step_is_x0():
+    s = core.sample_scheduler(TINY)
+    s.set_timesteps(10)
+    ts = s.timesteps.numpy()
+    assert ts[0] == TINY.train_timesteps - 1  # starts at the noisiest step
+    assert np.all(np.diff(ts) < 0) and ts[-1] == 99
+    ab = _alpha_bar()
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, 4, 4, generator=g) * 0.5
+    eps = torch.randn(2, 3, 4, 4, generator=g) * 0.1
+    # last step (t = 99 -> "t = -1", alpha_bar = 1): DDIM returns the clipped x0 estimate
+    t = int(ts[-1])
+    x0 = (x.double() - np.sqrt(1 - ab[t]) * eps.double()) / np.sqrt(ab[t])
+    got = s.step(eps, t, x, eta=0.0).prev_sample
+    np.testing.assert_allclose(got.numpy(), x0.clamp(-1, 1).numpy(), atol=1e-5)
+    # a middle step: x_prev = sqrt(ab_prev) x0 + sqrt(1 - ab_prev) eps (Song et al. 2021, eta 0)
+    s.set_timesteps(10)
+    t, tp = int(ts[3]), int(ts[4])
+    x0 = torch.rand(2, 3, 4, 4, generator=g, dtype=torch.float64) * 1.8 - 0.9  # inside the clip range
+    eps = torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64)
+    x_t = np.sqrt(ab[t]) * x0 + np.sqrt(1 - ab[t]) * eps
+    want = np.sqrt(ab[tp]) * x0 + np.sqrt(1 - ab[tp]) * eps
+    got = s.step(eps.float(), t, x_t.float(), eta=0.0).prev_sample
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=2e-4)
+
+
+def test_ddim_steps_must_divide_T():
+    m = OracleModel(torch.zeros(1, 3, 4, 4))
+    with pytest.raises(ValueError, match="divide"):
+        sample.ddim(m, torch.zeros(1, 3, 4, 4), steps=7, generator=torch.Generator())
+
+
+class OracleModel(torch.nn.Module):
+    """Predicts the exact noise that leads from `target` to x_t (so DDIM must return `target`)."""
+
+    def __init__(self, target):
+        super().__init__()
+        self.cfg, self.target = TINY, target
+        self.ab = torch.tensor(_alpha_bar())
+        self._vcm_context = vcm.ClipContext()
+        self.calls = []
+
+    def forward(self, x_t, t, cond=None):
+        self.calls.append((x_t.clone(), t.clone()))
+        ab = self.ab[t].view(-1, 1, 1, 1)
+        n = x_t.shape[0]
+        tgt = self.target[:n] if self.target.shape[0] >= n else self.target[:1].expand_as(x_t)
+        return ((x_t.double() - ab.sqrt() * tgt.double()) / (1 - ab).sqrt()).float()
+
+
+def test_ddim_loop_recovers_oracle_target():
+    target = torch.rand(3, 3, 8, 8) * 1.6 - 0.8
+    m = OracleModel(target)
+    out = sample.ddim(m, torch.zeros(3, 3, 8, 8), steps=8, generator=torch.Generator().manual_seed(1))
+    np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
+
+
+def test_ddim_clip_keeps_first_frame_clean_at_t0():
+    target = torch.rand(4, 3, 8, 8) * 1.6 - 0.8
+    m = OracleModel(target)
+    first = target[0]
+    out = sample.ddim_clip(m, torch.zeros(4, 3, 8, 8), first, steps=5, generator=torch.Generator().manual_seed(0))
+    assert out.shape == (3, 3, 8, 8)
+    for x_t, t in m.calls:
+        assert t[0] == 0 and torch.equal(x_t[0], first) and (t[1:] > 0).all()
+    np.testing.assert_allclose(out.numpy(), target[1:].numpy(), atol=1e-4)
+
+
+def test_sample_sequence_is_autoregressive():
+    n, clip = 10, 4
+    target = torch.rand(n, 3, 8, 8) * 1.6 - 0.8
+
+    class Seq(OracleModel):
+        def forward(self, x_t, t, cond):  # cond carries the frame index of each row
+            self.calls.append((x_t.clone(), t.clone(), cond[:, 0, 0, 0].long().tolist()))
+            ab = self.ab[t].view(-1, 1, 1, 1)
+            tgt = target[cond[:, 0, 0, 0].long()]
+            return ((x_t.double() - ab.sqrt() * tgt.double()) / (1 - ab).sqrt()).float()
+
+    conds = torch.arange(n).float().view(n, 1, 1, 1).expand(n, 3, 8, 8).contiguous()
+    acm, vm = Seq(target), Seq(target)
+    out = sample.sample_sequence(acm, vm, conds, steps=4, seed=0, clip=clip)
+    np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
+    assert {tuple(c[2]) for c in acm.calls} == {(0,)}  # frame 1 from the ACM alone
+    clips = sorted({tuple(c[2]) for c in vm.calls})
+    assert clips == [(0, 1, 2, 3), (3, 4, 5, 6), (6, 7, 8, 9)]  # each starts from the last generated
+
+
+# --------------------------------------------------------------------------- model
+
+
+def test_controlnet_starts_as_the_unet_and_float32():
+    m = core.build_model(TINY, control=False, seed=0).eval()
+    x, t = torch.randn(2, 3, 16, 16), torch.tensor([10, 900])
+    with torch.no_grad():
+        y0 = m(x, t)
+        m.add_control()
+        y1 = m(x, t, torch.rand(2, 3, 16, 16))
+    assert y1.dtype == torch.float32 and all(p.dtype == torch.float32 for p in m.parameters())
+    torch.testing.assert_close(y1, y0, rtol=0, atol=0)  # zero convolutions
+    # the branch is a copy of the UNet's encoder
+    torch.testing.assert_close(m.controlnet.conv_in.weight, m.unet.conv_in.weight)
+
+
+def test_build_model_is_deterministic():
+    a = core.build_model(TINY, control=True, seed=3).state_dict()
+    b = core.build_model(TINY, control=True, seed=3).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_pixel_codec_roundtrip():
+    cfg = core.replace_config(TINY, patch=2)
+    img = torch.rand(2, 3, 16, 16)
+    z = core.encode(img, cfg)
+    assert z.shape == (2, 12, 8, 8) and z.min() >= -1 and z.max() <= 1
+    torch.testing.assert_close(core.decode(z, cfg), img)
+
+
+# --------------------------------------------------------------------------- VCM
+
+
+def test_vcm_processor_matches_slow_reference():
+    m = core.build_model(TINY, control=True, seed=0).eval()
+    layers = vcm.self_attention_layers(m)
+    assert any(n.startswith("controlnet.") for n in layers) and any(n.startswith("unet.") for n in layers)
+    attn = next(iter(layers.values()))
+    ctx = vcm.ClipContext(3)
+    proc = vcm.ClipSelfAttnProcessor(ctx)
+    x = torch.randn(6, 20, attn.to_q.in_features)  # 2 clips x 3 frames, 20 tokens
+    with torch.no_grad():
+        got = proc(attn, x)
+        want = vcm.reference_clip_attention(attn, x, 3)
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_vcm_links_frames_only_within_a_clip():
+    m = core.build_model(TINY, control=True, seed=0).eval()
+    with torch.no_grad():  # make the ControlNet branch matter (its zero convs hide it otherwise)
+        for p in m.controlnet.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    x, t, c = torch.randn(4, 3, 16, 16), torch.full((4,), 500), torch.rand(4, 3, 16, 16)
+    x2 = x.clone()
+    x2[1] += 1.0  # perturb frame 2 of clip 1
+    with torch.no_grad():
+        plain = m(x, t, c), m(x2, t, c)
+        vcm.install_vcm(m)
+        one = m(x, t, c)
+        with vcm.clip_frames(m, 2):
+            a, b = m(x, t, c), m(x2, t, c)
+    torch.testing.assert_close(one, plain[0], rtol=1e-5, atol=1e-6)  # F = 1: ordinary self-attention
+    torch.testing.assert_close(plain[0][0], plain[1][0])  # without VCM frames are independent
+    assert (a[0] - b[0]).abs().max() > 1e-5  # with VCM frame 1 sees frame 2 ...
+    torch.testing.assert_close(a[2:], b[2:])  # ... but clip 2 does not
+
+
+def test_vcm_parameters_are_attn1_projections_only():
+    m = core.build_model(TINY, control=True, seed=0)
+    vcm.install_vcm(m)
+    params = core.trainable(m, vcm.vcm_parameter_names(m))
+    names = [n for n, p in m.named_parameters() if p.requires_grad]
+    assert names and all(".attn1." in n for n in names) and len(params) == len(names)
+    assert {n.split(".attn1.")[1].split(".")[0] for n in names} == {"to_q", "to_k", "to_v", "to_out"}
+
+
+def test_clip_loss_conditions_on_clean_first_frame():
+    seen = {}
+
+    class Rec(torch.nn.Module):
+        def forward(self, x_t, t, cond):
+            seen["x"], seen["t"] = x_t, t
+            return torch.zeros_like(x_t)
+
+    sched = core.train_scheduler(TINY)
+    x0 = torch.rand(2, 5, 3, 8, 8)
+    loss = train.clip_eps_loss(Rec(), sched, x0, x0, torch.Generator().manual_seed(0))
+    x, t = seen["x"].view(2, 5, 3, 8, 8), seen["t"].view(2, 5)
+    assert torch.equal(x[:, 0], x0[:, 0]) and (t[:, 0] == 0).all()
+    assert (t[:, 1:] == t[:, 1:2]).all()  # one timestep per clip
+    # zero prediction: loss = mean of the squared noise of frames 2..F, recomputed from x_t
+    ab = sched.alphas_cumprod[t[:, 1]].view(2, 1, 1, 1, 1)
+    noise = (x[:, 1:] - ab.sqrt() * x0[:, 1:]) / (1 - ab).sqrt()
+    torch.testing.assert_close(loss, noise.pow(2).mean(), rtol=1e-4, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- determinism, resume
+
+
+def test_same_seed_same_samples():
+    m = core.build_model(TINY, control=True, seed=0).eval()
+    c = torch.rand(2, 3, 16, 16)
+    a = sample.sample_frames(m, c, steps=4, seed=7)
+    b = sample.sample_frames(m, c, steps=4, seed=7)
+    d = sample.sample_frames(m, c, steps=4, seed=8)
+    assert torch.equal(a, b) and not torch.equal(a, d)
+
+
+def _train(tmp, stop_after=None, ckpt_every=2):
+    m = core.build_model(TINY, control=False, seed=0)
+    sched = core.train_scheduler(TINY)
+    data = torch.rand(6, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    params = core.trainable(m)
+
+    def loss_fn(g):
+        idx = torch.randint(0, 6, (2,), generator=g)
+        return train.eps_loss(m, sched, data[idx], None, g)
+
+    res = train.train_loop(m, params, loss_fn, steps=5, lr=1e-3, seed=0, ckpt=tmp / "c.pt",
+                           ckpt_every=ckpt_every, stop_after=stop_after, progress=False)
+    return m, res
+
+
+def test_killed_training_resumes_to_identical_weights(tmp_path):
+    full, r_full = _train(tmp_path / "full")
+    _, r1 = _train(tmp_path / "killed", stop_after=3)  # "killed" after step 3; last checkpoint at 2
+    assert not r1["done"] and r1["steps"] == 3
+    assert train.load_checkpoint(tmp_path / "killed" / "c.pt")["step"] == 2
+    resumed, r2 = _train(tmp_path / "killed")
+    assert r2["done"] and r2["steps"] == 5
+    a, b = full.state_dict(), resumed.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert r2["losses"][:2] == r_full["losses"][:2] and len(r2["losses"]) == 5
+    assert sorted(p.name for p in (tmp_path / "killed").iterdir()) == ["c.pt"]  # no temp files left

@@ -119,3 +119,22 @@ def test_presets_are_consistent():
         assert {t for t, _ in p.lanes} == set(proto.data.train) | set(proto.data.test) or p.name == "smoke"
         assert p.fov_deg == proto.data.fov_deg
     assert PRESETS["paper"].width == 512
+
+
+def test_failed_run_leaves_nothing(tmp_path, monkeypatch):
+    """A run that dies half-way leaves neither the dataset folder nor its temporary folder."""
+    from skyeyes_bench.data.synthtown import generate
+
+    calls = {"n": 0}
+    real = generate._render_job
+
+    def dying(job):
+        calls["n"] += 1
+        if calls["n"] > 20:
+            raise KeyboardInterrupt
+        return real(job)
+
+    monkeypatch.setattr(generate, "_render_job", dying)
+    with pytest.raises(KeyboardInterrupt):
+        generate.generate_dataset(tmp_path / "ds", "smoke", progress=False, workers=1)
+    assert list(tmp_path.iterdir()) == []

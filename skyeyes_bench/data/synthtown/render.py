@@ -119,7 +119,10 @@ def ground_material(town: tw.Town, x: np.ndarray, y: np.ndarray) -> tuple[np.nda
         yellow |= on & centre
         edge = (np.abs(a - tw.DRIVE_LANE) < 0.07) & (du > 5.0)
         zebra = (du > 0.8) & (du < 4.2) & (a < rh - 0.4) & (np.mod(across + 0.3, 1.2) < 0.6)
-        stop = (du > 4.6) & (du < 5.0) & (a < tw.DRIVE_LANE) & (np.sign(dv) * np.sign(across) * (1 if along is x else -1) < 0)
+        # Stop lines on the approach side only: right-hand traffic on a street along x drives at
+        # across < 0 heading +x (dv < 0 before the crossing); along y at across > 0 heading +y.
+        approach = np.sign(dv) * np.sign(across) * (1 if along is x else -1) > 0
+        stop = (du > 4.6) & (du < 5.0) & (a < tw.DRIVE_LANE) & approach
         paint |= on & (edge | zebra | stop)
     wear = (0.75 + 0.25 * vnoise(x, y, 0.5, 4))[:, None]
     albedo = np.where(paint[:, None], np.array([0.75, 0.75, 0.72]) * wear, albedo)
@@ -380,8 +383,30 @@ def camera_rays(camera: Camera, offsets: np.ndarray) -> tuple[np.ndarray, np.nda
     return o, d
 
 
-def render(scene: Scene, camera: Camera, aa: int = 2, *, shadows: bool = True, stats: dict | None = None):
+def _needs_more_samples(colour: np.ndarray, t: np.ndarray, label: np.ndarray, threshold: float) -> np.ndarray:
+    """Pixels [H, W] whose centre sample differs from a 4-neighbour's: another label, a depth jump
+    of over 5 %, or a colour step over `threshold` (edges, shadow borders, fine texture)."""
+    flag = np.zeros(label.shape, dtype=bool)
+    logt = np.log(np.where(np.isfinite(t), t, 1e6))
+    for ax in (0, 1):
+        diff = np.diff(label.astype(np.int16), axis=ax) != 0
+        diff |= np.abs(np.diff(logt, axis=ax)) > 0.05
+        diff |= np.abs(np.diff(colour, axis=ax)).max(axis=-1) > threshold
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        flag[tuple(lo)] |= diff
+        flag[tuple(hi)] |= diff
+    return flag
+
+
+def render(scene: Scene, camera: Camera, aa: int = 2, *, adaptive: bool = True, shadows: bool = True,
+           stats: dict | None = None):
     """Render one view.
+
+    Supersampling is adaptive: every pixel gets its centre ray; pixels that differ from a neighbour
+    (see `_needs_more_samples`) get the other `sample_offsets(aa)` rays too, and their colour is the
+    mean of all their samples in linear light. With adaptive=False every pixel gets every sample.
 
     Returns:
         rgb float32 [H, W, 3] sRGB in [0, 1]; depth float32 [H, W] planar metres (inf = sky);
@@ -389,12 +414,24 @@ def render(scene: Scene, camera: Camera, aa: int = 2, *, shadows: bool = True, s
     """
     H, W = camera.height, camera.width
     offs = sample_offsets(aa)
-    o, d = camera_rays(camera, offs)
+    o, d = camera_rays(camera, offs[:1])
     colour, t, label, _ = shade_rays(scene, o, d, shadows=shadows, stats=stats)
-    colour = colour.reshape(len(offs), H, W, 3).mean(axis=0)
+    colour = colour.reshape(H, W, 3)
+    depth = t.reshape(H, W).astype(np.float32)
+    labels = label.reshape(H, W)
+    if len(offs) > 1:
+        flag = _needs_more_samples(colour, depth, labels, 0.08) if adaptive else np.ones((H, W), dtype=bool)
+        pix = np.nonzero(flag.ravel())[0]
+        if pix.size:
+            o2, d2 = camera_rays(camera, offs[1:])
+            sel = (np.arange(len(offs) - 1)[:, None] * (H * W) + pix[None, :]).ravel()
+            c2, _, _, _ = shade_rays(scene, o2[sel], d2[sel], shadows=shadows, stats=stats)
+            c2 = c2.reshape(len(offs) - 1, len(pix), 3)
+            flat = colour.reshape(-1, 3)
+            flat[pix] = (flat[pix] + c2.sum(axis=0)) / len(offs)
+        if stats is not None:
+            stats["supersampled_pixels"] = stats.get("supersampled_pixels", 0) + int(pix.size)
     rgb = srgb_encode(colour).astype(np.float32)
-    depth = t[: H * W].reshape(H, W).astype(np.float32)
-    labels = label[: H * W].reshape(H, W)
     return rgb, depth, labels
 
 

@@ -45,6 +45,8 @@ class Extractor:
     dim: int = 0
     files: tuple[str, ...] = ()
     reference: str = ""
+    #: the protocol's `resize` name this extractor implements (None: not applicable)
+    resize: str | None = None
 
     def __init__(self):
         self._model = None
@@ -88,6 +90,7 @@ class Extractor:
 class InceptionTF2015(Extractor):
     id, kind, dim = "inception-tf-2015", "image", 2048
     files = ("inception-2015-12-05-fid-helper-default_1.pt",)
+    resize = "clean-bicubic"
     reference = "clean-fid 'clean' mode (PIL bicubic resize to 299 per channel, clip, (x-128)/128)"
 
     def _load(self, files):
@@ -110,6 +113,7 @@ class InceptionTF2015(Extractor):
 class I3DKinetics400(Extractor):
     id, kind, dim = "i3d-kinetics400", "video", 400
     files = ("i3d-kinetics-400.ckpt",)
+    resize = "stylegan-v-bilinear"
     reference = "StyleGAN-V FVD (frames bilinear-resized to 224, x/127.5-1, 400-d logits averaged over time)"
 
     def _load(self, files):

@@ -79,3 +79,16 @@ def test_clip_features_keyed_by_ordered_members(frames):
 def test_wrong_kind_rejected(frames):
     with pytest.raises(ValueError):
         cache.extract_image_features("random-video-64", frames, progress=False)
+
+
+def test_mixed_sizes_in_one_batch(tmp_path):
+    rng = np.random.default_rng(1)
+    ps = []
+    for i, shape in enumerate([(16, 16, 3), (20, 24, 3), (16, 16, 3)]):
+        p = tmp_path / f"m{i}.png"
+        write_image(p, rng.random(shape))
+        ps.append(p)
+    got = cache.extract_image_features("random-image-64", ps, progress=False)
+    ex = get_extractor("random-image-64")
+    for p, g in zip(ps, got):
+        assert np.allclose(g, ex.features(read_image(p)[None])[0], rtol=1e-6, atol=1e-7)

@@ -76,10 +76,15 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
     bar = tqdm(total=len(uniq), desc=f"{ex.id} features", unit=unit, disable=not progress, leave=False)
     for s in range(0, len(uniq), batch_size):
         idx = uniq[s:s + batch_size]
-        feats = ex.features(np.stack([load(i) for i in idx]))
-        for i, f in zip(idx, feats):
-            done[keys[i]] = f
-            _write_entry(_entry(ex, keys[i]), f)
+        items = [load(i) for i in idx]
+        by_shape: dict[tuple, list[int]] = {}  # frames of different sizes go through separately
+        for j, a in enumerate(items):
+            by_shape.setdefault(a.shape, []).append(j)
+        for group in by_shape.values():
+            feats = ex.features(np.stack([items[j] for j in group]))
+            for j, f in zip(group, feats):
+                done[keys[idx[j]]] = f
+                _write_entry(_entry(ex, keys[idx[j]]), f)
         bar.update(len(idx))
     bar.close()
     for i in todo:

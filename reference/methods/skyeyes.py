@@ -201,9 +201,24 @@ class Skyeyes(Method):
         cfg = self.config.core
         return torch.cat([resize(images_to_tensor(im[None]), cfg.resolution) for im in images])
 
-    def _stage_ckpt(self, stage: str, key: dict) -> Path:
-        h = _sha({"stage": stage, **key})[:20]
-        return cache_dir() / "reference" / "diffusion" / f"{stage}-{h}" / "train.pt"
+    def _stage_ckpt(self, stage: str, key: dict, steps: int) -> Path:
+        """`<cache>/reference/diffusion/<stage>-<hash of everything but the step count>/train-<steps>.pt`.
+
+        A stage asked for more steps than a finished cached run starts from that run's
+        checkpoint: with per-step generators and a constant learning rate, N steps resumed
+        from k are the same computation as N steps from scratch (bench/skyeyes.py relies on it).
+        """
+        import shutil
+
+        folder = cache_dir() / "reference" / "diffusion" / f"{stage}-{_sha({'stage': stage, **key})[:20]}"
+        ckpt = folder / f"train-{steps}.pt"
+        if not ckpt.is_file() and folder.is_dir():
+            done = sorted((int(p.stem.split("-")[1]), p) for p in folder.glob("train-*.pt")
+                          if p.stem.split("-")[1].isdigit() and int(p.stem.split("-")[1]) < steps)
+            if done:
+                with fileio.atomic_path(ckpt) as tmp:
+                    shutil.copyfile(done[-1][1], tmp)
+        return ckpt
 
     # ---------------------------------------------------------------- fit
     def fit_train(self, dataset: Dataset) -> None:
@@ -225,8 +240,10 @@ class Skyeyes(Method):
 
         # 2. base UNet on ground truth (skipped when a pretrained UNet is given).
         model = core.build_model(cfg, control=False, seed=self.seed)
-        base_key = {"core": dataclasses.asdict(cfg), "steps": c.base_steps, "batch": c.base_batch,
-                    "lr": c.base_lr, "seed": self.seed, "data": data_hash}
+        # Stage keys hold everything a stage depends on except its own step count, plus the
+        # full identity (with steps) of the stage it starts from.
+        base_key = {"core": dataclasses.asdict(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
+                    "data": data_hash}
         if not cfg.pretrained:
             params = core.trainable(model, ["unet.", "prompt"])
 
@@ -235,13 +252,14 @@ class Skyeyes(Method):
                 return train.eps_loss(model, sched, x0[idx], None, g)
 
             self.training["base"] = self._run("base", model, params, base_loss, c.base_steps, c.base_lr, base_key)
+        base_id = {**base_key, "steps": 0 if cfg.pretrained else c.base_steps}
 
         # 3. ACM: ControlNet branch from the UNet, UNet frozen.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed + 1)
             model.add_control()
-        acm_key = {"base": base_key, "steps": c.acm_steps, "batch": c.acm_batch, "lr": c.acm_lr,
-                   "condition": c.condition, "cond": cond_hash}
+        acm_key = {"base": base_id, "batch": c.acm_batch, "lr": c.acm_lr, "condition": c.condition,
+                   "cond": cond_hash}
         params = core.trainable(model, ["controlnet."])
 
         def acm_loss(g):
@@ -261,7 +279,8 @@ class Skyeyes(Method):
         vmodel = copy.deepcopy(model)
         vcm.install_vcm(vmodel)
         params = core.trainable(vmodel, vcm.vcm_parameter_names(vmodel))
-        vcm_key = {"acm": acm_key, "steps": c.vcm_steps, "batch": c.vcm_batch, "lr": c.vcm_lr, "frames": f_clip}
+        vcm_key = {"acm": {**acm_key, "steps": c.acm_steps}, "batch": c.vcm_batch, "lr": c.vcm_lr,
+                   "frames": f_clip}
 
         def vcm_loss(g):
             rows = []
@@ -280,7 +299,7 @@ class Skyeyes(Method):
     def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict) -> dict:
         from ..common.diffusion import train
 
-        ckpt = self._stage_ckpt(stage, key)
+        ckpt = self._stage_ckpt(stage, key, steps)
         res = train.train_loop(model, params, loss_fn, steps=steps, lr=lr, seed=self.seed, ckpt=ckpt,
                                ckpt_every=self.config.ckpt_every, progress=self.progress, desc=stage)
         tail = res["losses"][-max(1, steps // 10):]

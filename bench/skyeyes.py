@@ -1,0 +1,117 @@
+"""Benchmark of the Skyeyes reference method: training speed per module, seconds per generated
+frame, and quality (FVD, KVD, LPIPS) against training time at a few ACM checkpoints.
+
+    .venv/bin/python bench/skyeyes.py --preset smoke --acm-steps 50,100,200
+    .venv/bin/python bench/skyeyes.py --preset smoke --no-eval       # speed only
+
+Stages are cached by content hash (`<cache>/reference/diffusion/`) and a longer ACM run
+resumes from the shorter one, so the checkpoints cost one ACM training in total. Prints a
+table; with --out, also writes the rows as JSON. Quality needs the extractor weights
+(`skyeyes-bench weights fetch`); missing metrics print as n/a.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _metric(res: dict, name: str):
+    m = res.get("metrics", {}).get(name, {})
+    return m.get("value") if m.get("status") == "ok" else None
+
+
+def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: int, progress: bool) -> dict:
+    from skyeyes_bench.submission import SubmissionWriter
+
+    m = cls(cfg, workdir, seed=seed, progress=progress)
+    t0 = time.perf_counter()
+    m.fit_train(ds)
+    fit_train_s = time.perf_counter() - t0
+    per_frame, fit_scene_s = [], 0.0
+    sub = workdir / "submission"
+    with SubmissionWriter(sub, dataset=ds, method=m.name, method_version=m.version, config=m.config_dict(),
+                          overwrite=True) as w:
+        for scene in ds.split("test"):
+            t0 = time.perf_counter()
+            m.fit_scene(scene)
+            fit_scene_s += time.perf_counter() - t0
+            for seq in scene.sequences.values():
+                t0 = time.perf_counter()
+                imgs = list(m.render_sequence(scene, seq))
+                dt = (time.perf_counter() - t0) / max(len(imgs), 1)
+                for f, img in zip(seq.frames, imgs, strict=True):
+                    w.add(scene.name, f, img)
+                    per_frame.append(dt)
+        w.finish(timings={"fit_s": fit_train_s + fit_scene_s, "render_s": sum(per_frame),
+                          "per_frame_render_s": per_frame})
+    row = {"method": m.name, "acm_steps": cfg.acm_steps,
+           "train_s": sum(v["seconds"] for v in m.training.values()),
+           **{f"{k}_it_s": v["it_per_s"] for k, v in m.training.items()},
+           "prior_s": round(fit_scene_s, 2), "s_per_frame": sum(per_frame) / max(len(per_frame), 1)}
+    if evaluate:
+        from skyeyes_bench.evaluate import evaluate as run_eval
+
+        res = run_eval(sub, data=root, out=workdir / "results.json", force=True, progress=progress)
+        row.update({k: _metric(res, k) for k in ("fvd", "kvd", "lpips", "psnr")})
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", default="smoke", help="method and SynthTown preset (smoke, small)")
+    ap.add_argument("--acm-steps", default="", help="comma-separated ACM step counts (default: the preset's)")
+    ap.add_argument("--prior", default=None, help="prior method id (default: the preset's, sugar)")
+    ap.add_argument("--methods", default="skyeyes,skyeyes-no-vcm", help="comma-separated method ids")
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    ap.add_argument("--no-eval", action="store_true", help="skip FVD/KVD/LPIPS")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workdir", default="bench-out/skyeyes", help="where submissions and results go")
+    ap.add_argument("--out", default=None, help="write the rows as JSON here")
+    ap.add_argument("--quiet", action="store_true")
+    a = ap.parse_args(argv)
+
+    import torch
+
+    from reference.methods import get_method_class
+    from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.data.synthtown import ensure_dataset
+
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    root = ensure_dataset(a.preset, progress=not a.quiet)
+    ds = open_dataset(root)
+    rows = []
+    for name in a.methods.split(","):
+        cls = get_method_class(name)
+        base = cls.presets[a.preset]
+        if a.prior:
+            base = dataclasses.replace(base, prior_method=a.prior)
+        steps = [int(s) for s in a.acm_steps.split(",") if s] or [base.acm_steps]
+        for k in sorted(steps):
+            cfg = dataclasses.replace(base, acm_steps=k)
+            row = run_one(cls, cfg, ds, root, Path(a.workdir) / f"{name}-acm{k}", evaluate=not a.no_eval,
+                          seed=a.seed, progress=not a.quiet)
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+
+    keys = ["method", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "prior_s", "s_per_frame",
+            "fvd", "kvd", "lpips", "psnr"]
+    print(f"# skyeyes bench: preset {a.preset}, {torch.get_num_threads()} threads, torch {torch.__version__}")
+    print(" | ".join(keys))
+    for r in rows:
+        print(" | ".join("n/a" if r.get(k) is None else (f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]))
+                         for k in keys))
+    if a.out:
+        from skyeyes_bench import fileio
+
+        fileio.write_json(a.out, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

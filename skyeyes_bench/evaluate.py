@@ -374,7 +374,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                 fn = stats.FrechetBootstrap(xs, xg)
             else:
                 value = kernel_mmd(xs, xg, subset_size=m.subset_size, num_subsets=m.num_subsets or 1, seed=st.seed)
-                fn = stats.MMDBootstrap(xs, xg)
+                fn = stats.MMDBootstrap(xs, xg, seq, seq, k)
         with _stage(timing, "bootstrap_s"):
             bar = _tqdm(progress, total=len(counts), desc=f"bootstrap {m.name}", unit="resample")
             with bar:

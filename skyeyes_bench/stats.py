@@ -180,32 +180,53 @@ def polynomial_kernel(x: np.ndarray, y: np.ndarray, *, degree: int = 3, gamma: f
 
 
 class MMDBootstrap:
-    """Unbiased MMD^2 (polynomial kernel) under resampling weights, from kernel matrices computed
-    once. A frame drawn c times counts as c distinct samples; the U-statistic leaves out only
+    """Unbiased MMD^2 (polynomial kernel) under sequence resampling, from per-sequence kernel
+    block sums computed once by streaming over row chunks: memory O(K^2 + chunk x N), not
+    O(N^2). A frame drawn c times counts as c distinct samples; the U-statistic leaves out only
     identical instances (i == j), not copies of the same frame.
 
     NOTE: the point estimate of KID/KVD follows the protocol (mean over random subsets of at
-    most `subset_size`); the bootstrap recomputes the full-sample unbiased MMD^2, which is the
-    quantity that subset average estimates, at O(N^2) per resample instead of O(S m^2 D).
+    most `subset_size`; with no more rows than that, the full-sample estimate); the bootstrap
+    recomputes the full-sample unbiased MMD^2, the quantity that subset average estimates.
     """
 
-    def __init__(self, x: np.ndarray, y: np.ndarray, *, degree: int = 3, gamma: float | None = None,
-                 coef0: float = 1.0):
-        # x: [N1, D] submission features, y: [N2, D] ground truth
-        kw = dict(degree=degree, gamma=gamma, coef0=coef0)
-        self.kxx = polynomial_kernel(x, x, **kw)
-        self.kyy = polynomial_kernel(y, y, **kw)
-        self.kxy = polynomial_kernel(x, y, **kw)
+    by_cluster = True  # called with per-sequence counts, not per-row weights
+    _CHUNK = 1024
 
-    def __call__(self, w1: np.ndarray, w2: np.ndarray) -> float:
-        w1 = np.asarray(w1, dtype=np.float64)
-        w2 = np.asarray(w2, dtype=np.float64)
-        n, m = w1.sum(), w2.sum()
+    def __init__(self, x: np.ndarray, y: np.ndarray, clusters_x: np.ndarray, clusters_y: np.ndarray,
+                 n_clusters: int, *, degree: int = 3, gamma: float | None = None, coef0: float = 1.0):
+        # x: [N1, D] submission features, y: [N2, D] ground truth; clusters_*: [N*] sequence ids
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        kw = dict(degree=degree, gamma=1.0 / x.shape[1] if gamma is None else gamma, coef0=coef0)
+        k = n_clusters
+        self.nx = np.bincount(clusters_x, minlength=k).astype(np.float64)
+        self.ny = np.bincount(clusters_y, minlength=k).astype(np.float64)
+        self.sxx, self.dxx = self._block_sums(x, x, clusters_x, clusters_x, k, kw)
+        self.syy, self.dyy = self._block_sums(y, y, clusters_y, clusters_y, k, kw)
+        self.sxy, _ = self._block_sums(x, y, clusters_x, clusters_y, k, kw, diag=False)
+
+    def _block_sums(self, a, b, ca, cb, k, kw, diag=True):
+        onehot_b = np.zeros((len(b), k))
+        onehot_b[np.arange(len(b)), cb] = 1.0
+        blocks = np.zeros((k, k))
+        d = np.zeros(k)
+        for s in range(0, len(a), self._CHUNK):
+            kc = polynomial_kernel(a[s:s + self._CHUNK], b, **kw)  # [c, N2]
+            per_col = kc @ onehot_b  # [c, K]
+            np.add.at(blocks, ca[s:s + self._CHUNK], per_col)
+            if diag:
+                rows = np.arange(s, min(s + self._CHUNK, len(a)))
+                d += np.bincount(ca[rows], weights=kc[rows - s, rows], minlength=k)
+        return blocks, d
+
+    def __call__(self, c1: np.ndarray, c2: np.ndarray) -> float:
+        """MMD^2 for per-sequence counts c1 (submission side) and c2 (ground truth), [K] each."""
+        n, m = c1 @ self.nx, c2 @ self.ny
         if n < 2 or m < 2:
             return math.nan
-        sxx = w1 @ self.kxx @ w1 - w1 @ np.diag(self.kxx)
-        syy = w2 @ self.kyy @ w2 - w2 @ np.diag(self.kyy)
-        sxy = w1 @ self.kxy @ w2
+        sxx = c1 @ self.sxx @ c1 - c1 @ self.dxx
+        syy = c2 @ self.syy @ c2 - c2 @ self.dyy
+        sxy = c1 @ self.sxy @ c2
         return float(sxx / (n * (n - 1)) + syy / (m * (m - 1)) - 2 * sxy / (n * m))
 
 
@@ -222,8 +243,9 @@ def set_metric_samples(fn, clusters1: np.ndarray, clusters2: np.ndarray, counts:
         [R] metric values.
     """
     out = np.empty(counts.shape[0])
+    by_cluster = getattr(fn, "by_cluster", False)
     for r, c in enumerate(counts):
-        out[r] = fn(c[clusters1], c[clusters2])
+        out[r] = fn(c, c) if by_cluster else fn(c[clusters1], c[clusters2])
         if progress is not None:
             progress(1)
     return out
@@ -465,7 +487,8 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
         if name in ("fid", "fvd"):
             fna, fnb = FrechetBootstrap(fa["sub"], fa["gt"]), FrechetBootstrap(fb["sub"], fb["gt"])
         else:
-            fna, fnb = MMDBootstrap(fa["sub"], fa["gt"]), MMDBootstrap(fb["sub"], fb["gt"])
+            fna = MMDBootstrap(fa["sub"], fa["gt"], fa["seq"], fa["seq"], k)
+            fnb = MMDBootstrap(fb["sub"], fb["gt"], fb["seq"], fb["seq"], k)
         sa = set_metric_samples(fna, fa["seq"], fa["seq"], counts)
         sb = set_metric_samples(fnb, fb["seq"], fb["seq"], counts)
         d = advantage(sa, sb, name)

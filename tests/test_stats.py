@@ -77,12 +77,15 @@ def test_frechet_bootstrap_matches_sqrtm_on_materialised_resample(n, d):
 def test_mmd_bootstrap_matches_explicit_u_statistic():
     rng = np.random.default_rng(2)
     x, y = rng.normal(size=(15, 8)), rng.normal(0.5, size=(15, 8))
-    mb = stats.MMDBootstrap(x, y)
-    assert mb(np.ones(15), np.ones(15)) == pytest.approx(_slow_mmd(x, y), rel=1e-10)
-    w = rng.integers(0, 3, size=15).astype(float)
-    w[:2] = 1
-    xr, yr = np.repeat(x, w.astype(int), axis=0), np.repeat(y, w.astype(int), axis=0)
-    assert mb(w, w) == pytest.approx(_slow_mmd(xr, yr), rel=1e-10)
+    clusters = np.array([0, 0, 1, 1, 1, 2, 3, 3, 3, 3, 4, 4, 2, 0, 1])  # not contiguous on purpose
+    mb = stats.MMDBootstrap(x, y, clusters, clusters, 5)
+    mb._CHUNK = 4  # exercise the streaming
+    mb.__init__(x, y, clusters, clusters, 5)
+    assert mb(np.ones(5), np.ones(5)) == pytest.approx(_slow_mmd(x, y), rel=1e-10)
+    c = np.array([2.0, 0.0, 1.0, 3.0, 1.0])
+    w = c[clusters].astype(int)
+    xr, yr = np.repeat(x, w, axis=0), np.repeat(y, w, axis=0)
+    assert mb(c, c) == pytest.approx(_slow_mmd(xr, yr), rel=1e-10)
 
 
 def test_hdi_of_normal_samples():

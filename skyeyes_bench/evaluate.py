@@ -157,7 +157,7 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         seq_ids = [q.id for q in all_seqs]
         mine = [k for k in range(len(all_seqs)) if shard is None or k % shard[1] == shard[0]]
         frames = [(all_seqs[k].scene, f) for k in mine for f in all_seqs[k].frames]
-        problems = validate_submission(sub, ds, protocol, manifest, frames=frames)
+        problems = validate_submission(sub, ds, protocol, manifest, frames=frames, progress=progress)
         if problems:
             raise ValidationError(f"submission {sub}", problems)
     doc: dict[str, Any] = {

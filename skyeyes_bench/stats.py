@@ -14,7 +14,6 @@ Pure functions on arrays; no file I/O here.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -314,7 +313,7 @@ def student_t_posterior(d: np.ndarray, *, walkers: int, steps: int, burn: int, s
 
     Requires K >= 2 and sd(d) > 0 (callers handle the degenerate cases). Convergence is checked:
     mean acceptance fraction in (0.2, 0.8), kept chain longer than 50 autocorrelation times;
-    otherwise a warning is recorded (and emitted).
+    otherwise a warning is recorded in `warnings` (the CLI prints it).
     """
     import emcee
 
@@ -345,8 +344,6 @@ def student_t_posterior(d: np.ndarray, *, walkers: int, steps: int, burn: int, s
         notes.append(f"emcee acceptance fraction {acc:.2f} outside (0.2, 0.8)")
     if not np.isfinite(tau_max) or kept <= 50 * tau_max:
         notes.append(f"chain of {kept} steps is not > 50 autocorrelation times ({tau_max:.1f})")
-    for n in notes:
-        warnings.warn(n, RuntimeWarning, stacklevel=2)
     return StudentTPosterior(chain[:, 0], np.exp(chain[:, 1]), np.exp(chain[:, 2]) + 1.0,
                              acc, tau_max, kept, tuple(notes))
 

@@ -232,7 +232,8 @@ def _inside(path: Path, root: Path) -> bool:
         return False
 
 
-def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, decode: bool = True) -> list[str]:
+def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, decode: bool = True,
+                        progress: bool = False) -> list[str]:
     """Every problem of a submission against dataset `ds` and `protocol` (empty list: valid).
 
     Checks: protocol and dataset match; every expected frame present, no extra files; every path
@@ -243,6 +244,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
         frames: the (scene, Frame) pairs to check (default: every expected frame); a shard
             checks only its own frames but always the whole folder for extra/escaping files.
         decode: decode every image fully (catches truncated files).
+        progress: a progress bar on stderr over the frames.
     """
     sub = Path(sub_dir)
     root = sub.resolve()
@@ -281,7 +283,10 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     # 2. the expected frames
     check = frames if frames is not None else all_expected
     missing = []
-    for scene, frame in check:
+    from tqdm import tqdm
+
+    for scene, frame in tqdm(check, desc="validate", unit="frame", disable=not progress, leave=False,
+                             file=sys.stderr):
         rel = frame_relpath(scene, frame)
         p = sub / rel
         if not _inside(p, root):

@@ -94,7 +94,7 @@ def test_hdi_of_normal_samples():
     assert lo == pytest.approx(-1.96, abs=0.03) and hi == pytest.approx(1.96, abs=0.03)
 
 
-_FAST = dict(resamples=500, level=0.95, seed=0, walkers=16, steps=1500, burn=300)
+_FAST = dict(resamples=500, level=0.95, seed=0, walkers=16, steps=1000, burn=200)
 
 
 def test_compare_identical_methods_zero_variance():

@@ -32,7 +32,7 @@ def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: in
     t0 = time.perf_counter()
     m.fit_train(ds)
     fit_train_s = time.perf_counter() - t0
-    per_frame, fit_scene_s = [], 0.0
+    per_frame, cpu_frame, fit_scene_s = [], [], 0.0
     sub = workdir / "submission"
     with SubmissionWriter(sub, dataset=ds, method=m.name, method_version=m.version, config=m.config_dict(),
                           overwrite=True) as w:
@@ -41,18 +41,22 @@ def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: in
             m.fit_scene(scene)
             fit_scene_s += time.perf_counter() - t0
             for seq in scene.sequences.values():
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 imgs = list(m.render_sequence(scene, seq))
                 dt = (time.perf_counter() - t0) / max(len(imgs), 1)
+                dc = (time.process_time() - c0) / max(len(imgs), 1)
                 for f, img in zip(seq.frames, imgs, strict=True):
                     w.add(scene.name, f, img)
                     per_frame.append(dt)
+                    cpu_frame.append(dc)
         w.finish(timings={"fit_s": fit_train_s + fit_scene_s, "render_s": sum(per_frame),
                           "per_frame_render_s": per_frame})
     row = {"method": m.name, "acm_steps": cfg.acm_steps,
            "train_s": sum(v["seconds"] for v in m.training.values()),
            **{f"{k}_it_s": v["it_per_s"] for k, v in m.training.items()},
-           "prior_s": round(fit_scene_s, 2), "s_per_frame": sum(per_frame) / max(len(per_frame), 1)}
+           **{f"{k}_cpu_s_it": v["cpu_s_per_it"] for k, v in m.training.items()},
+           "prior_s": round(fit_scene_s, 2), "s_per_frame": sum(per_frame) / max(len(per_frame), 1),
+           "cpu_s_per_frame": sum(cpu_frame) / max(len(cpu_frame), 1)}
     if evaluate:
         from skyeyes_bench.evaluate import evaluate as run_eval
 
@@ -99,7 +103,8 @@ def main(argv=None) -> int:
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
 
-    keys = ["method", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "prior_s", "s_per_frame",
+    keys = ["method", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "base_cpu_s_it", "acm_cpu_s_it",
+            "vcm_cpu_s_it", "prior_s", "s_per_frame", "cpu_s_per_frame",
             "fvd", "kvd", "lpips", "psnr"]
     print(f"# skyeyes bench: preset {a.preset}, {torch.get_num_threads()} threads, torch {torch.__version__}")
     print(" | ".join(keys))

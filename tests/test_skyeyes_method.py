@@ -150,3 +150,30 @@ def test_render_priors_keys_and_cache(tiny, tmp_path):
     for k in p1:
         assert p1[k].shape == (SIZE, SIZE, 3)
         np.testing.assert_array_equal(p1[k], p2[k])
+
+
+def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
+    import torch
+
+    from reference.common.diffusion import core, train
+
+    m = Skyeyes(TINY, tmp_path / "w", prior_method=StandInPrior(tmp_path), progress=False)
+    key = {"x": 1}
+    short = m._stage_ckpt("acm", key, 2)
+    assert not short.exists()
+    data = torch.rand(4, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    sched = core.train_scheduler(TINY.core)
+
+    def fit(ckpt, steps):
+        mm = core.build_model(TINY.core, control=False, seed=0)
+        loss = lambda g: train.eps_loss(mm, sched, data[torch.randint(0, 4, (2,), generator=g)], None, g)  # noqa: E731
+        train.train_loop(mm, core.trainable(mm), loss, steps=steps, lr=1e-3, seed=0, ckpt=ckpt, progress=False)
+        return mm.state_dict()
+
+    fit(short, 2)
+    long_ckpt = m._stage_ckpt("acm", key, 4)  # starts as a copy of the finished 2-step run
+    assert train.load_checkpoint(long_ckpt)["step"] == 2
+    a = fit(long_ckpt, 4)
+    b = fit(tmp_path / "fresh.pt", 4)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert m._stage_ckpt("acm", {"x": 2}, 4).parent != long_ckpt.parent  # other inputs, other folder

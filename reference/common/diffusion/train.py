@@ -80,23 +80,25 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
 
     Returns:
         {"steps": steps done in total, "losses": [per step], "seconds": wall time of this call
-        plus the checkpoint's, "done": bool}.
+        plus the checkpoint's, "cpu_seconds": likewise in process CPU time, "done": bool}.
     """
     from tqdm import tqdm
 
     ckpt = Path(ckpt)
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.0)
-    start, losses, seconds = 0, [], 0.0
+    start, losses, seconds, cpu = 0, [], 0.0, 0.0
     if ckpt.is_file():
         state = load_checkpoint(ckpt)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start, losses, seconds = state["step"], list(state["losses"]), float(state["seconds"])
-    t0 = time.perf_counter()
+        cpu = float(state.get("cpu_seconds", 0.0))
+    t0, c0 = time.perf_counter(), time.process_time()
 
     def save(step: int) -> None:
         save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                               "losses": losses, "seconds": seconds + time.perf_counter() - t0})
+                               "losses": losses, "seconds": seconds + time.perf_counter() - t0,
+                               "cpu_seconds": cpu + time.process_time() - c0})
 
     model.train()
     bar = tqdm(range(start, steps), desc=desc, disable=not progress, leave=False, initial=start, total=steps)
@@ -117,5 +119,7 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         if stop_after is not None and done_now - start >= stop_after:
             break
     model.eval()
+    # CPU seconds (all threads of this process) are reported beside wall time: on a shared
+    # machine they say what the run would take alone.
     return {"steps": done_now, "losses": losses, "seconds": seconds + time.perf_counter() - t0,
-            "done": done_now >= steps}
+            "cpu_seconds": cpu + time.process_time() - c0, "done": done_now >= steps}

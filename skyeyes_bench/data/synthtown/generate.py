@@ -23,7 +23,7 @@ from ...errors import UserError
 from ..layout import DatasetWriter
 from . import town as tw
 from .presets import PRESETS, TEST_TOWNS, TRAIN_TOWNS, Preset
-from .render import LABELS, PALETTE, Scene, render
+from .render import LABELS, PALETTE, Scene, render_batch
 
 #: Bump when the rendered bytes change for the same preset and seed.
 GENERATOR_VERSION = "1"
@@ -79,13 +79,14 @@ def plan(p: Preset, seed: int) -> list[dict]:
 _SCENES: dict[tuple, Scene] = {}
 
 
-def _render_job(job: tuple) -> tuple:
-    town_name, seed, blocks, cull, aa, K, c2w, w, h = job
+def _render_job(job: tuple) -> list[tuple]:
+    """Render a chunk of views of one town (in a worker process or in-line)."""
+    town_name, seed, blocks, cull, aa, views = job
     key = (town_name, seed, blocks, cull)
     if key not in _SCENES:
         _SCENES.clear()
         _SCENES[key] = Scene.from_town(tw.make_town(town_name, seed, blocks), cull_m=cull)
-    return render(_SCENES[key], Camera(K, c2w, w, h), aa)
+    return render_batch(_SCENES[key], [Camera(K, c2w, w, h) for K, c2w, w, h in views], aa)
 
 
 def _default_workers(p: Preset) -> int:
@@ -117,27 +118,32 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
     if out.exists() and not overwrite:  # fail before rendering anything
         raise UserError(f"{out}: already exists; pass --force to replace it")
     towns = plan(p, seed)
+    # Views are rendered in chunks of about 16k pixels: small images share one traversal.
+    chunk = max(1, 16384 // (p.width * p.height))
     jobs, where = [], []
     for ti, entry in enumerate(towns):
         for li, lane in enumerate(entry["lanes"]):
             ground, aerial = lane_cameras(lane, p)
             for kind, cams in (("ground", ground), ("aerial", aerial)):
                 for a, b, cam in cams:
-                    jobs.append((entry["town"].name, seed, p.blocks, p.cull_m, p.aa, cam.K, cam.c2w, cam.width, cam.height))
                     where.append((ti, li, kind, a, b, cam))
+                for c0 in range(0, len(cams), chunk):
+                    views = [(c.K, c.c2w, c.width, c.height) for _, _, c in cams[c0:c0 + chunk]]
+                    jobs.append((entry["town"].name, seed, p.blocks, p.cull_m, p.aa, views))
     from tqdm import tqdm
 
     n_workers = workers or _default_workers(p)
-    bar = tqdm(total=len(jobs), desc=f"synthtown-{p.name}", unit="img", file=sys.stderr, disable=not progress)
+    bar = tqdm(total=len(where), desc=f"synthtown-{p.name}", unit="img", file=sys.stderr, disable=not progress)
     pool = None
     try:
         if n_workers > 1:
             import multiprocessing as mp
 
             pool = mp.get_context("spawn").Pool(n_workers)
-            results = pool.imap(_render_job, jobs, chunksize=4)
+            chunks = pool.imap(_render_job, jobs, chunksize=max(1, 4 // chunk))
         else:
-            results = map(_render_job, jobs)
+            chunks = map(_render_job, jobs)
+        results = (r for c in chunks for r in c)
         with DatasetWriter(out, name=dataset_name(p.name, seed), protocol=PROTOCOL, overwrite=overwrite) as w:
             writers: dict[tuple[int, int], object] = {}
             for (ti, li, kind, a, b, cam), (rgb, depth, labels) in zip(where, results):

@@ -413,27 +413,50 @@ def render(scene: Scene, camera: Camera, aa: int = 2, *, adaptive: bool = True, 
         rgb float32 [H, W, 3] sRGB in [0, 1]; depth float32 [H, W] planar metres (inf = sky);
         labels uint8 [H, W].
     """
-    H, W = camera.height, camera.width
+    return render_batch(scene, [camera], aa, adaptive=adaptive, shadows=shadows, stats=stats)[0]
+
+
+def render_batch(scene: Scene, cameras: list[Camera], aa: int = 2, *, adaptive: bool = True,
+                 shadows: bool = True, stats: dict | None = None) -> list[tuple]:
+    """`render` for several views at once (their rays share one traversal: less per-call overhead
+    for small images). Every view's pixels are computed exactly as `render` alone would."""
     offs = sample_offsets(aa)
-    o, d = camera_rays(camera, offs[:1])
+    sizes = [c.height * c.width for c in cameras]
+    first = [camera_rays(c, offs[:1]) for c in cameras]
+    o = np.concatenate([f[0] for f in first])
+    d = np.concatenate([f[1] for f in first])
     colour, t, label, _ = shade_rays(scene, o, d, shadows=shadows, stats=stats)
-    colour = colour.reshape(H, W, 3)
-    depth = t.reshape(H, W).astype(np.float32)
-    labels = label.reshape(H, W)
+    out = []
+    base = 0
+    for cam, n in zip(cameras, sizes):
+        H, W = cam.height, cam.width
+        out.append([colour[base:base + n].reshape(H, W, 3), t[base:base + n].reshape(H, W).astype(np.float32),
+                    label[base:base + n].reshape(H, W)])
+        base += n
     if len(offs) > 1:
-        flag = _needs_more_samples(colour, depth, labels, 0.08) if adaptive else np.ones((H, W), dtype=bool)
-        pix = np.nonzero(flag.ravel())[0]
-        if pix.size:
-            o2, d2 = camera_rays(camera, offs[1:])
-            sel = (np.arange(len(offs) - 1)[:, None] * (H * W) + pix[None, :]).ravel()
-            c2, _, _, _ = shade_rays(scene, o2[sel], d2[sel], shadows=shadows, stats=stats)
-            c2 = c2.reshape(len(offs) - 1, len(pix), 3)
-            flat = colour.reshape(-1, 3)
-            flat[pix] = (flat[pix] + c2.sum(axis=0)) / len(offs)
-        if stats is not None:
-            stats["supersampled_pixels"] = stats.get("supersampled_pixels", 0) + int(pix.size)
-    rgb = srgb_encode(colour).astype(np.float32)
-    return rgb, depth, labels
+        extra_o, extra_d, where = [], [], []
+        for k, (cam, (c, dep, lab)) in enumerate(zip(cameras, out)):
+            H, W = cam.height, cam.width
+            flag = _needs_more_samples(c, dep, lab, 0.08) if adaptive else np.ones((H, W), dtype=bool)
+            pix = np.nonzero(flag.ravel())[0]
+            if pix.size:
+                o2, d2 = camera_rays(cam, offs[1:])
+                sel = (np.arange(len(offs) - 1)[:, None] * (H * W) + pix[None, :]).ravel()
+                extra_o.append(o2[sel])
+                extra_d.append(d2[sel])
+                where.append((k, pix))
+            if stats is not None:
+                stats["supersampled_pixels"] = stats.get("supersampled_pixels", 0) + int(pix.size)
+        if where:
+            c2, _, _, _ = shade_rays(scene, np.concatenate(extra_o), np.concatenate(extra_d), shadows=shadows, stats=stats)
+            base = 0
+            for k, pix in where:
+                m = (len(offs) - 1) * len(pix)
+                part = c2[base:base + m].reshape(len(offs) - 1, len(pix), 3)
+                base += m
+                flat = out[k][0].reshape(-1, 3)
+                flat[pix] = (flat[pix] + part.sum(axis=0)) / len(offs)
+    return [(srgb_encode(c).astype(np.float32), dep, lab) for c, dep, lab in out]
 
 
 def colourise_labels(labels: np.ndarray) -> np.ndarray:

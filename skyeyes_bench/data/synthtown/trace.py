@@ -273,20 +273,25 @@ def trace(grid: Grid, box_lo, box_hi, ell_c, ell_r, o: np.ndarray, d: np.ndarray
 
 
 def _box_pairs(ox, oy, oz, ivx, ivy, ivz, rep, prims, blo, bhi, has_par: bool) -> np.ndarray:
-    """`box_hit` for ray/box pairs, on per-axis arrays with precomputed 1/d (the hot loop)."""
-    if has_par:  # rare: some direction component is exactly 0; take the careful path
-        o = np.stack([ox[rep], oy[rep], oz[rep]], axis=1)
-        with np.errstate(divide="ignore"):
-            d = 1.0 / np.stack([ivx[rep], ivy[rep], ivz[rep]], axis=1)
-        lo = np.stack([b[prims] for b in blo], axis=1)
-        hi = np.stack([b[prims] for b in bhi], axis=1)
-        return box_hit(o, d, lo, hi)
+    """`box_hit` for ray/box pairs, on per-axis arrays with precomputed 1/d (the hot loop).
+
+    A ray's result depends only on that ray (not on the others in the batch), so views rendered
+    together or alone give the same bits.
+    """
     t_near = t_far = None
     for oa, iva, lo, hi in ((ox, ivx, blo[0], bhi[0]), (oy, ivy, blo[1], bhi[1]), (oz, ivz, blo[2], bhi[2])):
         orr, ivr = oa[rep], iva[rep]
-        a = (lo[prims] - orr) * ivr
-        b = (hi[prims] - orr) * ivr
+        lo_p, hi_p = lo[prims], hi[prims]
+        with np.errstate(invalid="ignore"):
+            a = (lo_p - orr) * ivr
+            b = (hi_p - orr) * ivr
         tn, tf = np.minimum(a, b), np.maximum(a, b)
+        if has_par:  # direction component exactly 0: inside the slab for all t (inclusive), or never
+            par = np.isinf(ivr)
+            if par.any():
+                inside = (orr >= lo_p) & (orr <= hi_p)
+                tn = np.where(par, np.where(inside, -np.inf, np.inf), tn)
+                tf = np.where(par, np.where(inside, np.inf, -np.inf), tf)
         t_near = tn if t_near is None else np.maximum(t_near, tn)
         t_far = tf if t_far is None else np.minimum(t_far, tf)
     t = np.where(t_near > T_EPS, t_near, t_far)

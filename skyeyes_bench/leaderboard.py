@@ -259,9 +259,9 @@ def _num(v) -> str:
 
 
 _JS = """
-document.querySelectorAll('table.sortable th').forEach(function (th, col) {
+document.querySelectorAll('table.sortable th').forEach(function (th) {
   th.addEventListener('click', function () {
-    var body = th.closest('table').tBodies[0], asc = th.dataset.asc !== '1';
+    var col = th.cellIndex, body = th.closest('table').tBodies[0], asc = th.dataset.asc !== '1';
     th.closest('tr').querySelectorAll('th').forEach(function (h) { delete h.dataset.asc; });
     th.dataset.asc = asc ? '1' : '0';
     var rows = Array.prototype.slice.call(body.rows);

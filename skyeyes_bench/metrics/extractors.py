@@ -74,10 +74,10 @@ class Extractor:
 
     @property
     def model(self):
-        """The loaded network; re-checked (stat + memoised sha256) on every use, and reloaded if
-        the weights dir changed (e.g. another $SKYEYES_CACHE)."""
+        """The loaded network; the weight files are re-checked (stat + memoised sha256) on every
+        use, and the network reloaded only if their content changed."""
         files = self._require()
-        key = tuple(str(f) for f in files)
+        key = tuple(W._cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
         if self._model is None or self._model_key != key:
             _torch_setup()
             self._model, self._model_key = self._load(files), key
@@ -91,6 +91,7 @@ class InceptionTF2015(Extractor):
     id, kind, dim = "inception-tf-2015", "image", 2048
     files = ("inception-2015-12-05-fid-helper-default_1.pt",)
     resize = "clean-bicubic"
+    chunk = 16  # frames per forward pass
     reference = "clean-fid 'clean' mode (PIL bicubic resize to 299 per channel, clip, (x-128)/128)"
 
     def _load(self, files):
@@ -106,14 +107,18 @@ class InceptionTF2015(Extractor):
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
         torch = _torch_setup()
         model = self.model
-        with torch.inference_mode():
-            return model(preprocess(images)).double().numpy().reshape(len(images), self.dim)
+        out = np.zeros((len(images), self.dim), np.float64)
+        with torch.inference_mode():  # chunks bound the memory whatever N is
+            for s in range(0, len(images), self.chunk):
+                out[s:s + self.chunk] = model(preprocess(images[s:s + self.chunk])).double().numpy()
+        return out
 
 
 class I3DKinetics400(Extractor):
     id, kind, dim = "i3d-kinetics400", "video", 400
     files = ("i3d-kinetics-400.ckpt",)
     resize = "stylegan-v-bilinear"
+    chunk = 2  # clips per forward pass
     reference = "StyleGAN-V FVD (frames bilinear-resized to 224, x/127.5-1, 400-d logits averaged over time)"
 
     def _load(self, files):
@@ -127,8 +132,11 @@ class I3DKinetics400(Extractor):
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
         torch = _torch_setup()
         model = self.model
-        with torch.inference_mode():
-            return model(preprocess_clips(clips)).double().numpy()
+        out = np.zeros((len(clips), self.dim), np.float64)
+        with torch.inference_mode():  # chunks bound the memory whatever N is
+            for s in range(0, len(clips), self.chunk):
+                out[s:s + self.chunk] = model(preprocess_clips(clips[s:s + self.chunk])).double().numpy()
+        return out
 
 
 def preprocess_clips(clips: np.ndarray, size: int = 224):

@@ -146,7 +146,8 @@ class FrechetBootstrap:
         m = np.sqrt(w1)[:, None] * c * np.sqrt(w2)[None, :] / math.sqrt((n1 - 1) * (n2 - 1))
         mm = m @ m.T if m.shape[0] <= m.shape[1] else m.T @ m
         tr_sqrt = np.sqrt(np.clip(np.linalg.eigvalsh(mm), 0.0, None)).sum()
-        return float(mu11 + mu22 - 2 * mu12 + tr1 + tr2 - 2 * tr_sqrt)
+        # the exact value is >= 0; below 0 is rounding (as metrics.frechet_distance clamps)
+        return max(float(mu11 + mu22 - 2 * mu12 + tr1 + tr2 - 2 * tr_sqrt), 0.0)
 
     def _covariance_route(self, w1, w2, n1, n2) -> float:
         mu1 = w1 @ self.x1 / n1
@@ -166,7 +167,7 @@ def frechet_eigh(mu1: np.ndarray, s1: np.ndarray, mu2: np.ndarray, s2: np.ndarra
     inner = np.linalg.eigvalsh(r1 @ s2 @ r1)
     tr_sqrt = np.sqrt(np.clip(inner, 0.0, None)).sum()
     diff = mu1 - mu2
-    return float(diff @ diff + np.trace(s1) + np.trace(s2) - 2 * tr_sqrt)
+    return max(float(diff @ diff + np.trace(s1) + np.trace(s2) - 2 * tr_sqrt), 0.0)
 
 
 def polynomial_kernel(x: np.ndarray, y: np.ndarray, *, degree: int = 3, gamma: float | None = None,

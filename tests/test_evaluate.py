@@ -25,9 +25,22 @@ def tiny(tmp_path_factory):
     return make_dataset(tmp_path_factory.mktemp("ds") / "evaltiny")
 
 
-@pytest.fixture
-def proto(tmp_path, monkeypatch):
-    return install_test_protocol(tmp_path, monkeypatch)
+@pytest.fixture(scope="module")
+def scored(tmp_path_factory, tiny):
+    """Results of the perfect submission and of blurs sigma 0.7 and 1.5, evaluated once."""
+    mp = pytest.MonkeyPatch()
+    tmp = tmp_path_factory.mktemp("scored")
+    try:
+        install_test_protocol(tmp, mp)
+        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))  # module scope: the per-test cache is not set yet
+        ds = open_dataset(tiny)
+        subs = {"gt": write_template(ds, tmp / "gt", from_ground_truth=True),
+                "b1": blurred_submission(ds, tmp / "b1", sigma=0.7),
+                "b2": blurred_submission(ds, tmp / "b2", sigma=1.5)}
+        res = {k: evaluate(v, data=tiny, out=tmp / f"{k}.json", progress=False) for k, v in subs.items()}
+        yield ds, subs, res, tmp
+    finally:
+        mp.undo()
 
 
 def _fid(x, y):
@@ -36,12 +49,9 @@ def _fid(x, y):
                  - 2 * np.trace(scipy.linalg.sqrtm(s1 @ s2).real))
 
 
-def test_perfect_and_blurred(tiny, proto, tmp_path):
-    ds = open_dataset(tiny)
-    perfect = write_template(ds, tmp_path / "gt", from_ground_truth=True)
-    blur = blurred_submission(ds, tmp_path / "blur", sigma=1.0)
-    rp = evaluate(perfect, data=tiny, out=tmp_path / "gt.json", progress=False)
-    rb = evaluate(blur, data=tiny, out=tmp_path / "blur.json", progress=False)
+def test_perfect_and_blurred(scored):
+    ds, subs, res, tmp_path = scored
+    blur, rp, rb = subs["b2"], res["gt"], res["b2"]
     mp, mb = rp["metrics"], rb["metrics"]
     assert list(mp) == ["psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"]
     # perfect: PSNR inf, SSIM 1, FID / FVD 0
@@ -65,7 +75,7 @@ def test_perfect_and_blurred(tiny, proto, tmp_path):
                                  channel_axis=2, use_sample_covariance=False)
     assert rec["ssim"] == pytest.approx(want, abs=1e-5)
     assert mb["psnr"]["value"] == pytest.approx(np.mean([r["psnr"] for r in rb["frames"]]))
-    _, feats = read_results(tmp_path / "blur.json", features=True)
+    _, feats = read_results(tmp_path / "b2.json", features=True)
     x = feats["random-image-64"]
     assert x["sub"].shape == (64, 64)
     assert mb["fid"]["value"] == pytest.approx(_fid(x["sub"], x["gt"]), rel=1e-5)
@@ -86,13 +96,12 @@ def test_perfect_and_blurred(tiny, proto, tmp_path):
     assert rb["submission"]["timings"]["fit_s"] == 1.0
     assert set(rb["sequences"]) == {f"test-0-lane0{i}/yaw{q:03d}" for i in (0, 1) for q in (0, 90)}
     assert {"validate_s", "frame_metrics_s", "features_s", "bootstrap_s", "total_s"} <= set(rb["timing_s"])
-    on_disk = json.loads((tmp_path / "blur.json").read_text())
+    on_disk = json.loads((tmp_path / "b2.json").read_text())
     assert on_disk["metrics"]["fid"]["value"] == mb["fid"]["value"]
 
 
-def test_existing_results_need_force(tiny, proto, tmp_path):
-    ds = open_dataset(tiny)
-    blur = blurred_submission(ds, tmp_path / "blur")
+def test_existing_results_need_force(tiny, scored, tmp_path):
+    blur = scored[1]["b1"]
     out = tmp_path / "r.json"
     out.write_text("{}")
     rc, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
@@ -102,10 +111,8 @@ def test_existing_results_need_force(tiny, proto, tmp_path):
     assert features_path(out).is_file()
 
 
-def test_shards_merge_to_the_unsharded_numbers(tiny, proto, tmp_path):
-    ds = open_dataset(tiny)
-    blur = blurred_submission(ds, tmp_path / "blur")
-    full = evaluate(blur, data=tiny, out=tmp_path / "full.json", progress=False)
+def test_shards_merge_to_the_unsharded_numbers(tiny, scored, tmp_path):
+    blur, full = scored[1]["b1"], scored[2]["b1"]
     parts = []
     for i in (1, 0, 2):  # order does not matter; 3 shards over 4 sequences
         p = tmp_path / f"part{i}.json"
@@ -137,14 +144,11 @@ def test_official_protocol_refuses_random_extractors():
         _check_extractors(bad)
 
 
-def test_compare_cli(tiny, proto, tmp_path):
-    ds = open_dataset(tiny)
-    perfect = write_template(ds, tmp_path / "gt", from_ground_truth=True)
-    evaluate(perfect, data=tiny, out=tmp_path / "gt.json", progress=False)
-    evaluate(blurred_submission(ds, tmp_path / "b1", sigma=0.7), data=tiny, out=tmp_path / "b1.json",
-             progress=False)
-    evaluate(blurred_submission(ds, tmp_path / "b2", sigma=1.5), data=tiny, out=tmp_path / "b2.json",
-             progress=False)
+def test_compare_cli(scored, tmp_path):
+    ds, subs, res, scored_dir = scored
+    for k in ("gt", "b1", "b2"):
+        shutil.copy(scored_dir / f"{k}.json", tmp_path)
+        shutil.copy(scored_dir / f"{k}.features.npz", tmp_path)
     rc, out, err = run_cli("compare", str(tmp_path / "b1.json"), str(tmp_path / "b2.json"), "--json")
     res = json.loads(out)
     for m in ("psnr", "ssim"):
@@ -189,3 +193,27 @@ def test_smoke_end_to_end(synthtown_smoke, tmp_path):
         if v["status"] == "unavailable":
             assert v["reason"] and v["fix"], m
             assert f"{m:<6} unavailable" in text
+
+
+@pytest.mark.slow
+@pytest.mark.weights
+def test_done_when_real_extractors(synthtown_smoke, tmp_path):
+    """Issue 5's 'done when' with the real Inception / I3D weights (run with
+    SKYEYES_TEST_SHARED_CACHE=1 after `skyeyes-bench weights fetch`): the ground truth scores
+    PSNR inf, SSIM 1, FID and FVD 0; a blurred submission is strictly worse on every metric."""
+    from skyeyes_bench.metrics.extractors import get_extractor
+
+    for ex in ("inception-tf-2015", "i3d-kinetics400"):
+        if get_extractor(ex).status()[0] != "present":
+            pytest.skip(f"{ex} weights not present")
+    ds = open_dataset(synthtown_smoke)
+    rp = evaluate(write_template(ds, tmp_path / "gt", from_ground_truth=True), data=synthtown_smoke,
+                  progress=False)["metrics"]
+    rb = evaluate(blurred_submission(ds, tmp_path / "blur", sigma=1.5), data=synthtown_smoke,
+                  progress=False)["metrics"]
+    assert rp["psnr"]["value"] == math.inf and rp["ssim"]["value"] == pytest.approx(1.0)
+    assert rp["fid"]["value"] == pytest.approx(0.0, abs=1e-6) and rp["fvd"]["value"] == pytest.approx(0.0, abs=1e-4)
+    for m, v in rb.items():
+        if v["status"] == "ok":
+            better = rp[m]["value"] > v["value"] if v["higher_is_better"] else rp[m]["value"] < v["value"]
+            assert better, m

@@ -76,8 +76,8 @@ interval = 0.95
 seed = 0
 cluster = "sequence"
 emcee_walkers = 16
-emcee_steps = 1000
-emcee_burn = 200
+emcee_steps = 600
+emcee_burn = 100
 """
 
 

@@ -55,6 +55,7 @@ def board(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("lb")
     try:
         install_test_protocol(tmp, mp)
+        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))  # module scope: the per-test cache is not set yet
         from skyeyes_bench.data.layout import open_dataset
         from skyeyes_bench.evaluate import evaluate
 

@@ -189,6 +189,13 @@ class ControlledUNet(nn.Module):
     def add_control(self) -> None:
         from diffusers import ControlNetModel
 
+        if self.cfg.pretrained:
+            # SD1.5 layout: the branch takes [0, 1] pixels and downsamples them 8x to the latent.
+            root = Path(self.cfg.pretrained) / "controlnet"
+            self.controlnet = (ControlNetModel.from_pretrained(root, local_files_only=True)
+                               if (root / "config.json").is_file() else ControlNetModel.from_unet(self.unet))
+            return
+        # Pixel space: the condition has the sample's layout, so no downsampling in its embedding.
         self.controlnet = ControlNetModel.from_unet(
             self.unet, conditioning_embedding_out_channels=(16,), conditioning_channels=self.cfg.in_channels)
 
@@ -223,8 +230,8 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
 
     NOTE: this path cannot be exercised offline (no checkpoint, no `transformers`); it follows
     the diffusers folder layout (unet/, text_encoder/, tokenizer/, vae/, optional controlnet/).
-    The VAE latent space (8x downsampling, 4 channels, scale 0.18215) replaces the pixel codec;
-    see `PretrainedCodec`.
+    The VAE latent space (8x downsampling, 4 channels) replaces the pixel codec (`encode`,
+    `decode`); the prompt is encoded once by the frozen CLIP text encoder.
     """
     from skyeyes_bench.errors import UserError
 
@@ -235,7 +242,7 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
         from transformers import CLIPTextModel, CLIPTokenizer
     except ImportError:
         raise UserError("--pretrained needs the 'transformers' package for the text encoder; pip install transformers") from None
-    from diffusers import ControlNetModel, UNet2DConditionModel
+    from diffusers import UNet2DConditionModel
 
     model = ControlledUNet.__new__(ControlledUNet)
     nn.Module.__init__(model)
@@ -249,10 +256,7 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
     model.prompt = nn.Parameter(emb, requires_grad=False)
     model.controlnet = None
     if control:
-        if (root / "controlnet" / "config.json").is_file():
-            model.controlnet = ControlNetModel.from_pretrained(root / "controlnet", local_files_only=True)
-        else:
-            model.controlnet = ControlNetModel.from_unet(model.unet)
+        model.add_control()
     return model
 
 

@@ -383,7 +383,12 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
             lo, hi = stats.percentile_interval(samples, st.interval) if len(samples) else (math.nan, math.nan)
         metrics[m.name] = {"status": "ok", "kind": "set", "value": float(value), "interval": [lo, hi],
                            "level": st.interval, "higher_is_better": False, "n": int(len(xs)),
-                           "extractor": m.extractor, "unit": "clip" if m.name in _CLIP_SET else "frame"}
+                           "extractor": m.extractor, "unit": "clip" if m.name in _CLIP_SET else "frame",
+                           "resample_mean": float(np.mean(samples)) if len(samples) else math.nan}
+        if not lo <= value <= hi:
+            metrics[m.name]["note"] = (
+                "value outside its percentile interval: a resample repeats sequences, and repeated "
+                "frames bias set metrics on small sets (the interval shows the spread, not a bias-free range)")
     res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
     res["sequences"] = per_seq
     res.pop("unavailable", None)
@@ -510,6 +515,8 @@ def format_summary(res: dict) -> str:
         lo, hi = m["interval"]
         arrow = "higher is better" if m["higher_is_better"] else "lower is better"
         extra = f"  ({m['infinite_frames']} exact frames)" if m.get("infinite_frames") else ""
+        if m.get("note"):
+            extra += f"  [note: {m['note']}]"
         lines.append(f"  {name:<6} {m['value']:.4g}  [{lo:.4g}, {hi:.4g}] {int(m['level'] * 100)}%  "
                      f"({arrow}){extra}")
     t = res.get("timing_s", {})

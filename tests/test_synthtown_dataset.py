@@ -138,3 +138,28 @@ def test_failed_run_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         generate.generate_dataset(tmp_path / "ds", "smoke", progress=False, workers=1)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_ensure_dataset_waits_for_a_concurrent_run(monkeypatch):
+    """Two threads asking for the same cache dataset: one renders, the other waits and reuses it."""
+    import threading
+
+    from skyeyes_bench.data.synthtown import generate
+
+    calls = []
+    real = generate.generate_dataset
+
+    def counted(*a, **k):
+        calls.append(a)
+        return real(*a, **k)
+
+    monkeypatch.setattr(generate, "generate_dataset", counted)
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(generate.ensure_dataset("smoke", progress=False)))
+               for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and len(results) == 2 and results[0] == results[1]
+    assert open_dataset(results[0]).name == "synthtown-smoke"

@@ -188,18 +188,21 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
 def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) -> Path:
     """`<cache>/data/synthtown-<preset>[-seed<N>]`, generated there first if absent.
 
-    Generation is atomic, so a concurrent or killed run never leaves a half dataset: if another
-    process finishes first, its dataset is used.
+    Generation is atomic (a killed run leaves nothing) and serialised by a lock file beside the
+    dataset: a second process asking for the same dataset waits for the first and then uses its
+    result instead of rendering it again.
     """
+    import fcntl
+
     p = get_preset(preset)
     path = paths.data_dir() / dataset_name(p.name, int(seed))
     if (path / "dataset.json").is_file():
         return path
-    if path.exists():
-        raise UserError(f"{path}: exists but holds no dataset.json (not a SynthTown dataset); remove it")
-    try:
-        return generate_dataset(path, p.name, int(seed), progress=progress)
-    except (UserError, OSError):
-        if (path / "dataset.json").is_file():  # a concurrent run won the race
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.parent / f".{path.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes (also if we are killed)
+        if (path / "dataset.json").is_file():  # another process made it while we waited
             return path
-        raise
+        if path.exists():
+            raise UserError(f"{path}: exists but holds no dataset.json (not a SynthTown dataset); remove it")
+        return generate_dataset(path, p.name, int(seed), progress=progress)

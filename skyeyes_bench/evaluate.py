@@ -274,6 +274,9 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                     fg = extract_image_features(ex_id, gt_paths, progress=progress)
                 else:
                     spec = specs[0]
+                    if len({(m.clip_length, m.clip_stride) for m in specs}) > 1:
+                        raise UserError(f"protocol {protocol.ref}: metrics {', '.join(m.name for m in specs)} share "
+                                        f"extractor {ex_id} but not clip_length/clip_stride")
                     clips_sub, clips_gt, seq_l = [], [], []
                     by_seq: dict[int, list] = {}
                     for s, f in frames:
@@ -311,6 +314,9 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
 
     timing = {} if timing is None else timing
     protocol = load_protocol(doc["protocol"]["ref"])
+    if protocol.sha256 != doc["protocol"]["sha256"]:
+        raise UserError(f"protocol {protocol.ref} changed since these values were computed (sha256 "
+                        f"{doc['protocol']['sha256'][:12]}... then, {protocol.sha256[:12]}... now)")
     st = protocol.statistics
     seq_ids = doc["dataset"]["sequences"]
     k = len(seq_ids)

@@ -1,0 +1,57 @@
+"""`sugar`: SuGaR's surface-aligned Gaussians (Guedon & Lepetit, CVPR 2024), the Skyeyes
+paper's stage one. Vanilla 3DGS warm-up, then opacity entropy, then the SDF / density
+alignment and normal terms with flat Gaussians (see `reference.common.gaussians.sugar_reg`).
+
+SuGaR's later mesh extraction and mesh-bound refinement are left out: the Skyeyes pipeline only
+renders the aligned Gaussians from the ground cameras.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from reference.common.gaussians.sugar_reg import SugarRegularizer, SugarWeights
+from reference.methods.gaussians3d import PRESETS as G3D_PRESETS
+from reference.methods.gaussians3d import Gaussians3D, Gaussians3DConfig
+
+
+@dataclass
+class SuGaRConfig(Gaussians3DConfig):
+    """Gaussians3DConfig plus SuGaR's schedule (fractions of `iterations`) and weights.
+
+    NOTE: SuGaR regularises after 7k of 3DGS's iterations: entropy for 2k, SDF from 9k
+    (of 15k). The fractions below keep those proportions (7/15, 9/15).
+    """
+
+    entropy_from_frac: float = 7 / 15
+    sdf_from_frac: float = 9 / 15
+    lambda_entropy: float = 0.1
+    lambda_sdf: float = 0.2
+    lambda_normal: float = 0.2
+    sdf_samples: int = 2000
+    knn: int = 16
+
+
+def _from(base: Gaussians3DConfig, **kw) -> SuGaRConfig:
+    return SuGaRConfig(**{**dataclasses.asdict(base), **kw})
+
+
+PRESETS = {
+    "smoke": _from(G3D_PRESETS["smoke"], sdf_samples=500, knn=8),
+    "small": _from(G3D_PRESETS["small"], sdf_samples=1500),
+    "paper": _from(G3D_PRESETS["paper"], sdf_samples=100_000),
+}
+
+
+class SuGaR(Gaussians3D):
+    name = "sugar"
+    version = "0.1"
+    presets = PRESETS
+
+    def regularizer(self, scene):
+        c = self.config
+        w = SugarWeights(entropy_from=int(c.entropy_from_frac * c.iterations), sdf_from=int(c.sdf_from_frac * c.iterations),
+                         lambda_entropy=c.lambda_entropy, lambda_sdf=c.lambda_sdf, lambda_normal=c.lambda_normal,
+                         samples=c.sdf_samples, knn=c.knn, knn_every=max(c.densify_every, 50))
+        return SugarRegularizer(w, seed=self.seed)

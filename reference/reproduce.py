@@ -1,0 +1,208 @@
+"""`skyeyes-bench reproduce`: data -> fit -> render -> submission -> evaluate -> results.json.
+
+Output folder (`--out`, default `outputs/<method>-<preset>/`):
+
+```
+config.json            resolved config (preset + overrides), cache key, dataset and code hashes
+reproduce.log          the run's log (SfM outcome, fallbacks, timings)
+work/<key>/            stage cache, key = sha256(method, config, seed, dataset manifest, code)
+    scenes/<scene>/    fitted model checkpoint (model.pt, written atomically) + fit.json
+    renders/<scene>/ground/NNNNNN.png, renders/timings.json   rendered frames, reused on resume
+submission/            the submission (SubmissionWriter)
+results.json           evaluate(...) of the submission
+```
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import logging
+import resource
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from skyeyes_bench import fileio
+from skyeyes_bench.errors import UserError
+
+log = logging.getLogger("reference.reproduce")
+
+
+def parse_overrides(config, items: list[str]) -> dict:
+    """["iterations=200", "sfm=false"] -> typed dict, checked against the config's fields."""
+    fields = {f.name: f for f in dataclasses.fields(config)}
+    out = {}
+    for item in items:
+        key, eq, raw = item.partition("=")
+        if not eq:
+            raise UserError(f"--set {item!r}: expected KEY=VALUE")
+        if key not in fields:
+            raise UserError(f"--set {key}: not a field of {type(config).__name__} (fields: {', '.join(fields)})")
+        cur = getattr(config, key)
+        try:
+            if isinstance(cur, bool):
+                if raw.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                val = raw.lower() in ("true", "1", "yes")
+            elif isinstance(cur, int):
+                val = int(raw)
+            elif isinstance(cur, float):
+                val = float(raw)
+            else:
+                val = type(cur)(raw) if cur is not None else raw
+        except ValueError:
+            raise UserError(f"--set {key}={raw}: expected a {type(cur).__name__}") from None
+        out[key] = val
+    return out
+
+
+def dataset_sha(root: Path, ds) -> str:
+    """sha256 of the dataset manifest (dataset.json and every scene.json)."""
+    h = hashlib.sha256(fileio.sha256_file(root / "dataset.json").encode())
+    for name in sorted(ds.scenes):
+        h.update(fileio.sha256_file(root / name / "scene.json").encode())
+    return h.hexdigest()
+
+
+def code_sha(cls) -> str:
+    """sha256 of the method's modules (its class hierarchy) and of reference/common."""
+    files = {Path(inspect.getfile(c)).resolve() for c in inspect.getmro(cls) if c.__module__.startswith("reference")}
+    common = Path(__file__).resolve().parent / "common"
+    files |= set(common.rglob("*.py"))
+    h = hashlib.sha256()
+    for f in sorted(files):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str, code: str) -> str:
+    blob = json.dumps({"method": method, "version": version, "config": config, "seed": seed, "data": data_sha,
+                       "code": code}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _setup_log(out: Path) -> tuple[logging.Handler, ...]:
+    out.mkdir(parents=True, exist_ok=True)
+    fh = logging.FileHandler(out / "reproduce.log")
+    fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    sh = logging.StreamHandler(sys.stderr)
+    sh.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+    root = logging.getLogger("reference")
+    root.setLevel(logging.INFO)
+    root.addHandler(fh)
+    root.addHandler(sh)
+    return fh, sh
+
+
+def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
+        force: bool = False, progress: bool = True) -> dict:
+    """The whole pipeline; returns the results dict (see module docstring for the files)."""
+    from reference.methods import get_method_class
+    from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.evaluate import evaluate, format_summary
+    from skyeyes_bench.registry import lookup
+    from skyeyes_bench.submission import SubmissionWriter
+
+    cls = get_method_class(method)
+    base = lookup(cls.presets, preset, f"preset of method {method!r}")
+    config = dataclasses.replace(base, **parse_overrides(base, overrides or []))
+    # 1. Data.
+    if data is None:
+        from skyeyes_bench.data.synthtown import ensure_dataset
+
+        data = ensure_dataset(preset, progress=progress)
+    root = Path(data)
+    ds = open_dataset(root)
+    out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
+    handlers = _setup_log(out)
+    try:
+        config_d = dataclasses.asdict(config)
+        dsha, csha = dataset_sha(root, ds), code_sha(cls)
+        key = cache_key(method, cls.version, config_d, seed, dsha, csha)
+        work = out / "work" / key
+        if force and work.exists():
+            shutil.rmtree(work)
+        fileio.write_json(out / "config.json", {
+            "method": method, "method_version": cls.version, "preset": preset, "overrides": list(overrides or []),
+            "seed": seed, "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
+            "manifest_sha256": dsha}, "code_sha256": csha,
+            "repeat": f"skyeyes-bench reproduce --method {method} --preset {preset} --seed {seed} --data {root} "
+                      + " ".join(f"--set {o}" for o in overrides or []),
+        })
+        log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
+        m = cls(config, work / "method", seed=seed)
+        # 2. Fit: train split, then each test scene (checkpoints make this resumable).
+        t0 = time.perf_counter()
+        m.fit_train(ds)
+        fit_train_s = time.perf_counter() - t0
+        scenes = ds.split("test")
+        fit_s = fit_train_s
+        for scene in scenes:
+            t0 = time.perf_counter()
+            m.fit_scene(scene)
+            took = time.perf_counter() - t0
+            stats = getattr(m, "scene_stats", {}).get(scene.name, {})
+            fit_s += float(stats.get("fit_seconds", took))  # a resumed fit reports its original time
+            log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
+        # 3. Render every test sequence; frames already in the cache are reused.
+        renders = work / "renders"
+        tfile = renders / "timings.json"
+        timings = json.loads(tfile.read_text()) if tfile.is_file() else {}
+        from tqdm import tqdm
+
+        total = sum(len(s) for sc in scenes for s in sc.sequences.values())
+        bar = tqdm(total=total, desc="render", disable=not progress, leave=False)
+        for scene in scenes:
+            for seq in scene.sequences.values():
+                paths = [renders / scene.name / f.file for f in seq]
+                if all(p.is_file() for p in paths) and all(f"{scene.name}/{f.file}" in timings for f in seq):
+                    bar.update(len(paths))
+                    continue
+                t_prev = time.perf_counter()
+                for frame, img, p in zip(seq, m.render_sequence(scene, seq), paths):
+                    fileio.write_image(p, img)  # atomic per frame
+                    now = time.perf_counter()
+                    timings[f"{scene.name}/{frame.file}"] = now - t_prev
+                    t_prev = now
+                    bar.update(1)
+                fileio.write_json(tfile, timings)
+        bar.close()
+        # 4. Submission from the render cache.
+        per_frame = [timings[f"{sc.name}/{f.file}"] for sc in scenes for s in sc.sequences.values() for f in s]
+        sub_dir = out / "submission"
+        with SubmissionWriter(sub_dir, dataset=ds, method=method, method_version=cls.version,
+                              config={"preset": preset, "seed": seed, "cache_key": key, **config_d},
+                              overwrite=True) as w:
+            for sc in scenes:
+                for s in sc.sequences.values():
+                    for f in s:
+                        w.add(sc.name, f, fileio.read_image(renders / sc.name / f.file))
+            w.finish(timings={"fit_s": fit_s, "render_s": float(sum(per_frame)), "per_frame_render_s": per_frame},
+                     peak_memory_mb=peak_rss_mb(), hardware=None)
+        log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB)", sub_dir, fit_s,
+                 sum(per_frame), peak_rss_mb())
+        # 5. Evaluate.
+        res = evaluate(sub_dir, data=root, out=out / "results.json", force=True, progress=progress)
+        print(format_summary(res))
+        print(f"results: {out / 'results.json'}")
+        return res
+    finally:
+        lg = logging.getLogger("reference")
+        for h in handlers:
+            lg.removeHandler(h)
+            h.close()
+
+
+def main(args) -> int:
+    run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
+        force=args.force, progress=not args.quiet)
+    return 0

@@ -1,0 +1,23 @@
+"""`skyeyes-bench reproduce`: fit a reference method, render the test ground cameras, score."""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "reproduce", help="fit a reference method, write a submission and score it",
+        description="Run a reference method end to end: data (SynthTown by default), fit on each test "
+        "scene's aerial views, render its ground cameras, write a submission, evaluate it, print the "
+        "summary and leave results.json in --out. Stages are cached by content hash under --out, so an "
+        "interrupted run resumes where it stopped.")
+    p.add_argument("--method", required=True, help="reference method id (e.g. sugar, gaussians3d, skyeyes)")
+    p.add_argument("--preset", default="smoke", help="method preset: smoke | small | paper (default: smoke)")
+    p.add_argument("--data", default=None, metavar="DIR",
+                   help="dataset folder (default: the SynthTown dataset of the same preset, generated once)")
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: outputs/<method>-<preset>)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config field of the preset (repeatable), e.g. --set iterations=200")
+    p.add_argument("--force", action="store_true", help="discard cached stages and replace existing outputs")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(handler="reference.reproduce:main")

@@ -226,3 +226,13 @@ def test_featurestats_mean_cov_merge_roundtrip(tmp_path):
 def test_featurestats_rejects_wrong_dim():
     with pytest.raises(AssertionError):
         FeatureStats(4).update(np.zeros((3, 5)))
+
+
+def test_frechet_zero_covariance():
+    rng = np.random.default_rng(15)
+    d = 12
+    mu1, s2 = _rand_cov(rng, d, 100)
+    mu2 = rng.normal(size=d)
+    ref = ((mu1 - mu2) ** 2).sum() + np.trace(s2)
+    assert frechet_distance(mu1, np.zeros((d, d)), mu2, s2) == pytest.approx(ref, rel=1e-12)
+    assert frechet_distance(mu2, s2, mu1, np.zeros((d, d))) == pytest.approx(ref, rel=1e-12)

@@ -24,18 +24,13 @@ def _clip_spectrum(w: np.ndarray) -> np.ndarray:
     return np.where(w > tol, w, 0.0)
 
 
-def _sym_sqrt_psd(s: np.ndarray) -> np.ndarray:
-    """Square root of a symmetric PSD matrix via eigh (rounding-level eigenvalues -> 0)."""
-    w, v = np.linalg.eigh((s + s.T) * 0.5)
-    return (v * np.sqrt(_clip_spectrum(w))) @ v.T
-
-
 def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray) -> float:
     """Frechet distance between N(mu1, sigma1) and N(mu2, sigma2), in float64.
 
     d = |mu1 - mu2|^2 + tr(S1) + tr(S2) - 2 tr((sqrt(S1) S2 sqrt(S1))^(1/2)).
     The last trace is the sum of the square roots of the eigenvalues of the *symmetric* PSD
-    matrix sqrt(S1) S2 sqrt(S1) (same spectrum as S1 S2), so no complex numbers arise and
+    matrix sqrt(S1) S2 sqrt(S1) (same spectrum as S1 S2), computed on the range of S1 only
+    (an r x r matrix, r = numerical rank of S1), so no complex numbers arise and
     rank-deficient covariances (fewer samples than dimensions) need no regularising epsilon,
     unlike the `scipy.linalg.sqrtm(S1 @ S2)` of pytorch-fid / clean-fid / StyleGAN-V, which
     agrees on well-conditioned inputs.
@@ -55,10 +50,21 @@ def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma
     assert s1.shape == (d, d) and s2.shape == (d, d), (s1.shape, s2.shape)
     if not (np.isfinite(mu1).all() and np.isfinite(mu2).all() and np.isfinite(s1).all() and np.isfinite(s2).all()):
         raise ValueError("frechet_distance: non-finite mean or covariance")
-    r1 = _sym_sqrt_psd(s1)
-    m = r1 @ s2 @ r1
-    w = np.linalg.eigvalsh((m + m.T) * 0.5)
-    tr_covmean = np.sqrt(_clip_spectrum(w)).sum()
+    # Pivoted Cholesky with rank detection (LAPACK dpstrf): S1 = A A^T, A = P L of shape [D, r].
+    # S1 S2 (same spectrum as sqrt(S1) S2 sqrt(S1)) then shares its non-zero eigenvalues with
+    # the symmetric r x r matrix A^T S2 A: eigenvalues only, no eigenvectors, and with fewer
+    # samples than dimensions r << D, so it is cheap. Pivots below D * eps * max(diag S1) are
+    # rank-deficiency (LAPACK's default tolerance).
+    from scipy.linalg import lapack
+
+    c, piv, rank, info = lapack.dpstrf(np.array((s1 + s1.T) * 0.5, order="F"), lower=1)
+    if info < 0:
+        raise ValueError(f"frechet_distance: dpstrf argument {-info} invalid")
+    a = np.zeros((d, rank))
+    a[piv - 1] = np.tril(c)[:, :rank]  # undo the pivoting: A = P L
+    m = a.T @ ((s2 + s2.T) * 0.5) @ a  # [r, r]
+    w = np.linalg.eigvalsh((m + m.T) * 0.5) if rank else np.zeros(0)
+    tr_covmean = np.sqrt(_clip_spectrum(w)).sum() if w.size else 0.0
     diff = mu1 - mu2
     val = float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
     return max(val, 0.0)

@@ -236,3 +236,14 @@ def test_frechet_zero_covariance():
     ref = ((mu1 - mu2) ** 2).sum() + np.trace(s2)
     assert frechet_distance(mu1, np.zeros((d, d)), mu2, s2) == pytest.approx(ref, rel=1e-12)
     assert frechet_distance(mu2, s2, mu1, np.zeros((d, d))) == pytest.approx(ref, rel=1e-12)
+
+
+def test_kernel_mmd_gram_path_equals_subset_path(monkeypatch):
+    import skyeyes_bench.metrics.sets as sets
+
+    rng = np.random.default_rng(16)
+    x, y = rng.normal(size=(60, 8)), rng.normal(0.2, 1.0, size=(50, 8))
+    fast = kernel_mmd(x, y, subset_size=20, num_subsets=7, seed=3)
+    monkeypatch.setattr(sets, "_GRAM_LIMIT", 0)
+    slow = kernel_mmd(x, y, subset_size=20, num_subsets=7, seed=3)
+    assert fast == pytest.approx(slow, rel=1e-10)

@@ -64,9 +64,9 @@ PRESETS = {
                                sh_degree=0, max_gaussians=3000, init_max_points=1500, fallback_per_view=400,
                                opacity_reset_every=0, init_max_scale=1.0),
     # The CPU default at 128x128 (minutes per scene).
-    "small": Gaussians3DConfig(iterations=700, densify_from=100, densify_until=500, densify_every=100,
-                               sh_degree=1, sh_increase_every=300, max_gaussians=30_000,
-                               init_max_points=12_000, opacity_reset_every=0),
+    "small": Gaussians3DConfig(iterations=400, densify_from=50, densify_until=300, densify_every=50,
+                               sh_degree=1, sh_increase_every=200, max_gaussians=15_000,
+                               init_max_points=8_000, opacity_reset_every=0),
     # 3DGS's own schedule (GPU users; the paper trains SuGaR 15k iterations at 512x512).
     "paper": Gaussians3DConfig(iterations=15_000, densify_from=500, densify_until=7_000, densify_every=100,
                                sh_degree=3, sh_increase_every=1000, max_gaussians=1_000_000,

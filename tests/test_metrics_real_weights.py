@@ -44,8 +44,11 @@ needs_i3d = pytest.mark.skipif(not HAVE_I3D, reason=f"{I3D} absent from {REAL_DI
 
 def _reference_inception(model, img_u8):
     """clean-fid 'clean': PIL bicubic per channel on float32, clip [0,255]; then (x-128)/128."""
-    chans = [np.asarray(Image.fromarray(img_u8[..., c].astype(np.float32), mode="F").resize((299, 299), Image.BICUBIC))
-             for c in range(3)]
+    chans = []
+    for c in range(3):
+        im = Image.fromarray(np.ascontiguousarray(img_u8[..., c]).astype(np.float32))
+        assert im.mode == "F"
+        chans.append(np.asarray(im.resize((299, 299), Image.BICUBIC)))
     x = np.clip(np.stack(chans, -1), 0, 255)
     t = (torch.from_numpy(x).permute(2, 0, 1)[None].float() - 128) / 128
     with torch.no_grad():

@@ -33,10 +33,11 @@ def clean_resize(img_u8: np.ndarray, size: int = SIZE) -> np.ndarray:
     assert img_u8.ndim == 3 and img_u8.shape[2] == 3 and img_u8.dtype == np.uint8, (img_u8.shape, img_u8.dtype)
     if img_u8.shape[:2] == (size, size):
         return img_u8.astype(np.float32)
-    chans = [
-        np.asarray(Image.fromarray(img_u8[:, :, c].astype(np.float32), mode="F").resize((size, size), Image.BICUBIC))
-        for c in range(3)
-    ]
+    chans = []
+    for c in range(3):
+        im = Image.fromarray(np.ascontiguousarray(img_u8[:, :, c], dtype=np.float32))  # float32 -> mode "F"
+        assert im.mode == "F", im.mode
+        chans.append(np.asarray(im.resize((size, size), Image.BICUBIC)))
     return np.clip(np.stack(chans, axis=2), 0, 255).astype(np.float32)
 
 
@@ -57,7 +58,11 @@ def load_inception(path, *, freeze: bool = True) -> torch.nn.Module:
     """The TorchScript Inception for inference; `freeze` inlines the weights as constants and
     folds each BatchNorm into its convolution (torch.jit.freeze), the same function up to
     float rounding (checked against the plain module in the tests)."""
-    m = torch.jit.load(str(path), map_location="cpu").eval()
-    if freeze:
-        m = torch.jit.freeze(m)
+    import warnings
+
+    with warnings.catch_warnings():  # torch 2.13 marks TorchScript deprecated; the file is TorchScript
+        warnings.simplefilter("ignore", DeprecationWarning)
+        m = torch.jit.load(str(path), map_location="cpu").eval()
+        if freeze:
+            m = torch.jit.freeze(m)
     return m

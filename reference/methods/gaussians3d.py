@@ -145,7 +145,7 @@ class Gaussians3D(Method):
         box = ginit.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
         # 1. Initial points: SfM with the known poses, else the documented fallback.
         msg = "SfM disabled by config"
-        xyz = np.zeros((0, 3))
+        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
         if cfg.sfm:
             xyz, rgb, msg = ginit.sfm_points(train_frames, self.scene_dir(scene) / "sfm")
             keep = ginit.in_box(xyz, box) if len(xyz) else np.zeros(0, bool)

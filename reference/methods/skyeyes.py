@@ -96,6 +96,11 @@ PRESETS: dict[str, SkyeyesConfig] = {
 }
 
 
+#: Bumped whenever a change makes old stage checkpoints mean something else (architecture,
+#: losses): it is part of every stage cache key. 2: heads sized by `head_dim`.
+STAGE_VERSION = 2
+
+
 def _sha(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -219,7 +224,8 @@ class Skyeyes(Method):
         """
         import shutil
 
-        folder = cache_dir() / "reference" / "diffusion" / f"{stage}-{_sha({'stage': stage, **key})[:20]}"
+        ident = {"stage": stage, "stage_version": STAGE_VERSION, **key}
+        folder = cache_dir() / "reference" / "diffusion" / f"{stage}-{_sha(ident)[:20]}"
         ckpt = folder / f"train-{steps}.pt"
         if not ckpt.is_file() and folder.is_dir():
             done = sorted((int(p.stem.split("-")[1]), p) for p in folder.glob("train-*.pt")

@@ -53,6 +53,11 @@ class CoreConfig:
         return 4 if self.pretrained else 3 * self.patch**2  # SD VAE latents have 4 channels
 
     @property
+    def heads_per_level(self) -> tuple[int, ...]:
+        """Attention heads per UNet level, so that each head is `head_dim` wide."""
+        return tuple(max(1, c // self.head_dim) for c in self.channels)
+
+    @property
     def latent_size(self) -> int:
         return self.resolution // (8 if self.pretrained else self.patch)
 
@@ -163,7 +168,9 @@ def build_unet(cfg: CoreConfig):
         sample_size=cfg.latent_size, in_channels=cfg.in_channels, out_channels=cfg.in_channels,
         down_block_types=down, up_block_types=up, mid_block_type="UNetMidBlock2DCrossAttn",
         block_out_channels=tuple(cfg.channels), layers_per_block=cfg.layers_per_block,
-        cross_attention_dim=cfg.embed_dim, attention_head_dim=cfg.head_dim,
+        # NOTE: diffusers' UNet2DConditionModel reads `attention_head_dim` as the number of
+        # heads (its docstring says so; a legacy naming quirk), so pass heads = width / head_dim.
+        cross_attention_dim=cfg.embed_dim, attention_head_dim=cfg.heads_per_level,
         norm_num_groups=cfg.norm_groups,
     )
 

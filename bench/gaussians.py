@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -41,9 +42,10 @@ def synthetic_scene(n: int, size: int, overlap: float = 150.0, seed: int = 0):
     return means, quats, scales, opac, sh, torch.eye(4), K
 
 
-def raster_case(n: int, size: int, reps: int) -> dict:
+def raster_case(n: int, size: int, reps: int, threads: int) -> dict:
     import torch
 
+    torch.set_num_threads(threads)
     from reference.common.gaussians import rasterize
     from reference.common.gaussians.raster import bin_tiles
     from reference.common.gaussians.project import project
@@ -76,13 +78,15 @@ def raster_case(n: int, size: int, reps: int) -> dict:
 
 def cmd_raster(args) -> None:
     if args.one:
-        print(json.dumps(raster_case(args.counts[0], args.sizes[0], args.reps)))
+        print(json.dumps(raster_case(args.counts[0], args.sizes[0], args.reps, args.threads)))
         return
     print("Reference prototype (issue 6): 50k@128 fwd+bwd 364 ms / 1.1 GB; 200k@256 2.26 s / 3.8 GB")
+    print(f"threads {args.threads}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'N':>7} {'size':>5} {'overlap/px':>10} {'fwd ms':>8} {'fwd+bwd ms':>10} {'peak RSS MB':>11}")
     for size in args.sizes:
         for n in args.counts:
-            cmd = [sys.executable, __file__, "raster", "--one", "--counts", str(n), "--sizes", str(size), "--reps", str(args.reps)]
+            cmd = [sys.executable, __file__, "raster", "--one", "--counts", str(n), "--sizes", str(size),
+                   "--reps", str(args.reps), "--threads", str(args.threads)]
             r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
             print(f"{r['n']:>7} {r['size']:>5} {r['overlap_per_px']:>10} {r['fwd_ms']:>8} {r['fwd_bwd_ms']:>10} {r['peak_rss_mb']:>11}")
 
@@ -90,7 +94,12 @@ def cmd_raster(args) -> None:
 def cmd_fit(args) -> None:
     from reference.methods.gaussians3d import fit_curve
 
-    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds)
+    from reference.reproduce import parse_overrides
+    from reference.methods import get_method_class
+
+    base = get_method_class(args.method).presets[args.preset]
+    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds,
+              overrides=parse_overrides(base, args.overrides))
 
 
 def main() -> None:
@@ -100,13 +109,15 @@ def main() -> None:
     r.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     r.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000, 200_000])
     r.add_argument("--reps", type=int, default=3)
+    r.add_argument("--threads", type=int, default=1, help="torch threads (1: see docs/reproduce.md)")
     r.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     r.set_defaults(fn=cmd_raster)
     f = sub.add_parser("fit")
     f.add_argument("--preset", default="smoke")
     f.add_argument("--method", default="gaussians3d")
     f.add_argument("--data", default=None)
-    f.add_argument("--seconds", type=float, default=None)
+    f.add_argument("--seconds", type=float, default=None, help="stop reporting after this many training seconds")
+    f.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     f.set_defaults(fn=cmd_fit)
     args = p.parse_args()
     args.fn(args)

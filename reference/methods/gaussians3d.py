@@ -216,7 +216,7 @@ class Gaussians3D(Method):
 
 
 def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = None, seconds: float | None = None,
-              workdir: str | None = None) -> list[dict]:
+              workdir: str | None = None, overrides: dict | None = None) -> list[dict]:
     """Held-out aerial PSNR and ground-view PSNR against training seconds, for the first test
     scene of a SynthTown preset (bench/gaussians.py). Prints one line per checkpoint."""
     import tempfile
@@ -232,7 +232,7 @@ def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = No
     scene = ds.split("test")[0]
     cls = get_method_class(method)
     wd = Path(workdir or tempfile.mkdtemp(prefix="gs-curve-"))
-    m = cls.from_preset(preset, wd, holdout_every=8)
+    m = cls.from_preset(preset, wd, holdout_every=8, **(overrides or {}))
     aerial = list(scene.aerial)
     held = [f for i, f in enumerate(aerial) if i % 8 == 7]
     ground = [f for s in scene.sequences.values() for f in s.frames[::4]]

@@ -65,11 +65,11 @@ class SugarRegularizer:
             o = model.opacities.clamp(1e-6, 1 - 1e-6)
             ent = (-o * torch.log(o) - (1 - o) * torch.log(1 - o)).mean()
             loss = loss + w.lambda_entropy * ent
-            self.last["entropy"] = float(ent)
+            self.last["entropy"] = ent.item()
         if it >= w.sdf_from and len(model) > 1:
             sdf, normal = sdf_terms(model, self._neighbours(model, it), w.samples, self.gen)
             loss = loss + w.lambda_sdf * sdf + w.lambda_normal * normal
-            self.last.update(sdf=float(sdf), normal=float(normal))
+            self.last.update(sdf=sdf.item(), normal=normal.item())
         return loss
 
 

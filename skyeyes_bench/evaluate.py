@@ -186,12 +186,21 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
 
 
 def _check_extractors(protocol) -> None:
-    from .metrics.extractors import assert_official
+    from .errors import UserError
+    from .metrics.extractors import EXTRACTORS, assert_official, get_extractor
 
     if protocol.id in builtin_protocol_ids():
         for m in protocol.metrics:
             if m.extractor:
                 assert_official(m.extractor, f"protocol {protocol.ref} metric {m.name}")
+    # A protocol's resize mode must be the one its extractor implements: preprocessing is part
+    # of the metric's definition, so a mismatch would silently score something else.
+    for m in protocol.metrics:
+        if m.extractor and m.resize and m.extractor in EXTRACTORS:
+            have = get_extractor(m.extractor).resize
+            if have is not None and have != m.resize:
+                raise UserError(f"{protocol.path}: key 'metrics.{m.name}.resize' is {m.resize!r}, but extractor "
+                                f"{m.extractor!r} implements {have!r}")
 
 
 def _frame_metrics(sub: Path, frames, protocol, seq_index, timing, progress):

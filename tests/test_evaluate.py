@@ -217,3 +217,16 @@ def test_done_when_real_extractors(synthtown_smoke, tmp_path):
         if v["status"] == "ok":
             better = rp[m]["value"] > v["value"] if v["higher_is_better"] else rp[m]["value"] < v["value"]
             assert better, m
+
+
+def test_protocol_resize_must_match_the_extractor():
+    from skyeyes_bench.evaluate import _check_extractors
+    from skyeyes_bench.protocol import load_protocol
+
+    p = load_protocol("synthtown@1")
+    _check_extractors(p)  # the shipped protocol agrees with its extractors
+    bad = p.__class__(**{**p.__dict__, "metrics": tuple(
+        m.__class__(**{**m.__dict__, "resize": "legacy-tf-bilinear"}) if m.name == "fid" else m
+        for m in p.metrics)})
+    with pytest.raises(UserError, match="metrics.fid.resize"):
+        _check_extractors(bad)

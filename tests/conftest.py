@@ -40,3 +40,15 @@ def synthtown_smoke(tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("synthtown") / "synthtown-smoke"
     return generate_dataset(out, preset="smoke", seed=0, progress=False)
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One torch thread: on a shared 2-core machine a second OpenMP thread made small ops ~50x
+    slower (spin-waiting under contention). Restored after the test."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

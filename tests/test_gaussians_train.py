@@ -16,14 +16,7 @@ from reference.common.gaussians.train import TrainConfig, View, psnr, train
 
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine a second OpenMP thread made small ops ~50x
-    slower (spin-waiting under contention). Restored after each test."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.mark.parametrize("shape", [(40, 37, 3), (16, 64, 3)])
 def test_ssim_matches_skimage(shape):

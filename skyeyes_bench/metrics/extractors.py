@@ -86,6 +86,16 @@ class Extractor:
     def _load(self, files):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def _chunked(self, inputs: np.ndarray, preprocess) -> np.ndarray:
+        """The network on `inputs` [N, ...] in chunks of `self.chunk` -> float64 [N, dim]."""
+        torch = _torch_setup()
+        model = self.model
+        out = np.zeros((len(inputs), self.dim), np.float64)
+        with torch.inference_mode():  # chunks bound the memory whatever N is
+            for s in range(0, len(inputs), self.chunk):
+                out[s:s + self.chunk] = model(preprocess(inputs[s:s + self.chunk])).double().numpy()
+        return out
+
 
 class InceptionTF2015(Extractor):
     id, kind, dim = "inception-tf-2015", "image", 2048
@@ -105,13 +115,7 @@ class InceptionTF2015(Extractor):
 
         images = np.asarray(images)
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
-        torch = _torch_setup()
-        model = self.model
-        out = np.zeros((len(images), self.dim), np.float64)
-        with torch.inference_mode():  # chunks bound the memory whatever N is
-            for s in range(0, len(images), self.chunk):
-                out[s:s + self.chunk] = model(preprocess(images[s:s + self.chunk])).double().numpy()
-        return out
+        return self._chunked(images, preprocess)
 
 
 class I3DKinetics400(Extractor):
@@ -130,13 +134,7 @@ class I3DKinetics400(Extractor):
         """clips: float32 [N, T, H, W, 3] in [0, 1] -> float64 [N, 400]."""
         clips = np.asarray(clips)
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
-        torch = _torch_setup()
-        model = self.model
-        out = np.zeros((len(clips), self.dim), np.float64)
-        with torch.inference_mode():  # chunks bound the memory whatever N is
-            for s in range(0, len(clips), self.chunk):
-                out[s:s + self.chunk] = model(preprocess_clips(clips[s:s + self.chunk])).double().numpy()
-        return out
+        return self._chunked(clips, preprocess_clips)
 
 
 def preprocess_clips(clips: np.ndarray, size: int = 224):

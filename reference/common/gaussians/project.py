@@ -46,7 +46,9 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """Sigma = R S S^T R^T [N, 3, 3] from quats [N, 4] (wxyz) and linear scales [N, 3] (m)."""
     m = quat_to_rotmat(quats) * scales[:, None, :]  # R @ diag(s)
-    return m @ m.transpose(-1, -2)
+    # Broadcast products instead of a batched 3x3 matmul: bmm over N tiny matrices costs ~1 us
+    # per matrix on the CPU, the broadcast form a few passes over N x 27 numbers.
+    return (m[:, :, None, :] * m[:, None, :, :]).sum(-1)
 
 
 def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -54,22 +56,28 @@ def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
 
     3DGS convention: returns SH value + 0.5, clamped at 0 (no upper clamp).
     """
-    out = SH_C0 * sh[:, 0]
+    basis = sh_basis(degree, dirs.to(sh.dtype))  # [N, (degree+1)^2]
+    # One weighted sum instead of a term per coefficient: each `sh[:, k]` term's backward
+    # allocated and filled a full [N, K, 3] gradient.
+    out = (basis[:, :, None] * sh[:, :basis.shape[1]]).sum(1)
+    return (out + 0.5).clamp_min(0.0)
+
+
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Real SH basis [N, (degree+1)^2] at unit dirs [N, 3], with 3DGS's signs and order."""
+    cols = [torch.full_like(dirs[:, 0], SH_C0)]
     if degree > 0:
-        x, y, z = (d[:, None] for d in dirs.unbind(-1))
-        out = out - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+        x, y, z = dirs.unbind(-1)
+        cols += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
         if degree > 1:
             xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-            out = (out + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5]
-                   + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6] + SH_C2[3] * xz * sh[:, 7]
-                   + SH_C2[4] * (xx - yy) * sh[:, 8])
+            cols += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz,
+                     SH_C2[4] * (xx - yy)]
             if degree > 2:
-                out = (out + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
-                       + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
-                       + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-                       + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
-                       + SH_C3[5] * z * (xx - yy) * sh[:, 14] + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15])
-    return (out + 0.5).clamp_min(0.0)
+                cols += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                         SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                         SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(cols, -1)
 
 
 def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor,
@@ -115,12 +123,13 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, view
     ], -2)  # [N, 2, 3]
     safe_scales = torch.where(finite[:, None], scales, torch.ones_like(scales))
     safe_quats = torch.where(finite[:, None], quats, torch.ones_like(quats))
-    cov3d = covariance_3d(safe_quats, safe_scales)
+    M = quat_to_rotmat(safe_quats) * safe_scales[:, None, :]  # R diag(s): Sigma = M M^T
     T = J @ R  # [N, 2, 3]
-    cov2d = T @ cov3d @ T.transpose(-1, -2)
-    a = cov2d[:, 0, 0] + blur
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + blur
+    # cov2d = (T M)(T M)^T, by broadcast products (batched 3x3 matmuls cost ~1 us per Gaussian).
+    TM = (T[:, :, :, None] * M[:, None, :, :]).sum(2)  # [N, 2, 3]
+    a = (TM[:, 0] * TM[:, 0]).sum(-1) + blur
+    b = (TM[:, 0] * TM[:, 1]).sum(-1)
+    c = (TM[:, 1] * TM[:, 1]).sum(-1) + blur
     det = a * c - b * b
     valid = valid & (det > 0) & torch.isfinite(det)
     det = torch.where(valid, det, one)

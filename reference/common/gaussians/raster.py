@@ -1,9 +1,12 @@
-"""Tile-based front-to-back compositing with a custom backward that recomputes per tile.
+"""Tile-based front-to-back compositing with a custom autograd backward.
 
-Forward and backward both walk the image in chunks of 8x8 tiles (tiles sorted by how many
-Gaussians touch them, so a chunk's padding is small) and never keep per-pixel x per-Gaussian
-intermediates beyond one chunk: the backward recomputes alphas and transmittances from the
-per-Gaussian inputs and the saved final transmittance.
+The forward walks the image in chunks of tiles (sorted by how many Gaussians touch them, so a
+chunk's padding is small) and Gaussians in depth blocks with per-tile early stop. When a
+gradient is wanted it keeps, per composited (pixel, Gaussian) pair of the blocks it processed,
+the blending weight w = alpha T, the factor alpha / (1 - alpha) and a clamp mask; the backward
+is then a handful of passes over those (no recomputation). Tiles list only the Gaussians whose
+alpha can reach 1/255 inside the tile (exact ellipse-vs-rectangle test in `bin_tiles`), so few
+(pixel, Gaussian) pairs are evaluated for nothing.
 
 Compositing rule (3DGS, diff-gaussian-rasterization `renderCUDA`): Gaussians in increasing
 depth; alpha = min(0.99, o exp(-q/2)), skipped if alpha < 1/255; a Gaussian whose alpha would
@@ -22,50 +25,119 @@ from .project import SUPPORT_SIGMA
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
-TILE = 8
-#: Elements of one chunk's [tiles, pixels, gaussians] work arrays (bounds memory).
-CHUNK_ELEMS = 1 << 22
+#: Tile side (px). 4x4 tiles waste fewer (pixel, Gaussian) pairs than 8x8 on small splats.
+TILE = 4
+#: Elements of one chunk's [tiles, pixels, gaussians] work arrays (bounds transient memory).
+CHUNK_ELEMS = 1 << 21
 #: Gaussians per depth block: tiles whose pixels have all stopped skip the remaining blocks.
-BLOCK = 128
-#: Floor of log-space quantities (e^-60 ~ 1e-26 stays a normal float32).
+BLOCK = 64
+#: Floor of log-space quantities before exp (e^-60 ~ 1e-26 stays a normal float32).
 LOG_FLOOR = -60.0
+#: Relative and absolute slack on the binning's q bound, so float rounding can only add pairs
+#: (which the per-pixel test then rejects), never drop one the compositing would use.
+BIN_SLACK = 1e-4
+_LOG_ALPHA_MIN = math.log(ALPHA_MIN)
+_LOG_ALPHA_MAX = math.log(ALPHA_MAX)
+_LOG_T_MIN = math.log(T_MIN)
+
+
+def _q_bound(opacities: torch.Tensor | None, n: int, dtype) -> torch.Tensor:
+    """[N] largest Mahalanobis q a Gaussian can be composited at: q <= support^2 and
+    o exp(-q/2) >= 1/255 (gsplat's opacity-aware radius); -1 if it can never pass."""
+    q = torch.full((n,), SUPPORT_SIGMA ** 2, dtype=dtype)
+    if opacities is not None:
+        o = opacities.detach().to(dtype)
+        q_alpha = 2 * torch.log((o * 255.0).clamp_min(1e-300))
+        q = torch.minimum(q, torch.where(o > 0, q_alpha, torch.full_like(q, -math.inf)))
+    return torch.where(q >= 0, q * (1 + BIN_SLACK) + BIN_SLACK, torch.full_like(q, -1.0))
+
+
+def _band_x_range(a, b, c, q, ly, hy):
+    """x-extent of {(x, y): a x^2 + 2b xy + c y^2 <= q, ly <= y <= hy} (a, c > 0, ac > b^2).
+
+    The set is convex, so its x-extent is an interval. The right boundary x_r(y) =
+    (-b y + sqrt(a q - det y^2)) / a is concave with its maximum at y = -b x_max / c, so over the
+    band its maximum is at that y clamped to the band (likewise the left boundary's minimum).
+    All arguments [R]; returns (x_lo, x_hi, nonempty).
+    """
+    det = a * c - b * b
+    y_ext = torch.sqrt(q * a / det)
+    lo, hi = torch.maximum(ly, -y_ext), torch.minimum(hy, y_ext)
+    nonempty = lo <= hi
+    x_ext = torch.sqrt(q * c / det)
+    y_r = torch.minimum(torch.maximum(-b * x_ext / c, lo), hi)
+    y_l = torch.minimum(torch.maximum(b * x_ext / c, lo), hi)
+    x_hi = (-b * y_r + torch.sqrt((a * q - det * y_r * y_r).clamp_min(0))) / a
+    x_lo = (-b * y_l - torch.sqrt((a * q - det * y_l * y_l).clamp_min(0))) / a
+    return x_lo, x_hi, nonempty
 
 
 def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, valid: torch.Tensor,
-              width: int, height: int, tile: int = TILE):
+              width: int, height: int, tile: int = TILE, conics: torch.Tensor | None = None,
+              opacities: torch.Tensor | None = None):
     """(tile, Gaussian) pairs sorted by tile then depth.
 
     Args:
         means2d: [N, 2] px. radii: [N] px support radius. depths: [N]. valid: [N] bool.
+        conics: [N, 3] optional; with it a pair is kept only if the Gaussian's support ellipse
+            (shrunk to where alpha >= 1/255 when `opacities` [N] is given too) reaches the
+            rectangle of the tile's pixel centres (exact, per row of tiles). Without it, every
+            tile the support square overlaps is listed. Either way the image is the same.
 
     Returns (gauss_ids [P] int64, tile_starts [T+1] int64, tiles_x, tiles_y).
     """
     tx, ty = (width + tile - 1) // tile, (height + tile - 1) // tile
     n_tiles = tx * ty
-    ids = torch.nonzero(valid, as_tuple=False).squeeze(1)
     with torch.no_grad():
-        m, r = means2d[ids].detach().float(), radii[ids].detach().float()
+        f64 = torch.float64
+        ids = torch.nonzero(valid, as_tuple=False).squeeze(1)
+        # Depth order first: pairs are generated in it, so a stable sort by tile id alone
+        # (a small integer key) gives (tile, depth) order.
+        ids = ids[torch.argsort(depths.detach()[ids], stable=True)]
+        r = radii.detach()[ids].to(f64)
+        if conics is not None:
+            qmax = _q_bound(None if opacities is None else opacities[ids], len(ids), f64)
+            keep = qmax >= 0
+            ids, r, qmax = ids[keep], r[keep], qmax[keep]
+            cn = conics.detach()[ids].to(f64)
+            det = (cn[:, 0] * cn[:, 2] - cn[:, 1] ** 2).clamp_min(1e-300)
+            ry = torch.minimum(torch.sqrt(qmax * cn[:, 0] / det), r)  # y half-extent of q <= qmax
+        else:
+            ry = r
+        m = means2d.detach()[ids].to(f64)
+        mx_g, my_g = m[:, 0].contiguous(), m[:, 1].contiguous()
         # A pixel centre j + 0.5 inside [m - r, m + r] lies in tile floor(j / tile).
-        x0 = torch.floor((m[:, 0] - r - 0.5) / tile).clamp(0, tx - 1).long()
-        x1 = torch.floor((m[:, 0] + r) / tile).clamp(0, tx - 1).long()
-        y0 = torch.floor((m[:, 1] - r - 0.5) / tile).clamp(0, ty - 1).long()
-        y1 = torch.floor((m[:, 1] + r) / tile).clamp(0, ty - 1).long()
-        w, h = x1 - x0 + 1, y1 - y0 + 1
-        counts = w * h
-        total = int(counts.sum())
-        owner = torch.repeat_interleave(torch.arange(len(ids)), counts)  # [P] index into ids
-        first = torch.cumsum(counts, 0) - counts
-        local = torch.arange(total) - first[owner]
-        lx = local % w[owner]
-        ly = local // w[owner]
-        tile_id = (y0[owner] + ly) * tx + (x0[owner] + lx)
-        # Depth rank as an integer so (tile, depth) sorts with one int64 key.
-        order = torch.argsort(depths[ids].detach(), stable=True)
-        rank = torch.empty_like(order)
-        rank[order] = torch.arange(len(ids))
-        key = tile_id * max(len(ids), 1) + rank[owner]
-        key, perm = torch.sort(key, stable=True)
-        gauss_ids = ids[owner[perm]]
+        y0 = torch.floor((my_g - ry - 0.5) / tile).clamp(0, ty - 1).long()
+        y1 = torch.floor((my_g + ry - 0.5) / tile).clamp(0, ty - 1).long()
+        # One entry per (Gaussian, row of tiles) it may touch (index_select: 1-D gathers are
+        # several times cheaper than advanced indexing here).
+        n_rows = (y1 - y0 + 1).clamp_min(0)
+        owner = torch.repeat_interleave(n_rows)
+        sel = lambda t, i: t.index_select(0, i)  # noqa: E731
+        row = sel(y0 - (torch.cumsum(n_rows, 0) - n_rows), owner) + torch.arange(len(owner))
+        mx = sel(mx_g, owner)
+        r_o = sel(r, owner)
+        if conics is not None:
+            # Pixel-centre rows of tile row `row` span [row t + 0.5, min(row t + t, H) - 0.5].
+            my = sel(my_g, owner)
+            ly = (row * tile).to(f64) + 0.5 - my
+            hy = torch.clamp_max((row + 1) * tile, height).to(f64) - 0.5 - my
+            x_lo, x_hi, nonempty = _band_x_range(sel(cn[:, 0].contiguous(), owner), sel(cn[:, 1].contiguous(), owner),
+                                                 sel(cn[:, 2].contiguous(), owner), sel(qmax, owner), ly, hy)
+            x_lo = torch.maximum(x_lo, -r_o)
+            x_hi = torch.minimum(x_hi, r_o)
+        else:
+            x_lo, x_hi = -r_o, r_o
+            nonempty = torch.ones_like(owner, dtype=torch.bool)
+        x0 = torch.floor((mx + x_lo - 0.5) / tile).clamp_min(0).long()
+        x1 = torch.floor((mx + x_hi - 0.5) / tile).clamp_max(tx - 1).long()
+        n_cols = (x1 - x0 + 1).clamp_min(0) * nonempty
+        # One entry per (tile, Gaussian) pair, still in depth order.
+        pair_row = torch.repeat_interleave(n_cols)
+        tile_id = sel(row * tx + x0 - (torch.cumsum(n_cols, 0) - n_cols), pair_row) + torch.arange(len(pair_row))
+        key_dtype = torch.int16 if n_tiles < 2 ** 15 else torch.int32  # radix sort on few bits
+        perm = torch.sort(tile_id.to(key_dtype), stable=True).indices
+        gauss_ids = sel(sel(sel(ids, owner), pair_row), perm)
         tile_counts = torch.bincount(tile_id, minlength=n_tiles)
         starts = torch.zeros(n_tiles + 1, dtype=torch.long)
         starts[1:] = torch.cumsum(tile_counts, 0)
@@ -107,25 +179,100 @@ def _pixel_features(tile: int, dtype) -> torch.Tensor:
 
 
 def _tile_pixels(tiles: torch.Tensor, tx: int, tile: int, width: int, height: int):
-    """Flat pixel indices [T, P], in-image mask [T, P], tile centres [T, 2] (px)."""
+    """Flat pixel indices [T, P] (0 outside the image), in-image mask [T, P], tile centres [T, 2] (px)."""
     oy, ox = torch.meshgrid(torch.arange(tile), torch.arange(tile), indexing="ij")
     px = (tiles % tx)[:, None] * tile + ox.reshape(1, -1)
     py = (tiles // tx)[:, None] * tile + oy.reshape(1, -1)
     inside = (px < width) & (py < height)
-    flat = torch.where(inside, py * width + px, torch.zeros_like(px))
+    flat = (py * width + px).masked_fill_(~inside, 0)
     centres = torch.stack([(tiles % tx) * tile, (tiles // tx) * tile], -1) + tile / 2
     return flat, inside, centres
 
 
 def _gather(tiles, lo, hi, starts, gauss_ids):
-    """Padded Gaussian indices [T, hi-lo] (depth slots lo..hi of each tile) and a real mask."""
+    """Padded Gaussian indices [T, hi-lo] (depth slots lo..hi of each tile) and a real mask.
+
+    Padding slots hold some valid index; the caller gives them an infinite alpha threshold.
+    """
     s = starts[tiles]
     n = starts[tiles + 1] - s
     ar = torch.arange(lo, hi)
     real = ar[None, :] < n[:, None]
-    idx = torch.where(real, s[:, None] + ar[None, :], torch.zeros_like(real, dtype=torch.long))
-    g = torch.where(real, gauss_ids[idx], torch.zeros_like(idx))
-    return g, real
+    idx = (s[:, None] + ar[None, :]).clamp_max_(max(len(gauss_ids) - 1, 0))
+    return gauss_ids[idx], real
+
+
+#: Scale that turns a sign test into an exact 0/1 step by clamping: a nonzero difference of
+#: two log-alphas near the thresholds is at least ~2^-50 (float64), so x 2^60 is >= 1.
+_STEP = 2.0 ** 60
+
+
+def _step(x: torch.Tensor) -> torch.Tensor:
+    """1.0 where x > 0 else 0.0, in place on x: a multiply and a clamp, both vectorised passes
+    (a compare plus masked_fill / where costs several times more on boolean masks)."""
+    return x.mul_(_STEP).clamp_(0.0, 1.0)
+
+
+def _block(feat, m, cn, o, real, logT_in, done_in, need_grad):
+    """Composite one depth block of a chunk of tiles.
+
+    Args: feat [P, 6]; m [T, B, 2] centres relative to the tile centre; cn [T, B, 3]; o [T, B];
+    real [T, B] bool; logT_in [T, P] log transmittance entering the block; done_in [T, P] bool.
+
+    Returns w [T, P, B] blending weights alpha T, logT_out [T, P], done_out [T, P], and for the
+    backward (else None) r [T, P, B] = alpha / (1 - alpha) where alpha is not clamped at 0.99
+    (else 0) and that not-clamped indicator lv [T, P, B] (0/1). w and r are 0 for Gaussians not
+    composited, except on the rows of pixels that were already done when the block started:
+    those are garbage and the caller masks them per pixel (cheaper than per element).
+
+    The work arrays are [T, P, B] and memory-bound, so every step is one vectorised pass where
+    it can be, and no boolean [T, P, B] mask is built (masked_fill / where on them were the
+    slowest passes).
+    """
+    dtype = feat.dtype
+    log_amax = torch.tensor(_LOG_ALPHA_MAX, dtype=dtype)
+    logo = torch.log(o.clamp_min(1e-30))
+    # log alpha = log o - q/2 as one matmul: the coefficients carry -1/2 and log o.
+    k = -0.5 * _coefficients(m, cn)
+    k[:, 5] += logo
+    L = torch.matmul(feat, k)  # [T, P, B]
+    # One threshold per Gaussian in log space: alpha >= 1/255 and inside the support ellipse
+    # (q <= s^2  <=>  log alpha >= log o - s^2/2); padding slots never pass. The threshold is
+    # moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
+    thr = torch.clamp_min(logo - 0.5 * SUPPORT_SIGMA ** 2, _LOG_ALPHA_MIN)
+    thr = torch.nextafter(thr, torch.tensor(-math.inf, dtype=dtype)).masked_fill_(~(real & (o > 0)), math.inf)
+    keep = _step(torch.sub(L, thr[:, None, :]))
+    lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype)))) if need_grad else None
+    # Floor: exp never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
+    alpha = L.clamp_(LOG_FLOOR, log_amax).exp_().mul_(keep)
+    om = torch.rsub(alpha, 1.0)
+    lom = torch.log(om)
+    # log T after each Gaussian, by a cumulative sum of logs (a cumprod would underflow into
+    # subnormals behind opaque layers).
+    X = torch.cumsum(lom, -1).add_(logT_in[..., None])
+    last = X[..., -1].clone()
+    # A Gaussian that would push T below 1e-4 is dropped with all later ones (the sum is
+    # monotone, so the used ones are a prefix). Each pixel stops once, so the rows where this
+    # happens are few and handled apart; every other live row uses all its Gaussians.
+    stop = ~done_in & (last < _LOG_T_MIN)
+    logT_out = torch.where(done_in, logT_in, last)
+    stop_idx = stop.nonzero(as_tuple=True) if bool(stop.any()) else None
+    if stop_idx is not None:
+        rows = X[stop_idx]  # [k, B]
+        used = rows >= _LOG_T_MIN
+        # T after the last used Gaussian (T_in if none).
+        val = rows.masked_fill(~used, math.inf).amin(-1)
+        logT_out[stop_idx] = torch.where(torch.isinf(val), logT_in[stop_idx], val)
+    done_out = done_in | stop
+    # w = alpha * T before = alpha * exp(inclusive - log(1 - alpha)).
+    w = X.sub_(lom).clamp_min_(LOG_FLOOR).exp_().mul_(alpha)
+    r = alpha.div_(om).mul_(lv) if need_grad else None
+    if stop_idx is not None:
+        used = used.to(dtype)
+        w[stop_idx] = w[stop_idx] * used
+        if need_grad:
+            r[stop_idx] = r[stop_idx] * used
+    return w, logT_out, done_out, r, lv
 
 
 def _coefficients(m, cn):
@@ -139,138 +286,112 @@ def _coefficients(m, cn):
     return torch.stack([A, B, C, D, E, F], 1)
 
 
-class _Block:
-    """Recomputed state of one depth block of one chunk of tiles (forward and backward)."""
-
-    def __init__(self, feat, tiles_c, g, real, means2d, conics, opacities, T_in, done_in):
-        m = means2d[g] - tiles_c[:, None, :]  # [T, B, 2] relative to the tile centre
-        cn = conics[g]
-        o = opacities[g]
-        self.m, self.cn, self.o = m, cn, o
-        # log alpha = log o - q/2 as one matmul: the coefficients carry -1/2 and log o.
-        k = -0.5 * _coefficients(m, cn)
-        k[:, 5] = k[:, 5] + torch.log(o.clamp_min(1e-30))
-        # Clamped so exp never returns a subnormal float: those run ~20x slower on x86 and the
-        # clamp only touches alphas far below the 1/255 threshold.
-        self.raw = torch.exp(torch.matmul(feat, k).clamp_min(LOG_FLOOR))  # o exp(-q/2), [T, P, B]
-        # One threshold per Gaussian: alpha >= 1/255 and inside the 3-sigma ellipse
-        # (q <= 9  <=>  raw >= o e^-4.5); padding slots never pass.
-        thr = torch.clamp_min(o * math.exp(-0.5 * SUPPORT_SIGMA ** 2), ALPHA_MIN)
-        thr = torch.where(real & (o > 0), thr, torch.full_like(thr, math.inf))
-        self.keep = self.raw >= thr[:, None, :]
-        alpha = torch.where(self.keep, self.raw.clamp_max(ALPHA_MAX), torch.zeros_like(self.raw))
-        self.om = 1.0 - alpha
-        # Stopped pixels enter with T = 0, so every `incl` is below 1e-4 and nothing is used.
-        T_eff = torch.where(done_in, torch.zeros_like(T_in), T_in)
-        # T after each Gaussian, as exp(cumsum(log)) floored at e^-60 (< 1e-4, so the result is
-        # the same) instead of a cumprod that underflows into subnormals behind opaque layers.
-        incl = T_eff[..., None] * torch.exp(torch.cumsum(torch.log(self.om), -1).clamp_min(LOG_FLOOR))
-        # A Gaussian that would push T below 1e-4 is dropped with all later ones (incl is
-        # monotone, so `used` is a prefix).
-        self.used = incl >= T_MIN
-        self.T = torch.cat([T_eff[..., None], incl[..., :-1]], -1)  # T before each Gaussian
-        self.w = torch.where(self.used, alpha * self.T, torch.zeros_like(alpha))
-        n_used = self.used.sum(-1)
-        last = torch.gather(incl, -1, (n_used - 1).clamp_min(0)[..., None])[..., 0]
-        self.T_out = torch.where(n_used > 0, last, T_in)
-        self.done_out = done_in | (incl[..., -1] < T_MIN)
-
-
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile, block):
+    def forward(ctx, means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile, block,
+                need_grad):
         n_ch = colors.shape[1]
         dtype = colors.dtype
         feat = _pixel_features(tile, dtype)
-        out = torch.empty(height * width, n_ch, dtype=dtype)
+        P = tile * tile
+        # One per-Gaussian table, so a block gathers its Gaussians with one index_select.
+        table = torch.cat([means2d, conics, opacities[:, None], colors], 1).to(dtype)  # [N, 6 + C]
+        # Pixels of tiles no Gaussian touches see only the background.
+        out = background.to(dtype).expand(height * width, n_ch).clone()
         t_final = torch.ones(height * width, dtype=dtype)
-        for tiles, mcount in _chunks(starts, tile * tile, block):
+        saved = []  # per chunk: (flat, inside, blocks)
+        for tiles, mcount in _chunks(starts, P, block):
             flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
-            centres = centres.to(dtype)
-            acc = torch.zeros(len(tiles), tile * tile, n_ch, dtype=dtype)
-            T = torch.ones(len(tiles), tile * tile, dtype=dtype)
-            done = torch.zeros(len(tiles), tile * tile, dtype=torch.bool)
-            act = torch.arange(len(tiles))  # tiles still compositing (early stop drops them)
+            n_t = len(tiles)
+            acc = torch.zeros(n_t, P, n_ch, dtype=dtype)
+            logT = torch.zeros(n_t, P, dtype=dtype)
+            # State of the tiles still compositing (early stop drops finished tiles from it).
+            act = torch.arange(n_t)
+            a_tiles, a_centres = tiles, centres.to(dtype)
+            a_acc, a_logT = torch.zeros_like(acc), torch.zeros_like(logT)
+            a_done = torch.zeros(n_t, P, dtype=torch.bool)
+            blocks, sel = [], None
             for lo in range(0, mcount, block):
-                g, real = _gather(tiles[act], lo, min(lo + block, mcount), starts, gauss_ids)
-                b = _Block(feat, centres[act], g, real, means2d, conics, opacities, T[act], done[act])
-                acc[act] += torch.bmm(b.w, colors[g])
-                T[act], done[act] = b.T_out, b.done_out
-                act = act[~b.done_out.all(-1)]
-                if len(act) == 0:
-                    break
+                g, real = _gather(a_tiles, lo, min(lo + block, mcount), starts, gauss_ids)
+                rows = table.index_select(0, g.reshape(-1)).reshape(*g.shape, -1)
+                m = rows[..., 0:2] - a_centres[:, None, :]  # [T, B, 2] relative to the tile centre
+                cn, o, col = rows[..., 2:5], rows[..., 5], rows[..., 6:]
+                w, lT, dn, r, lv = _block(feat, m, cn, o, real, a_logT, a_done, need_grad)
+                live = (~a_done).to(dtype)  # [T, P]: rows of done pixels in w are garbage
+                a_acc += torch.bmm(w, col) * live[..., None]
+                if need_grad:
+                    blocks.append((sel, g, m, cn, o, col, w, r, lv, live))
+                a_logT, a_done, sel = lT, dn, None
+                fin = dn.all(-1)
+                if bool(fin.any()):
+                    acc[act[fin]], logT[act[fin]] = a_acc[fin], a_logT[fin]
+                    sel = ~fin
+                    act, a_tiles, a_centres = act[sel], a_tiles[sel], a_centres[sel]
+                    a_acc, a_logT, a_done = a_acc[sel], a_logT[sel], a_done[sel]
+                    if len(act) == 0:
+                        break
+            if len(act):
+                acc[act], logT[act] = a_acc, a_logT
+            T = logT.exp()
             rgb = acc + T[..., None] * background
             out[flat[inside]] = rgb[inside]
             t_final[flat[inside]] = T[inside]
-        # Pixels of tiles no Gaussian touches see only the background.
-        empty = torch.ones(height * width, dtype=torch.bool)
-        for tiles, _ in _chunks(starts, tile * tile, block):
-            flat, inside, _ = _tile_pixels(tiles, tx, tile, width, height)
-            empty[flat[inside]] = False
-        out[empty] = background.to(dtype)
-        ctx.save_for_backward(means2d, conics, opacities, colors, background, gauss_ids, starts, t_final, out)
-        ctx.meta = (tx, width, height, tile, block)
+            if need_grad:
+                saved.append((flat, inside, blocks))
+        ctx.save_for_backward(means2d, conics, opacities, colors, background, t_final, out)
+        ctx.saved = saved
+        ctx.meta = (tile,)
         return out.reshape(height, width, n_ch), (1.0 - t_final).reshape(height, width)
 
     @staticmethod
     def backward(ctx, g_out, g_alpha):
-        means2d, conics, opacities, colors, background, gauss_ids, starts, t_final, out = ctx.saved_tensors
-        tx, width, height, tile, block = ctx.meta
+        means2d, conics, opacities, colors, background, t_final, out = ctx.saved_tensors
+        (tile,) = ctx.meta
+        saved = ctx.saved  # kept: a retained graph may run the backward again
         dtype = colors.dtype
         n_ch = colors.shape[1]
-        feat = _pixel_features(tile, dtype)
+        featT = -0.5 * _pixel_features(tile, dtype).T  # [6, P]; -1/2 from the coefficients
         g_out = g_out.reshape(-1, n_ch).to(dtype)
-        g_alpha = torch.zeros(height * width, dtype=dtype) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
-        d_means = torch.zeros_like(means2d)
-        d_conics = torch.zeros_like(conics)
-        d_opac = torch.zeros_like(opacities)
-        d_colors = torch.zeros_like(colors)
+        g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
+        # Gradients of the per-Gaussian table (means2d, conics, opacity, colours): [N, 6 + C].
+        d_table = torch.zeros(means2d.shape[0], 6 + n_ch, dtype=dtype)
         d_bg = (g_out * t_final[:, None]).sum(0)  # d out / d bg = T_final everywhere
         # Per pixel: the whole composited sum <g, sum_j c_j w_j> and what the background and the
         # alpha output add behind every Gaussian; suffix sums then come from prefix sums.
         total = (g_out * (out - t_final[:, None] * background)).sum(-1)
         tail = (g_out * background).sum(-1) * t_final - g_alpha * t_final
-        for tiles, mcount in _chunks(starts, tile * tile, block):
-            flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
-            centres = centres.to(dtype)
-            go_all = g_out[flat] * inside[..., None]  # [T, P, C]; padding pixels carry nothing
-            tot_all = total[flat] * inside
-            tail_all = tail[flat] * inside
-            T = torch.ones(len(tiles), tile * tile, dtype=dtype)
-            done = torch.zeros(len(tiles), tile * tile, dtype=torch.bool)
-            pre = torch.zeros(len(tiles), tile * tile, dtype=dtype)
-            act = torch.arange(len(tiles))
-            for lo in range(0, mcount, block):
-                g, real = _gather(tiles[act], lo, min(lo + block, mcount), starts, gauss_ids)
-                b = _Block(feat, centres[act], g, real, means2d, conics, opacities, T[act], done[act])
-                go = go_all[act]
-                gi = g.reshape(-1)
-                d_colors.index_add_(0, gi, torch.bmm(b.w.transpose(1, 2), go).reshape(-1, n_ch))
-                gc = torch.bmm(go, colors[g].transpose(1, 2))  # <dL/dout, c_j>, [T, P, B]
-                incl_sum = torch.cumsum(gc * b.w, -1) + pre[act][..., None]
-                after = tot_all[act][..., None] - incl_sum  # sum over later Gaussians
-                d_a = b.T * gc - (after + tail_all[act][..., None]) / b.om
-                live = b.used & b.keep & (b.raw <= ALPHA_MAX)
-                d_ar = d_a * torch.where(live, b.raw, torch.zeros_like(d_a))  # dL / d log alpha
-                dk = -0.5 * torch.matmul(feat.T, d_ar)  # dL / d(A, B, C, D, E, F), [T, 6, B]
+        for flat, inside, blocks in saved:
+            a_go = g_out[flat] * inside[..., None]  # [T, P, C]; padding pixels carry nothing
+            # dL/d log alpha_j = alpha_j T_j <g, c_j> - alpha_j / (1 - alpha_j) (sum over later
+            # Gaussians + tail): with `pre` the prefix sum over earlier blocks minus (total +
+            # tail), the bracket is the running prefix sum.
+            a_pre = ((tail + total)[flat] * inside).neg_()  # [T, P]
+            for sel, g, m, cn, o, col, w, r, lv, live in blocks:
+                if sel is not None:
+                    a_go, a_pre = a_go[sel], a_pre[sel]
+                go = a_go * live[..., None]  # done pixels take no part
+                d_col = torch.bmm(w.transpose(1, 2), go)  # [T, B, C]
+                gw = torch.bmm(go, col.transpose(1, 2)).mul_(w)  # <dL/dout, c_j> w_j, [T, P, B]
+                cs = torch.cumsum(gw, -1).add_((a_pre * live)[..., None])
+                a_pre = cs[..., -1].clone()
+                d_ar = cs.mul_(r).addcmul_(gw, lv)  # dL / d log alpha
+                dk = torch.matmul(featT, d_ar)  # dL / d(A, B, C, D, E, F), [T, 6, B]
                 gA, gB, gC, gD, gE, gF = dk.unbind(1)
-                # F also carries log o: dL/do = dL/d(log o) / o, and dL/d(log o) = -2 gF.
-                d_opac.index_add_(0, gi, (-2 * gF / b.o.clamp_min(1e-30)).reshape(-1))
-                A, B, C = b.cn.unbind(-1)
-                mx, my = b.m.unbind(-1)
-                dA = gA - 2 * mx * gD + mx * mx * gF
-                dB = gB - 2 * my * gD - 2 * mx * gE + 2 * mx * my * gF
-                dC = gC - 2 * my * gE + my * my * gF
-                dmx = -2 * A * gD - 2 * B * gE + 2 * (A * mx + B * my) * gF
-                dmy = -2 * B * gD - 2 * C * gE + 2 * (B * mx + C * my) * gF
-                d_conics.index_add_(0, gi, torch.stack([dA, dB, dC], -1).reshape(-1, 3))
-                d_means.index_add_(0, gi, torch.stack([dmx, dmy], -1).reshape(-1, 2))
-                pre[act] = incl_sum[..., -1]
-                T[act], done[act] = b.T_out, b.done_out
-                act = act[~b.done_out.all(-1)]
-                if len(act) == 0:
-                    break
-        return d_means, d_conics, d_opac, d_colors, d_bg, None, None, None, None, None, None, None
+                A, B, C = cn.unbind(-1)
+                mx, my = m.unbind(-1)
+                d_rows = torch.stack([
+                    -2 * A * gD - 2 * B * gE + 2 * (A * mx + B * my) * gF,  # d mean x
+                    -2 * B * gD - 2 * C * gE + 2 * (B * mx + C * my) * gF,  # d mean y
+                    gA - 2 * mx * gD + mx * mx * gF,  # d conic a
+                    gB - 2 * my * gD - 2 * mx * gE + 2 * mx * my * gF,  # d conic b
+                    gC - 2 * my * gE + my * my * gF,  # d conic c
+                    # F also carries log o: dL/do = dL/d(log o) / o, and dL/d(log o) = -2 gF.
+                    -2 * gF / o.clamp_min(1e-30),
+                ], -1)
+                d_table.index_add_(0, g.reshape(-1), torch.cat([d_rows, d_col], -1).reshape(-1, 6 + n_ch))
+        d_means, d_conics, d_opac, d_colors = d_table.split([2, 3, 1, n_ch], 1)
+        return (d_means.to(means2d.dtype), d_conics.to(conics.dtype), d_opac[:, 0].to(opacities.dtype),
+                d_colors.to(colors.dtype), d_bg, None, None, None, None, None, None, None, None)
 
 
 def composite(means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile=TILE,
@@ -280,7 +401,12 @@ def composite(means2d, conics, opacities, colors, background, gauss_ids, starts,
     Args:
         means2d: [N, 2] px. conics: [N, 3] (a, b, c) inverse 2D covariance. opacities: [N] in [0, 1].
         colors: [N, C] (any C, e.g. RGB + depth). background: [C].
-        gauss_ids, starts, tx: from `bin_tiles`.
+        gauss_ids, starts, tx: from `bin_tiles` (same `tile`).
+
+    With a gradient wanted, the forward keeps w, alpha/(1-alpha) and a clamp mask for every
+    (pixel, Gaussian) pair it evaluated (9 bytes each in float32) until the backward runs.
     """
+    need_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means2d, conics, opacities, colors, background))
     return _Composite.apply(means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height,
-                           tile, block)
+                           tile, block, need_grad)

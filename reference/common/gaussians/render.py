@@ -47,7 +47,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     colors = sh_colors(sh, means, viewmat, deg)  # [N, 3]
     feats = torch.cat([colors, proj["depths"][:, None]], -1)  # depth rides along as a 4th channel
     bg = torch.cat([background.to(dtype), background.new_zeros(1)])
-    ids, starts, tx, _ = raster.bin_tiles(means2d, proj["radii"], proj["depths"], proj["valid"], width, height, tile)
+    ids, starts, tx, _ = raster.bin_tiles(means2d, proj["radii"], proj["depths"], proj["valid"], width, height, tile,
+                                         conics=proj["conics"], opacities=opacities)
     out, alpha = raster.composite(means2d, proj["conics"], opacities, feats, bg, ids, starts, tx, width, height, tile,
                                   raster.BLOCK)
     depth = out[..., 3] / alpha.clamp_min(1e-6) * (alpha > 0)

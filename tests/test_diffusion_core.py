@@ -12,7 +12,8 @@ pytest.importorskip("diffusers")
 from reference.common.diffusion import core, sample, train, vcm  # noqa: E402
 
 TINY = core.CoreConfig(resolution=16, channels=(16, 32), attention=(False, True), head_dim=8, embed_dim=16,
-                       norm_groups=4)
+                       norm_groups=4, prediction="epsilon")
+TINY_V = core.replace_config(TINY, prediction="v_prediction")
 
 
 @pytest.fixture(autouse=True)
@@ -39,6 +40,25 @@ def test_schedule_endpoints():
     assert s.alphas_cumprod[-1] < 1e-4  # pure noise at t = T, up to 1 % amplitude
     assert s.alphas_cumprod[0] > 0.9998  # t = 0 is (almost) clean
     assert s.config.prediction_type == "epsilon"
+    assert core.train_scheduler(TINY_V).config.prediction_type == "v_prediction"
+    assert core.CoreConfig().prediction == "v_prediction"  # the from-scratch default
+
+
+def test_v_target_closed_form_and_x0_recovery():
+    """v = sqrt(ab) eps - sqrt(1 - ab) x0 (Salimans & Ho 2022); x0 = sqrt(ab) x_t - sqrt(1 - ab) v."""
+    ab = _alpha_bar()
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(4, 3, 4, 4, generator=g) * 2 - 1
+    eps = torch.randn(4, 3, 4, 4, generator=g)
+    t = torch.tensor([0, 250, 700, 999])
+    a = torch.tensor(ab[t.numpy()]).view(-1, 1, 1, 1)
+    sched = core.train_scheduler(TINY_V)
+    v = train.target(sched, x0, eps, t).double()
+    want = a.sqrt() * eps.double() - (1 - a).sqrt() * x0.double()
+    np.testing.assert_allclose(v.numpy(), want.numpy(), atol=1e-5)
+    x_t = a.sqrt() * x0.double() + (1 - a).sqrt() * eps.double()
+    np.testing.assert_allclose((a.sqrt() * x_t - (1 - a).sqrt() * v).numpy(), x0.numpy(), atol=1e-5)
+    assert torch.equal(train.target(core.train_scheduler(TINY), x0, eps, t), eps)
 
 
 def test_ddim_timesteps_trailing_and_last_step_is_x0():
@@ -76,9 +96,9 @@ def test_ddim_steps_must_divide_T():
 class OracleModel(torch.nn.Module):
     """Predicts the exact noise that leads from `target` to x_t (so DDIM must return `target`)."""
 
-    def __init__(self, target):
+    def __init__(self, target, cfg=TINY):
         super().__init__()
-        self.cfg, self.target = TINY, target
+        self.cfg, self.target = cfg, target
         self.ab = torch.tensor(_alpha_bar())
         self._vcm_context = vcm.ClipContext()
         self.calls = []
@@ -88,12 +108,16 @@ class OracleModel(torch.nn.Module):
         ab = self.ab[t].view(-1, 1, 1, 1)
         n = x_t.shape[0]
         tgt = self.target[:n] if self.target.shape[0] >= n else self.target[:1].expand_as(x_t)
-        return ((x_t.double() - ab.sqrt() * tgt.double()) / (1 - ab).sqrt()).float()
+        eps = (x_t.double() - ab.sqrt() * tgt.double()) / (1 - ab).sqrt()
+        if self.cfg.prediction == "v_prediction":
+            return (ab.sqrt() * eps - (1 - ab).sqrt() * tgt.double()).float()
+        return eps.float()
 
 
-def test_ddim_loop_recovers_oracle_target():
+@pytest.mark.parametrize("cfg", [TINY, TINY_V], ids=["epsilon", "v"])
+def test_ddim_loop_recovers_oracle_target(cfg):
     target = torch.rand(3, 3, 8, 8) * 1.6 - 0.8
-    m = OracleModel(target)
+    m = OracleModel(target, cfg)
     out = sample.ddim(m, torch.zeros(3, 3, 8, 8), steps=8, generator=torch.Generator().manual_seed(1))
     np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
 
@@ -215,7 +239,7 @@ def test_clip_loss_conditions_on_clean_first_frame():
 
     sched = core.train_scheduler(TINY)
     x0 = torch.rand(2, 5, 3, 8, 8)
-    loss = train.clip_eps_loss(Rec(), sched, x0, x0, torch.Generator().manual_seed(0))
+    loss = train.clip_denoise_loss(Rec(), sched, x0, x0, torch.Generator().manual_seed(0))
     x, t = seen["x"].view(2, 5, 3, 8, 8), seen["t"].view(2, 5)
     assert torch.equal(x[:, 0], x0[:, 0]) and (t[:, 0] == 0).all()
     assert (t[:, 1:] == t[:, 1:2]).all()  # one timestep per clip
@@ -245,7 +269,7 @@ def _train(tmp, stop_after=None, ckpt_every=2):
 
     def loss_fn(g):
         idx = torch.randint(0, 6, (2,), generator=g)
-        return train.eps_loss(m, sched, data[idx], None, g)
+        return train.denoise_loss(m, sched, data[idx], None, g)
 
     res = train.train_loop(m, params, loss_fn, steps=5, lr=1e-3, seed=0, ckpt=tmp / "c.pt",
                            ckpt_every=ckpt_every, stop_after=stop_after, progress=False)

@@ -166,7 +166,7 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
 
     def fit(ckpt, steps):
         mm = core.build_model(TINY.core, control=False, seed=0)
-        loss = lambda g: train.eps_loss(mm, sched, data[torch.randint(0, 4, (2,), generator=g)], None, g)  # noqa: E731
+        loss = lambda g: train.denoise_loss(mm, sched, data[torch.randint(0, 4, (2,), generator=g)], None, g)  # noqa: E731
         train.train_loop(mm, core.trainable(mm), loss, steps=steps, lr=1e-3, seed=0, ckpt=ckpt, progress=False)
         return mm.state_dict()
 

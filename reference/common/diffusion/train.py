@@ -1,4 +1,4 @@
-"""Training: the epsilon objective for single frames and first-frame-conditioned clips, and a
+"""Training: the denoising objective (epsilon or v) for single frames and first-frame-conditioned clips, and a
 short resumable loop with atomic checkpoints.
 
 Determinism: every step draws its batch and noise from a generator seeded by (seed, step), so
@@ -24,9 +24,20 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(seed) * 1_000_003 + int(step))
 
 
-def eps_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
-             g: torch.Generator) -> torch.Tensor:
-    """Single-frame DDPM loss: E ||eps - eps_theta(x_t, t, c)||^2.
+def target(scheduler, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """What the network should output for x_t = sqrt(ab_t) x0 + sqrt(1 - ab_t) noise: the noise
+    (epsilon objective) or v = sqrt(ab_t) noise - sqrt(1 - ab_t) x0 (`scheduler.config.prediction_type`)."""
+    kind = scheduler.config.prediction_type
+    if kind == "epsilon":
+        return noise
+    if kind == "v_prediction":
+        return scheduler.get_velocity(x0, noise, t)
+    raise ValueError(f"prediction type {kind!r}: expected 'epsilon' or 'v_prediction'")
+
+
+def denoise_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
+                 g: torch.Generator) -> torch.Tensor:
+    """Single-frame DDPM loss: E ||target - f_theta(x_t, t, c)||^2 (target: `target`).
 
     x0 [B, C, h, w] clean model-space images; cond [B, C, h, w] or None.
     """
@@ -34,11 +45,11 @@ def eps_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Ten
     t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=g)
     noise = torch.randn(x0.shape, generator=g)
     x_t = scheduler.add_noise(x0, noise, t)
-    return torch.mean((model(x_t, t, cond) - noise) ** 2)
+    return torch.mean((model(x_t, t, cond) - target(scheduler, x0, noise, t)) ** 2)
 
 
-def clip_eps_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor,
-                  g: torch.Generator) -> torch.Tensor:
+def clip_denoise_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor,
+                      g: torch.Generator) -> torch.Tensor:
     """First-frame-conditioned clip loss (Skyeyes Eq. L_VCM).
 
     x0, cond [B, F, C, h, w]. Frame 1 of each clip enters clean (timestep 0); frames 2..F are
@@ -53,7 +64,8 @@ def clip_eps_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torc
     x_t = scheduler.add_noise(x0.flatten(0, 1), noise.flatten(0, 1), tt.flatten()).view_as(x0)
     x_t[:, 0] = x0[:, 0]  # the first frame's clean latent is given, not noised
     pred = model(x_t.flatten(0, 1), tt.flatten(), cond.flatten(0, 1)).view_as(x0)
-    return torch.mean((pred[:, 1:] - noise[:, 1:]) ** 2)
+    want = target(scheduler, x0.flatten(0, 1), noise.flatten(0, 1), tt.flatten()).view_as(x0)
+    return torch.mean((pred[:, 1:] - want[:, 1:]) ** 2)
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

@@ -194,6 +194,12 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         res = evaluate(sub_dir, data=root, out=out / "results.json", force=True, progress=progress)
         print(format_summary(res))
         print(f"results: {out / 'results.json'}")
+        # 6. A method's figure (Skyeyes: aerial, prior, generated, ground truth) beside the results.
+        fig = work / "method" / "figure.png"
+        if fig.is_file():
+            with fileio.atomic_path(out / "figure.png") as tmp:
+                shutil.copyfile(fig, tmp)
+            print(f"figure: {out / 'figure.png'}")
         return res
     finally:
         lg = logging.getLogger("reference")

@@ -32,15 +32,20 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z; normalised here)."""
+def _rotmat_entries(quats: torch.Tensor) -> list[torch.Tensor]:
+    """The 9 entries r00, r01, ..., r22 ([N] each) of the rotations of quats [N, 4] (wxyz)."""
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
+    w, x, y, z = q.t().contiguous()  # contiguous columns: strided ones are not vectorised
+    return [
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+    ]
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z; normalised here)."""
+    return torch.stack(_rotmat_entries(quats), dim=-1).reshape(*quats.shape[:-1], 3, 3)
 
 
 def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -99,14 +104,14 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, view
     means, quats, scales = means.to(f64), quats.to(f64), scales.to(f64)
     viewmat, K = viewmat.to(f64), K.to(f64)
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-    p = means @ R.T + t  # [N, 3] camera space
-    z = p[:, 2]
-    finite = torch.isfinite(p).all(-1) & torch.isfinite(scales).all(-1) & torch.isfinite(quats).all(-1)
+    p = R @ means.T + t[:, None]  # [3, N] camera space (rows contiguous: strided columns are slow)
+    z = p[2]
+    finite = torch.isfinite(p).all(0) & torch.isfinite(scales).all(-1) & torch.isfinite(quats).all(-1)
     valid = finite & (z > near) & (z < far)
     one = torch.ones_like(z)
     zs = torch.where(valid, z, one)
-    xs = torch.where(valid, p[:, 0], 0 * one)
-    ys = torch.where(valid, p[:, 1], 0 * one)
+    xs = torch.where(valid, p[0], 0 * one)
+    ys = torch.where(valid, p[1], 0 * one)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     means2d = torch.stack([fx * xs / zs + cx, fy * ys / zs + cy], -1)
 
@@ -117,19 +122,26 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, view
     txz = (xs / zs).clamp(-lim_x, lim_x)
     tyz = (ys / zs).clamp(-lim_y, lim_y)
     zero = torch.zeros_like(zs)
-    J = torch.stack([
-        torch.stack([fx / zs, zero, -fx * txz / zs], -1),
-        torch.stack([zero, fy / zs, -fy * tyz / zs], -1),
-    ], -2)  # [N, 2, 3]
+    # Everything per Gaussian below is written on [N] columns: batched 3x3 matmuls cost ~1 us
+    # per Gaussian on the CPU and reductions over dims of size 2-3 are not much better, so
+    # this is several times faster forward and backward than the matrix form
+    # cov2d = J R Sigma R^T J^T (J the [2, 3] EWA Jacobian, R the camera rotation).
+    j00, j02 = fx / zs, -fx * txz / zs
+    j11, j12 = fy / zs, -fy * tyz / zs
+    # T = J R, rows [N] x 3.
+    T0 = [j00 * R[0, k] + j02 * R[2, k] for k in range(3)]
+    T1 = [j11 * R[1, k] + j12 * R[2, k] for k in range(3)]
     safe_scales = torch.where(finite[:, None], scales, torch.ones_like(scales))
     safe_quats = torch.where(finite[:, None], quats, torch.ones_like(quats))
-    M = quat_to_rotmat(safe_quats) * safe_scales[:, None, :]  # R diag(s): Sigma = M M^T
-    T = J @ R  # [N, 2, 3]
-    # cov2d = (T M)(T M)^T, by broadcast products (batched 3x3 matmuls cost ~1 us per Gaussian).
-    TM = (T[:, :, :, None] * M[:, None, :, :]).sum(2)  # [N, 2, 3]
-    a = (TM[:, 0] * TM[:, 0]).sum(-1) + blur
-    b = (TM[:, 0] * TM[:, 1]).sum(-1)
-    c = (TM[:, 1] * TM[:, 1]).sum(-1) + blur
+    Rg = _rotmat_entries(safe_quats)  # 9 x [N], row-major
+    s0, s1, s2 = safe_scales.t().contiguous()
+    # M = Rg diag(s) (Sigma = M M^T); TM = T M, [N] x 2 x 3; cov2d = TM TM^T.
+    Mc = [[Rg[3 * k + j] * sj for j, sj in enumerate((s0, s1, s2))] for k in range(3)]
+    TM0 = [T0[0] * Mc[0][j] + T0[1] * Mc[1][j] + T0[2] * Mc[2][j] for j in range(3)]
+    TM1 = [T1[0] * Mc[0][j] + T1[1] * Mc[1][j] + T1[2] * Mc[2][j] for j in range(3)]
+    a = TM0[0] * TM0[0] + TM0[1] * TM0[1] + TM0[2] * TM0[2] + blur
+    b = TM0[0] * TM1[0] + TM0[1] * TM1[1] + TM0[2] * TM1[2]
+    c = TM1[0] * TM1[0] + TM1[1] * TM1[1] + TM1[2] * TM1[2] + blur
     det = a * c - b * b
     valid = valid & (det > 0) & torch.isfinite(det)
     det = torch.where(valid, det, one)

@@ -213,77 +213,80 @@ def _step(x: torch.Tensor) -> torch.Tensor:
     return x.mul_(_STEP).clamp_(0.0, 1.0)
 
 
-def _block(feat, m, cn, o, real, logT_in, done_in, need_grad):
+def _block(feat, m, cn, o, real, T_in, done_in, need_grad):
     """Composite one depth block of a chunk of tiles.
 
     Args: feat [P, 6]; m [T, B, 2] centres relative to the tile centre; cn [T, B, 3]; o [T, B];
-    real [T, B] bool; logT_in [T, P] log transmittance entering the block; done_in [T, P] bool.
+    real [T, B] bool; T_in [T, P] transmittance entering the block; done_in [T, P] bool.
 
-    Returns w [T, P, B] blending weights alpha T, logT_out [T, P], done_out [T, P], and for the
-    backward (else None) r [T, P, B] = alpha / (1 - alpha) where alpha is not clamped at 0.99
-    (else 0) and that not-clamped indicator lv [T, P, B] (0/1). w and r are 0 for Gaussians not
-    composited, except on the rows of pixels that were already done when the block started:
-    those are garbage and the caller masks them per pixel (cheaper than per element).
+    Returns w [T, B, P] blending weights alpha T, T_out [T, P], done_out [T, P], and for the
+    backward (else None) r [T, B, P] = alpha / (1 - alpha) where alpha is not clamped at 0.99
+    (else 0) and that not-clamped indicator lv [T, B, P] (0/1). w and r are 0 for Gaussians not
+    composited; r is garbage on the columns of pixels that were already done when the block
+    started, and the backward masks those per pixel (cheaper than per element).
 
-    The work arrays are [T, P, B] and memory-bound, so every step is one vectorised pass where
-    it can be, and no boolean [T, P, B] mask is built (masked_fill / where on them were the
-    slowest passes).
+    The work arrays are [T, B, P] (pixels innermost, so the distance and gradient matmuls are
+    single GEMMs) and memory-bound, so every step is one vectorised pass where it can be, and no
+    boolean [T, B, P] mask is built (masked_fill / where on them were the slowest passes).
     """
     dtype = feat.dtype
     log_amax = torch.tensor(_LOG_ALPHA_MAX, dtype=dtype)
     logo = torch.log(o.clamp_min(1e-30))
     # log alpha = log o - q/2 as one matmul: the coefficients carry -1/2 and log o.
     k = -0.5 * _coefficients(m, cn)
-    k[:, 5] += logo
-    L = torch.matmul(feat, k)  # [T, P, B]
+    k[..., 5] += logo
+    L = torch.matmul(k, feat.T)  # [T, B, P]
     # One threshold per Gaussian in log space: alpha >= 1/255 and inside the support ellipse
     # (q <= s^2  <=>  log alpha >= log o - s^2/2); padding slots never pass. The threshold is
     # moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
     thr = torch.clamp_min(logo - 0.5 * SUPPORT_SIGMA ** 2, _LOG_ALPHA_MIN)
     thr = torch.nextafter(thr, torch.tensor(-math.inf, dtype=dtype)).masked_fill_(~(real & (o > 0)), math.inf)
-    keep = _step(torch.sub(L, thr[:, None, :]))
+    keep = _step(torch.sub(L, thr[:, :, None]))
     lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype)))) if need_grad else None
     # Floor: exp never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
     alpha = L.clamp_(LOG_FLOOR, log_amax).exp_().mul_(keep)
     om = torch.rsub(alpha, 1.0)
-    lom = torch.log(om)
-    # log T after each Gaussian, by a cumulative sum of logs (a cumprod would underflow into
-    # subnormals behind opaque layers).
-    X = torch.cumsum(lom, -1).add_(logT_in[..., None])
-    last = X[..., -1].clone()
-    # A Gaussian that would push T below 1e-4 is dropped with all later ones (the sum is
-    # monotone, so the used ones are a prefix). Each pixel stops once, so the rows where this
-    # happens are few and handled apart; every other live row uses all its Gaussians.
-    stop = ~done_in & (last < _LOG_T_MIN)
-    logT_out = torch.where(done_in, logT_in, last)
-    stop_idx = stop.nonzero(as_tuple=True) if bool(stop.any()) else None
-    if stop_idx is not None:
-        rows = X[stop_idx]  # [k, B]
-        used = rows >= _LOG_T_MIN
-        # T after the last used Gaussian (T_in if none).
-        val = rows.masked_fill(~used, math.inf).amin(-1)
-        logT_out[stop_idx] = torch.where(torch.isinf(val), logT_in[stop_idx], val)
+    # T after each Gaussian, by a cumulative product of (1 - alpha) (alpha <= 0.99, so it stays
+    # a normal float while T >= 1e-4, the only range that is used). Stopped pixels enter with
+    # T = 0, so their weights are exactly 0.
+    Ta = torch.cumprod(om, 1).mul_(T_in.masked_fill(done_in, 0.0)[:, None, :])
+    last = Ta[:, -1, :]
+    # A Gaussian that would push T below 1e-4 is dropped with all later ones (T is monotone, so
+    # the used ones are a prefix). Each pixel stops once, so the pixels where this happens are
+    # few and handled apart; every other live pixel uses all its Gaussians.
+    stop = ~done_in & (last < T_MIN)
     done_out = done_in | stop
-    # w = alpha * T before = alpha * exp(inclusive - log(1 - alpha)).
-    w = X.sub_(lom).clamp_min_(LOG_FLOOR).exp_().mul_(alpha)
-    r = alpha.div_(om).mul_(lv) if need_grad else None
-    if stop_idx is not None:
-        used = used.to(dtype)
-        w[stop_idx] = w[stop_idx] * used
+    T_out = torch.where(done_out, T_in, last)
+    # w = alpha T_before = T_after alpha / (1 - alpha); r = alpha / (1 - alpha) is the backward's.
+    r = alpha.div_(om)
+    if need_grad:
+        r.mul_(lv)
+    w = Ta * r
+    # Tiles with a pixel that stops in this block: mask the Gaussians it does not use (dense on
+    # those tiles only; a pixel that does not stop here uses all of its Gaussians).
+    ts = stop.any(-1).nonzero().squeeze(1)
+    if len(ts):
+        Tsub = Ta.index_select(0, ts)  # [k, B, P]
+        used = _step(Tsub - torch.nextafter(torch.tensor(T_MIN, dtype=dtype), torch.tensor(0.0, dtype=dtype)))
+        # T after the last used Gaussian (T_in if none) for the stopping pixels.
+        n_used = used.sum(1).long()  # [k, P]
+        val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
+        T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
+        w.index_copy_(0, ts, w.index_select(0, ts).mul_(used))
         if need_grad:
-            r[stop_idx] = r[stop_idx] * used
-    return w, logT_out, done_out, r, lv
+            r.index_copy_(0, ts, r.index_select(0, ts).mul_(used))
+    return w, T_out, done_out, (r if need_grad else None), lv
 
 
 def _coefficients(m, cn):
     """q(u, v) = A u^2 + 2B uv + C v^2 + D u + E v + F for centres m [T, B, 2] relative to the
-    tile centre and conics cn [T, B, 3]; returns [T, 6, B]."""
+    tile centre and conics cn [T, B, 3]; returns [T, B, 6]."""
     A, B, C = cn.unbind(-1)
     mx, my = m.unbind(-1)
     D = -2 * (A * mx + B * my)
     E = -2 * (B * mx + C * my)
     F = A * mx * mx + 2 * B * mx * my + C * my * my
-    return torch.stack([A, B, C, D, E, F], 1)
+    return torch.stack([A, B, C, D, E, F], -1)
 
 
 class _Composite(torch.autograd.Function):
@@ -304,11 +307,12 @@ class _Composite(torch.autograd.Function):
             flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
             n_t = len(tiles)
             acc = torch.zeros(n_t, P, n_ch, dtype=dtype)
-            logT = torch.zeros(n_t, P, dtype=dtype)
+            T = torch.ones(n_t, P, dtype=dtype)
             # State of the tiles still compositing (early stop drops finished tiles from it).
             act = torch.arange(n_t)
             a_tiles, a_centres = tiles, centres.to(dtype)
-            a_acc, a_logT = torch.zeros_like(acc), torch.zeros_like(logT)
+            a_counts = starts[tiles + 1] - starts[tiles]
+            a_acc, a_T = torch.zeros_like(acc), torch.ones_like(T)
             a_done = torch.zeros(n_t, P, dtype=torch.bool)
             blocks, sel = [], None
             for lo in range(0, mcount, block):
@@ -316,23 +320,23 @@ class _Composite(torch.autograd.Function):
                 rows = table.index_select(0, g.reshape(-1)).reshape(*g.shape, -1)
                 m = rows[..., 0:2] - a_centres[:, None, :]  # [T, B, 2] relative to the tile centre
                 cn, o, col = rows[..., 2:5], rows[..., 5], rows[..., 6:]
-                w, lT, dn, r, lv = _block(feat, m, cn, o, real, a_logT, a_done, need_grad)
-                live = (~a_done).to(dtype)  # [T, P]: rows of done pixels in w are garbage
-                a_acc += torch.bmm(w, col) * live[..., None]
+                w, T_blk, dn, r, lv = _block(feat, m, cn, o, real, a_T, a_done, need_grad)
+                a_acc += torch.bmm(w.transpose(1, 2), col)
+                live = (~a_done).to(dtype)  # [T, P]: columns of done pixels in r are garbage
                 if need_grad:
                     blocks.append((sel, g, m, cn, o, col, w, r, lv, live))
-                a_logT, a_done, sel = lT, dn, None
-                fin = dn.all(-1)
+                a_T, a_done, sel = T_blk, dn, None
+                # Tiles whose pixels have all stopped, or whose list ends here, leave the set.
+                fin = dn.all(-1) | (a_counts <= lo + block)
                 if bool(fin.any()):
-                    acc[act[fin]], logT[act[fin]] = a_acc[fin], a_logT[fin]
+                    acc[act[fin]], T[act[fin]] = a_acc[fin], a_T[fin]
                     sel = ~fin
-                    act, a_tiles, a_centres = act[sel], a_tiles[sel], a_centres[sel]
-                    a_acc, a_logT, a_done = a_acc[sel], a_logT[sel], a_done[sel]
+                    act, a_tiles, a_centres, a_counts = act[sel], a_tiles[sel], a_centres[sel], a_counts[sel]
+                    a_acc, a_T, a_done = a_acc[sel], a_T[sel], a_done[sel]
                     if len(act) == 0:
                         break
             if len(act):
-                acc[act], logT[act] = a_acc, a_logT
-            T = logT.exp()
+                acc[act], T[act] = a_acc, a_T
             rgb = acc + T[..., None] * background
             out[flat[inside]] = rgb[inside]
             t_final[flat[inside]] = T[inside]
@@ -350,7 +354,7 @@ class _Composite(torch.autograd.Function):
         saved = ctx.saved  # kept: a retained graph may run the backward again
         dtype = colors.dtype
         n_ch = colors.shape[1]
-        featT = -0.5 * _pixel_features(tile, dtype).T  # [6, P]; -1/2 from the coefficients
+        feat = -0.5 * _pixel_features(tile, dtype)  # [P, 6]; -1/2 from the coefficients
         g_out = g_out.reshape(-1, n_ch).to(dtype)
         g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
         # Gradients of the per-Gaussian table (means2d, conics, opacity, colours): [N, 6 + C].
@@ -369,14 +373,14 @@ class _Composite(torch.autograd.Function):
             for sel, g, m, cn, o, col, w, r, lv, live in blocks:
                 if sel is not None:
                     a_go, a_pre = a_go[sel], a_pre[sel]
-                go = a_go * live[..., None]  # done pixels take no part
-                d_col = torch.bmm(w.transpose(1, 2), go)  # [T, B, C]
-                gw = torch.bmm(go, col.transpose(1, 2)).mul_(w)  # <dL/dout, c_j> w_j, [T, P, B]
-                cs = torch.cumsum(gw, -1).add_((a_pre * live)[..., None])
-                a_pre = cs[..., -1].clone()
+                go = a_go  # done pixels have w = 0, so they take no part through go
+                d_col = torch.bmm(w, go)  # [T, B, C]
+                gw = torch.bmm(col, go.transpose(1, 2)).mul_(w)  # <dL/dout, c_j> w_j, [T, B, P]
+                cs = torch.cumsum(gw, 1).add_((a_pre * live)[:, None, :])
+                a_pre = cs[:, -1, :].clone()
                 d_ar = cs.mul_(r).addcmul_(gw, lv)  # dL / d log alpha
-                dk = torch.matmul(featT, d_ar)  # dL / d(A, B, C, D, E, F), [T, 6, B]
-                gA, gB, gC, gD, gE, gF = dk.unbind(1)
+                dk = torch.matmul(d_ar, feat)  # dL / d(A, B, C, D, E, F), [T, B, 6]
+                gA, gB, gC, gD, gE, gF = dk.unbind(-1)
                 A, B, C = cn.unbind(-1)
                 mx, my = m.unbind(-1)
                 d_rows = torch.stack([

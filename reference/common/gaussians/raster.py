@@ -213,15 +213,14 @@ def _step(x: torch.Tensor) -> torch.Tensor:
     return x.mul_(_STEP).clamp_(0.0, 1.0)
 
 
-def _block(feat, m, cn, o, real, T_in, done_in, need_grad):
+def _block(feat, k, o, real, T_in, done_in, need_grad):
     """Composite one depth block of a chunk of tiles.
 
-    Args: feat [P, 6]; m [T, B, 2] centres relative to the tile centre; cn [T, B, 3]; o [T, B];
-    real [T, B] bool; T_in [T, P] transmittance entering the block; done_in [T, P] bool.
+    Args: feat [P, 6]; k [T, B, 6] coefficients of q (`_coefficients`); o [T, B]; real [T, B] bool; T_in [T, P] transmittance entering the block; done_in [T, P] bool.
 
     Returns w [T, B, P] blending weights alpha T, T_out [T, P], done_out [T, P], and for the
     backward (else None) r [T, B, P] = alpha / (1 - alpha) where alpha is not clamped at 0.99
-    (else 0) and that not-clamped indicator lv [T, B, P] (0/1). w and r are 0 for Gaussians not
+    (else 0) and that not-clamped indicator lv [T, B, P] (0/1; None if all ones). w and r are 0 for Gaussians not
     composited; r is garbage on the columns of pixels that were already done when the block
     started, and the backward masks those per pixel (cheaper than per element).
 
@@ -233,35 +232,38 @@ def _block(feat, m, cn, o, real, T_in, done_in, need_grad):
     log_amax = torch.tensor(_LOG_ALPHA_MAX, dtype=dtype)
     logo = torch.log(o.clamp_min(1e-30))
     # log alpha = log o - q/2 as one matmul: the coefficients carry -1/2 and log o.
-    k = -0.5 * _coefficients(m, cn)
+    k = -0.5 * k
     k[..., 5] += logo
-    L = torch.matmul(k, feat.T)  # [T, B, P]
+    L = torch.matmul(k, feat.T)  # [T, B, P], one GEMM
     # One threshold per Gaussian in log space: alpha >= 1/255 and inside the support ellipse
     # (q <= s^2  <=>  log alpha >= log o - s^2/2); padding slots never pass. The threshold is
     # moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
     thr = torch.clamp_min(logo - 0.5 * SUPPORT_SIGMA ** 2, _LOG_ALPHA_MIN)
     thr = torch.nextafter(thr, torch.tensor(-math.inf, dtype=dtype)).masked_fill_(~(real & (o > 0)), math.inf)
     keep = _step(torch.sub(L, thr[:, :, None]))
-    lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype)))) if need_grad else None
+    # The backward needs which alphas are not clamped at 0.99; only a Gaussian with o > 0.99
+    # can be clamped (0.989: margin for the rounding of L), so most blocks skip the mask
+    # (None = all ones).
+    lv = None
+    if need_grad and bool((o > 0.989).any()):
+        lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype))))
     # Floor: exp never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
     alpha = L.clamp_(LOG_FLOOR, log_amax).exp_().mul_(keep)
     om = torch.rsub(alpha, 1.0)
-    # T after each Gaussian, by a cumulative product of (1 - alpha) (alpha <= 0.99, so it stays
-    # a normal float while T >= 1e-4, the only range that is used). Stopped pixels enter with
-    # T = 0, so their weights are exactly 0.
-    Ta = torch.cumprod(om, 1).mul_(T_in.masked_fill(done_in, 0.0)[:, None, :])
-    last = Ta[:, -1, :]
+    # w = alpha T_before = T_after alpha / (1 - alpha); r = alpha / (1 - alpha) is the backward's.
+    r = alpha.div_(om)
+    # T after each Gaussian, by a cumulative product of (1 - alpha) with T_in folded into the
+    # first factor (alpha <= 0.99, so it stays a normal float while T >= 1e-4, the only range
+    # that is used). Stopped pixels enter with T = 0, so their weights are exactly 0.
+    om[:, 0, :] *= T_in.masked_fill(done_in, 0.0)
+    Ta = torch.cumprod(om, 1)
+    last = Ta[:, -1, :].clone()
     # A Gaussian that would push T below 1e-4 is dropped with all later ones (T is monotone, so
     # the used ones are a prefix). Each pixel stops once, so the pixels where this happens are
     # few and handled apart; every other live pixel uses all its Gaussians.
     stop = ~done_in & (last < T_MIN)
     done_out = done_in | stop
     T_out = torch.where(done_out, T_in, last)
-    # w = alpha T_before = T_after alpha / (1 - alpha); r = alpha / (1 - alpha) is the backward's.
-    r = alpha.div_(om)
-    if need_grad:
-        r.mul_(lv)
-    w = Ta * r
     # Tiles with a pixel that stops in this block: mask the Gaussians it does not use (dense on
     # those tiles only; a pixel that does not stop here uses all of its Gaussians).
     ts = stop.any(-1).nonzero().squeeze(1)
@@ -272,17 +274,20 @@ def _block(feat, m, cn, o, real, T_in, done_in, need_grad):
         n_used = used.sum(1).long()  # [k, P]
         val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
         T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
+    w = Ta.mul_(r)
+    if lv is not None:
+        r.mul_(lv)
+    if len(ts):
         w.index_copy_(0, ts, w.index_select(0, ts).mul_(used))
         if need_grad:
             r.index_copy_(0, ts, r.index_select(0, ts).mul_(used))
     return w, T_out, done_out, (r if need_grad else None), lv
 
 
-def _coefficients(m, cn):
-    """q(u, v) = A u^2 + 2B uv + C v^2 + D u + E v + F for centres m [T, B, 2] relative to the
-    tile centre and conics cn [T, B, 3]; returns [T, B, 6]."""
-    A, B, C = cn.unbind(-1)
-    mx, my = m.unbind(-1)
+def _coefficients(mx, my, A, B, C):
+    """q(u, v) = A u^2 + 2B uv + C v^2 + D u + E v + F for centres (mx, my) relative to the
+    tile centre and conics (A, B, C), all [T, B]; returns [T, B, 6] (rows: one GEMM with the
+    pixel monomials gives q, while a transposed operand sent the GEMM down a path ~3x slower)."""
     D = -2 * (A * mx + B * my)
     E = -2 * (B * mx + C * my)
     F = A * mx * mx + 2 * B * mx * my + C * my * my
@@ -297,8 +302,9 @@ class _Composite(torch.autograd.Function):
         dtype = colors.dtype
         feat = _pixel_features(tile, dtype)
         P = tile * tile
-        # One per-Gaussian table, so a block gathers its Gaussians with one index_select.
-        table = torch.cat([means2d, conics, opacities[:, None], colors], 1).to(dtype)  # [N, 6 + C]
+        # One per-Gaussian table, so a block gathers its Gaussians with one index_select; planar
+        # (a row per quantity) so every per-Gaussian step runs on contiguous [T, B] planes.
+        table = torch.cat([means2d, conics, opacities[:, None], colors], 1).to(dtype).T.contiguous()  # [6 + C, N]
         # Pixels of tiles no Gaussian touches see only the background.
         out = background.to(dtype).expand(height * width, n_ch).clone()
         t_final = torch.ones(height * width, dtype=dtype)
@@ -317,14 +323,16 @@ class _Composite(torch.autograd.Function):
             blocks, sel = [], None
             for lo in range(0, mcount, block):
                 g, real = _gather(a_tiles, lo, min(lo + block, mcount), starts, gauss_ids)
-                rows = table.index_select(0, g.reshape(-1)).reshape(*g.shape, -1)
-                m = rows[..., 0:2] - a_centres[:, None, :]  # [T, B, 2] relative to the tile centre
-                cn, o, col = rows[..., 2:5], rows[..., 5], rows[..., 6:]
-                w, T_blk, dn, r, lv = _block(feat, m, cn, o, real, a_T, a_done, need_grad)
+                planes = table.index_select(1, g.reshape(-1)).reshape(-1, *g.shape)  # [6 + C, T, B]
+                # Centres relative to the tile centre.
+                mx, my = planes[0] - a_centres[:, 0:1], planes[1] - a_centres[:, 1:2]
+                A, B, C, o = planes[2], planes[3], planes[4], planes[5]
+                col = planes[6:].permute(1, 2, 0)  # [T, B, C]
+                w, T_blk, dn, r, lv = _block(feat, _coefficients(mx, my, A, B, C), o, real, a_T, a_done, need_grad)
                 a_acc += torch.bmm(w.transpose(1, 2), col)
                 live = (~a_done).to(dtype)  # [T, P]: columns of done pixels in r are garbage
                 if need_grad:
-                    blocks.append((sel, g, m, cn, o, col, w, r, lv, live))
+                    blocks.append((sel, g, (mx, my, A, B, C, o), col, w, r, lv, live))
                 a_T, a_done, sel = T_blk, dn, None
                 # Tiles whose pixels have all stopped, or whose list ends here, leave the set.
                 fin = dn.all(-1) | (a_counts <= lo + block)
@@ -357,8 +365,10 @@ class _Composite(torch.autograd.Function):
         feat = -0.5 * _pixel_features(tile, dtype)  # [P, 6]; -1/2 from the coefficients
         g_out = g_out.reshape(-1, n_ch).to(dtype)
         g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
-        # Gradients of the per-Gaussian table (means2d, conics, opacity, colours): [N, 6 + C].
-        d_table = torch.zeros(means2d.shape[0], 6 + n_ch, dtype=dtype)
+        # Gradients of the per-Gaussian table, planar: (means2d, conics, opacity) [6, N], and
+        # colours [N, C].
+        d_table = torch.zeros(6, means2d.shape[0], dtype=dtype)
+        d_colors = torch.zeros(means2d.shape[0], n_ch, dtype=dtype)
         d_bg = (g_out * t_final[:, None]).sum(0)  # d out / d bg = T_final everywhere
         # Per pixel: the whole composited sum <g, sum_j c_j w_j> and what the background and the
         # alpha output add behind every Gaussian; suffix sums then come from prefix sums.
@@ -370,7 +380,7 @@ class _Composite(torch.autograd.Function):
             # Gaussians + tail): with `pre` the prefix sum over earlier blocks minus (total +
             # tail), the bracket is the running prefix sum.
             a_pre = ((tail + total)[flat] * inside).neg_()  # [T, P]
-            for sel, g, m, cn, o, col, w, r, lv, live in blocks:
+            for sel, g, (mx, my, A, B, C, o), col, w, r, lv, live in blocks:
                 if sel is not None:
                     a_go, a_pre = a_go[sel], a_pre[sel]
                 go = a_go  # done pixels have w = 0, so they take no part through go
@@ -378,23 +388,28 @@ class _Composite(torch.autograd.Function):
                 gw = torch.bmm(col, go.transpose(1, 2)).mul_(w)  # <dL/dout, c_j> w_j, [T, B, P]
                 cs = torch.cumsum(gw, 1).add_((a_pre * live)[:, None, :])
                 a_pre = cs[:, -1, :].clone()
-                d_ar = cs.mul_(r).addcmul_(gw, lv)  # dL / d log alpha
-                dk = torch.matmul(d_ar, feat)  # dL / d(A, B, C, D, E, F), [T, B, 6]
-                gA, gB, gC, gD, gE, gF = dk.unbind(-1)
-                A, B, C = cn.unbind(-1)
-                mx, my = m.unbind(-1)
-                d_rows = torch.stack([
-                    -2 * A * gD - 2 * B * gE + 2 * (A * mx + B * my) * gF,  # d mean x
-                    -2 * B * gD - 2 * C * gE + 2 * (B * mx + C * my) * gF,  # d mean y
-                    gA - 2 * mx * gD + mx * mx * gF,  # d conic a
-                    gB - 2 * my * gD - 2 * mx * gE + 2 * mx * my * gF,  # d conic b
-                    gC - 2 * my * gE + my * my * gF,  # d conic c
+                d_ar = cs.mul_(r).add_(gw if lv is None else gw.mul_(lv))  # dL / d log alpha
+                # dL / d(A, B, C, D, E, F), [T, B, 6] from one GEMM (a transposed or planar form
+                # was several times slower).
+                gA, gB, gC, gD, gE, gF = torch.matmul(d_ar, feat).unbind(-1)
+                # Chain rule to the centre and conic (q = d^T Q d with d = p - m):
+                # dL/dm = 2 Q (m gF - (gD, gE)), dL/dQ = G - (m v^T + v m^T) + m m^T gF.
+                vx, vy = torch.addcmul(-gD, mx, gF), torch.addcmul(-gE, my, gF)
+                ax, ay = vx - gD, vy - gE
+                d6 = torch.stack([
+                    2 * torch.addcmul(A * vx, B, vy),  # d mean x
+                    2 * torch.addcmul(B * vx, C, vy),  # d mean y
+                    torch.addcmul(gA, mx, ax),  # d conic a
+                    torch.addcmul(torch.addcmul(gB, my, ax), mx, ay),  # d conic b
+                    torch.addcmul(gC, my, ay),  # d conic c
                     # F also carries log o: dL/do = dL/d(log o) / o, and dL/d(log o) = -2 gF.
                     -2 * gF / o.clamp_min(1e-30),
-                ], -1)
-                d_table.index_add_(0, g.reshape(-1), torch.cat([d_rows, d_col], -1).reshape(-1, 6 + n_ch))
-        d_means, d_conics, d_opac, d_colors = d_table.split([2, 3, 1, n_ch], 1)
-        return (d_means.to(means2d.dtype), d_conics.to(conics.dtype), d_opac[:, 0].to(opacities.dtype),
+                ], 0)
+                gi = g.reshape(-1)
+                d_table.index_add_(1, gi, d6.reshape(6, -1))
+                d_colors.index_add_(0, gi, d_col.reshape(-1, n_ch))
+        d_means, d_conics, d_opac = d_table[0:2].T, d_table[2:5].T, d_table[5]
+        return (d_means.to(means2d.dtype), d_conics.to(conics.dtype), d_opac.to(opacities.dtype),
                 d_colors.to(colors.dtype), d_bg, None, None, None, None, None, None, None, None)
 
 

@@ -267,17 +267,25 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     # Tiles with a pixel that stops in this block: mask the Gaussians it does not use (dense on
     # those tiles only; a pixel that does not stop here uses all of its Gaussians).
     ts = stop.any(-1).nonzero().squeeze(1)
+    dense = len(ts) > Ta.shape[0] // 2  # most tiles: cheaper on the whole block than gathered
     if len(ts):
-        Tsub = Ta.index_select(0, ts)  # [k, B, P]
+        Tsub = Ta if dense else Ta.index_select(0, ts)  # [k, B, P]
         used = _step(Tsub - torch.nextafter(torch.tensor(T_MIN, dtype=dtype), torch.tensor(0.0, dtype=dtype)))
         # T after the last used Gaussian (T_in if none) for the stopping pixels.
         n_used = used.sum(1).long()  # [k, P]
         val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
-        T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
+        if dense:
+            T_out = torch.where(stop, torch.where(n_used > 0, val, T_in), T_out)
+        else:
+            T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
     w = Ta.mul_(r)
     if lv is not None:
         r.mul_(lv)
-    if len(ts):
+    if dense:
+        w.mul_(used)
+        if need_grad:
+            r.mul_(used)
+    elif len(ts):
         w.index_copy_(0, ts, w.index_select(0, ts).mul_(used))
         if need_grad:
             r.index_copy_(0, ts, r.index_select(0, ts).mul_(used))

@@ -177,3 +177,14 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
     b = fit(tmp_path / "fresh.pt", 4)
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert m._stage_ckpt("acm", {"x": 2}, 4).parent != long_ckpt.parent  # other inputs, other folder
+
+    # An interrupted longer run (8 asked, killed after step 6) serves any request of >= 6 steps;
+    # a request for fewer steps falls back to the furthest run that did not pass it.
+    mm = core.build_model(TINY.core, control=False, seed=0)
+    loss = lambda g: train.denoise_loss(mm, sched, data[torch.randint(0, 4, (2,), generator=g)], None, g)  # noqa: E731
+    train.train_loop(mm, core.trainable(mm), loss, steps=8, lr=1e-3, seed=0, ckpt=m._stage_ckpt("acm", key, 8),
+                     ckpt_every=2, stop_after=2, progress=False)  # resumed from step 4, killed at 6
+    assert train.load_checkpoint(m._stage_ckpt("acm", key, 8))["step"] == 6
+    assert train.load_checkpoint(m._stage_ckpt("acm", key, 7))["step"] == 6
+    assert train.load_checkpoint(m._stage_ckpt("acm", key, 5))["step"] == 4
+    assert train.load_checkpoint(m._stage_ckpt("acm", key, 3))["step"] == 2

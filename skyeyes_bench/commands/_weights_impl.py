@@ -30,9 +30,6 @@ def status_cmd(args) -> int:
 
 def fetch_cmd(args) -> int:
     W.fetch(log=lambda s: print(s, file=sys.stderr))
-    missing = [n for n, w in W.WEIGHT_FILES.items() if w.package is None and W.check(n)[0] != "present"]
-    for n in missing:
-        print(f"note: {n} is on no package registry; LPIPS needs it: {W.WEIGHT_FILES[n].fix}", file=sys.stderr)
     return 0
 
 

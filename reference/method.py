@@ -25,19 +25,6 @@ import numpy as np
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 
-def set_threads(n: int = 0) -> None:
-    """torch intra-op threads for the work that follows: `n`, or with 0 every core we are given
-    (OMP_NUM_THREADS wins when set). Methods call it at each stage, because a stage they run
-    inside (the Gaussian prior of Skyeyes runs on one thread) leaves its own setting behind."""
-    import os
-
-    import torch
-
-    n = n or int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1)
-    if torch.get_num_threads() != n:
-        torch.set_num_threads(n)
-
-
 class Method(abc.ABC):
     name: ClassVar[str]
     version: ClassVar[str] = "0.1"

@@ -27,6 +27,7 @@ from reference.common.gaussians.train import TrainConfig, View, psnr, train
 from reference.method import Method
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Frame, Scene, Sequence
+from skyeyes_bench.threads import set_threads
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +139,7 @@ class Gaussians3D(Method):
 
     def fit_scene(self, scene: Scene, *, callback=None, progress: bool = True) -> None:
         cfg = self.config
-        torch.set_num_threads(cfg.threads)
+        set_threads(cfg.threads)
         ckpt = self.scene_dir(scene) / "model.pt"
         if ckpt.is_file():
             self._load(scene)
@@ -216,7 +217,7 @@ class Gaussians3D(Method):
         return out["rgb"].clamp(0, 1).numpy().astype(np.float32)
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
-        torch.set_num_threads(self.config.threads)
+        set_threads(self.config.threads)
         for frame in sequence:
             yield self.render_frame(scene, frame)
 

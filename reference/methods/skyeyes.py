@@ -30,10 +30,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from reference.method import Method, set_threads
+from reference.method import Method
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Dataset, Frame, Scene, Sequence
 from skyeyes_bench.paths import cache_dir
+from skyeyes_bench.threads import set_threads
 
 from ..common.diffusion.core import CoreConfig
 

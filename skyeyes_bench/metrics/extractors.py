@@ -14,7 +14,6 @@ Models load lazily on first use; missing weights raise `MetricUnavailable` with 
 
 from __future__ import annotations
 
-import os
 from typing import Callable
 
 import numpy as np
@@ -30,10 +29,9 @@ OFFICIAL_PREFIX_REFUSED = "random-"
 def _torch_setup():
     import torch
 
-    # Use every core we are given (OMP_NUM_THREADS wins when set, as in CI / scripts/test.sh).
-    n = int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1)
-    if torch.get_num_threads() != n:
-        torch.set_num_threads(n)
+    from ..threads import set_threads
+
+    set_threads()  # every core we are given
     return torch
 
 

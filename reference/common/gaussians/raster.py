@@ -31,14 +31,17 @@ TILE = 4
 CHUNK_ELEMS = 1 << 21
 #: Gaussians per depth block: tiles whose pixels have all stopped skip the remaining blocks.
 BLOCK = 64
-#: Floor of log-space quantities before exp (e^-60 ~ 1e-26 stays a normal float32).
-LOG_FLOOR = -60.0
+#: Floor of log2-space quantities before exp2 (2^-86 ~ 1e-26 stays a normal float32).
+LOG2_FLOOR = -86.0
 #: Relative and absolute slack on the binning's q bound, so float rounding can only add pairs
 #: (which the per-pixel test then rejects), never drop one the compositing would use.
 BIN_SLACK = 1e-4
-_LOG_ALPHA_MIN = math.log(ALPHA_MIN)
-_LOG_ALPHA_MAX = math.log(ALPHA_MAX)
-_LOG_T_MIN = math.log(T_MIN)
+#: The forward works with base-2 logs of alpha: torch's exp2 is ~3x faster than exp on this
+#: CPU (0.29 vs 0.85 ms per 1M float32, AVX512 build), and the log base only rescales the GEMM's
+#: coefficients and the thresholds.
+LOG2E = 1.0 / math.log(2.0)
+_LOG2_ALPHA_MIN = math.log2(ALPHA_MIN)
+_LOG2_ALPHA_MAX = math.log2(ALPHA_MAX)
 
 
 def _q_bound(opacities: torch.Tensor | None, n: int, dtype) -> torch.Tensor:
@@ -238,16 +241,16 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     boolean [T, B, P] mask is built (masked_fill / where on them were the slowest passes).
     """
     dtype = feat.dtype
-    log_amax = torch.tensor(_LOG_ALPHA_MAX, dtype=dtype)
-    logo = torch.log(o.clamp_min(1e-30))
-    # log alpha = log o - q/2 as one matmul: the coefficients carry -1/2 and log o.
-    k = -0.5 * k
-    k[..., 5] += logo
+    log_amax = torch.tensor(_LOG2_ALPHA_MAX, dtype=dtype)
+    log2o = torch.log2(o.clamp_min(1e-30))
+    # log2 alpha = log2 o - log2(e) q/2 as one matmul: the coefficients carry -log2(e)/2 and log2 o.
+    k = (-0.5 * LOG2E) * k
+    k[..., 5] += log2o
     L = torch.matmul(k, feat.T)  # [T, B, P], one GEMM
-    # One threshold per Gaussian in log space: alpha >= 1/255 and inside the support ellipse
-    # (q <= s^2  <=>  log alpha >= log o - s^2/2); padding slots never pass. The threshold is
-    # moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
-    thr = torch.clamp_min(logo - 0.5 * SUPPORT_SIGMA ** 2, _LOG_ALPHA_MIN)
+    # One threshold per Gaussian in log2 space: alpha >= 1/255 and inside the support ellipse
+    # (q <= s^2  <=>  log2 alpha >= log2 o - log2(e) s^2/2); padding slots never pass. The
+    # threshold is moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
+    thr = torch.clamp_min(log2o - (0.5 * LOG2E) * SUPPORT_SIGMA ** 2, _LOG2_ALPHA_MIN)
     thr = torch.nextafter(thr, torch.tensor(-math.inf, dtype=dtype)).masked_fill_(~(real & (o > 0)), math.inf)
     keep = _step(torch.sub(L, thr[:, :, None]))
     # The backward needs which alphas are not clamped at 0.99; only a Gaussian with o > 0.99
@@ -257,7 +260,7 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     if need_grad and bool((o > 0.989).any()):
         lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype))))
     # Floor: exp never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
-    alpha = L.clamp_(LOG_FLOOR, log_amax).exp_().mul_(keep)
+    alpha = L.clamp_(LOG2_FLOOR, log_amax).exp2_().mul_(keep)
     om = torch.rsub(alpha, 1.0)
     # w = alpha T_before = T_after alpha / (1 - alpha); r = alpha / (1 - alpha) is the backward's.
     r = alpha.div_(om)
@@ -349,6 +352,7 @@ class _Composite(torch.autograd.Function):
         # One per-Gaussian table, so a block gathers its Gaussians with one index_select; planar
         # (a row per quantity) so every per-Gaussian step runs on contiguous [T, B] planes.
         table = torch.cat([means2d, conics, opacities[:, None], colors], 1).to(dtype).T.contiguous()  # [6 + C, N]
+        bg_cp = background.to(dtype)[None, :, None]  # [1, C, 1]
         # Pixels of tiles no Gaussian touches see only the background.
         out = background.to(dtype).expand(height * width, n_ch).clone()
         t_final = torch.ones(height * width, dtype=dtype)
@@ -356,7 +360,9 @@ class _Composite(torch.autograd.Function):
         for tiles, mcount in _chunks(starts, P, block):
             flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
             n_t = len(tiles)
-            acc = torch.zeros(n_t, P, n_ch, dtype=dtype)
+            # Colour sums channel-major, [T, C, P]: bmm(colours [T, C, B], w [T, B, P]) is ~4x
+            # faster than producing [T, P, C] (a [P, B] x [B, C] product per tile).
+            acc = torch.zeros(n_t, n_ch, P, dtype=dtype)
             T = torch.ones(n_t, P, dtype=dtype)
             # State of the tiles still compositing (early stop drops finished tiles from it).
             act = torch.arange(n_t)
@@ -371,9 +377,9 @@ class _Composite(torch.autograd.Function):
                 # Centres relative to the tile centre.
                 mx, my = planes[0] - a_centres[:, 0:1], planes[1] - a_centres[:, 1:2]
                 A, B, C, o = planes[2], planes[3], planes[4], planes[5]
-                col = planes[6:].permute(1, 2, 0)  # [T, B, C]
+                col = planes[6:].transpose(0, 1)  # [T, C, B]
                 w, T_blk, dn, r, lv = _block(feat, _coefficients(mx, my, A, B, C), o, real, a_T, a_done, need_grad)
-                a_acc += torch.bmm(w.transpose(1, 2), col)
+                a_acc.baddbmm_(col, w)
                 live = (~a_done).to(dtype)  # [T, P]: columns of done pixels in r are garbage
                 if need_grad:
                     blocks.append((sel, g, (mx, my, A, B, C, o), col, w, r, lv, live))
@@ -389,7 +395,7 @@ class _Composite(torch.autograd.Function):
                         break
             if len(act):
                 acc[act], T[act] = a_acc, a_T
-            rgb = acc + T[..., None] * background
+            rgb = torch.addcmul(acc, T[:, None, :], bg_cp).transpose(1, 2)  # [T, P, C]
             out[flat[inside]] = rgb[inside]
             t_final[flat[inside]] = T[inside]
             if need_grad:
@@ -405,20 +411,21 @@ class _Composite(torch.autograd.Function):
         tile, layout = ctx.meta
         dtype = colors.dtype
         n_ch = colors.shape[1]
-        feat = -0.5 * _pixel_features(tile, dtype)  # [P, 6]; -1/2 from the coefficients
+        feat_t = (-0.5 * _pixel_features(tile, dtype)).T.contiguous()  # [6, P]; -1/2 from the coefficients
         g_out = g_out.reshape(-1, n_ch).to(dtype)
         g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
         # Gradients of the per-Gaussian table, planar: (means2d, conics, opacity) [6, N], and
         # colours [N, C].
         d_table = torch.zeros(6, means2d.shape[0], dtype=dtype)
-        d_colors = torch.zeros(means2d.shape[0], n_ch, dtype=dtype)
+        d_colors = torch.zeros(n_ch, means2d.shape[0], dtype=dtype)  # planar, [C, N]
         d_bg = (g_out * t_final[:, None]).sum(0)  # d out / d bg = T_final everywhere
         # Per pixel: the whole composited sum <g, sum_j c_j w_j> and what the background and the
         # alpha output add behind every Gaussian; suffix sums then come from prefix sums.
         total = (g_out * (out - t_final[:, None] * background)).sum(-1)
         tail = (g_out * background).sum(-1) * t_final - g_alpha * t_final
         for flat, inside, blocks in _unpack(tensors, layout):
-            a_go = g_out[flat] * inside[..., None]  # [T, P, C]; padding pixels carry nothing
+            # [T, C, P] (channel-major like the forward's sums); padding pixels carry nothing.
+            a_go = (g_out[flat] * inside[..., None]).transpose(1, 2).contiguous()
             # dL/d log alpha_j = alpha_j T_j <g, c_j> - alpha_j / (1 - alpha_j) (sum over later
             # Gaussians + tail): with `pre` the prefix sum over earlier blocks minus (total +
             # tail), the bracket is the running prefix sum.
@@ -427,14 +434,15 @@ class _Composite(torch.autograd.Function):
                 if sel is not None:
                     a_go, a_pre = a_go[sel], a_pre[sel]
                 go = a_go  # done pixels have w = 0, so they take no part through go
-                d_col = torch.bmm(w, go)  # [T, B, C]
-                gw = torch.bmm(col, go.transpose(1, 2)).mul_(w)  # <dL/dout, c_j> w_j, [T, B, P]
+                d_col = torch.bmm(go, w.transpose(1, 2))  # [T, C, B]
+                gw = torch.bmm(col.transpose(1, 2), go).mul_(w)  # <dL/dout, c_j> w_j, [T, B, P]
                 cs = torch.cumsum(gw, 1).add_((a_pre * live)[:, None, :])
                 a_pre = cs[:, -1, :].clone()
                 d_ar = cs.mul_(r).add_(gw if lv is None else gw.mul_(lv))  # dL / d log alpha
-                # dL / d(A, B, C, D, E, F), [T, B, 6] from one GEMM (a transposed or planar form
-                # was several times slower).
-                gA, gB, gC, gD, gE, gF = torch.matmul(d_ar, feat).unbind(-1)
+                # dL / d(A, B, C, D, E, F): six contiguous [T, B] planes from one GEMM with the
+                # [6, P] operand on the left (~5x faster than d_ar [T B, P] @ [P, 6]).
+                n_tb = d_ar.shape[0] * d_ar.shape[1]
+                gA, gB, gC, gD, gE, gF = torch.mm(feat_t, d_ar.reshape(n_tb, -1).T).reshape(6, *d_ar.shape[:2]).unbind(0)
                 # Chain rule to the centre and conic (q = d^T Q d with d = p - m):
                 # dL/dm = 2 Q (m gF - (gD, gE)), dL/dQ = G - (m v^T + v m^T) + m m^T gF.
                 vx, vy = torch.addcmul(-gD, mx, gF), torch.addcmul(-gE, my, gF)
@@ -450,10 +458,10 @@ class _Composite(torch.autograd.Function):
                 ], 0)
                 gi = g.reshape(-1)
                 d_table.index_add_(1, gi, d6.reshape(6, -1))
-                d_colors.index_add_(0, gi, d_col.reshape(-1, n_ch))
+                d_colors.index_add_(1, gi, d_col.transpose(0, 1).reshape(n_ch, -1))
         d_means, d_conics, d_opac = d_table[0:2].T, d_table[2:5].T, d_table[5]
         return (d_means.to(means2d.dtype), d_conics.to(conics.dtype), d_opac.to(opacities.dtype),
-                d_colors.to(colors.dtype), d_bg, None, None, None, None, None, None, None, None)
+                d_colors.T.to(colors.dtype), d_bg, None, None, None, None, None, None, None, None)
 
 
 def composite(means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile=TILE,

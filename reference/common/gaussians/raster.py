@@ -228,7 +228,7 @@ def _step(x: torch.Tensor) -> torch.Tensor:
 def _block(feat, k, o, real, T_in, done_in, need_grad):
     """Composite one depth block of a chunk of tiles.
 
-    Args: feat [P, 6]; k [T, B, 6] coefficients of q (`_coefficients`); o [T, B]; real [T, B] bool; T_in [T, P] transmittance entering the block; done_in [T, P] bool.
+    Args: feat [P, 6]; k [6, T, B] coefficients of q (`_coefficients`); o [T, B]; real [T, B] bool; T_in [T, P] transmittance entering the block; done_in [T, P] bool.
 
     Returns w [T, B, P] blending weights alpha T, T_out [T, P], done_out [T, P], and for the
     backward (else None) r [T, B, P] = alpha / (1 - alpha) where alpha is not clamped at 0.99
@@ -245,8 +245,10 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     log2o = torch.log2(o.clamp_min(1e-30))
     # log2 alpha = log2 o - log2(e) q/2 as one matmul: the coefficients carry -log2(e)/2 and log2 o.
     k = (-0.5 * LOG2E) * k
-    k[..., 5] += log2o
-    L = torch.matmul(k, feat.T)  # [T, B, P], one GEMM
+    k[5] += log2o
+    n_t, n_b = o.shape
+    # [T B, 6] (a transposed view of the planes: the GEMM reads it as column-major) x [6, P].
+    L = torch.mm(k.reshape(6, -1).T, feat.T).reshape(n_t, n_b, -1)  # [T, B, P], one GEMM
     # One threshold per Gaussian in log2 space: alpha >= 1/255 and inside the support ellipse
     # (q <= s^2  <=>  log2 alpha >= log2 o - log2(e) s^2/2); padding slots never pass. The
     # threshold is moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
@@ -306,12 +308,13 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
 
 def _coefficients(mx, my, A, B, C):
     """q(u, v) = A u^2 + 2B uv + C v^2 + D u + E v + F for centres (mx, my) relative to the
-    tile centre and conics (A, B, C), all [T, B]; returns [T, B, 6] (rows: one GEMM with the
-    pixel monomials gives q, while a transposed operand sent the GEMM down a path ~3x slower)."""
+    tile centre and conics (A, B, C), all [T, B]; returns planar [6, T, B] (stacking on a new
+    last dim cost 2x the GEMM it feeds; the GEMM takes the planes as a transposed operand at
+    the same speed)."""
     D = -2 * (A * mx + B * my)
     E = -2 * (B * mx + C * my)
     F = A * mx * mx + 2 * B * mx * my + C * my * my
-    return torch.stack([A, B, C, D, E, F], -1)
+    return torch.stack([A, B, C, D, E, F], 0)
 
 
 def _pack(saved):

@@ -2,6 +2,7 @@
 
     python bench/gaussians.py raster            # fwd / fwd+bwd ms, peak RSS, load average
     python bench/gaussians.py raster --sizes 128 --counts 50000
+    python bench/gaussians.py split --sizes 128 --counts 50000   # the stages of one call apart
     python bench/gaussians.py fit --preset small   # held-out aerial / ground PSNR vs seconds
 
 Caveat: the machine has 2 cores shared with other jobs; figures vary by tens of percent.
@@ -95,6 +96,49 @@ def cmd_raster(args) -> None:
                   f"{r['fwd_bwd_ms']:>10} {r['peak_rss_mb']:>11} {r['load']:>5}")
 
 
+def split_case(n: int, size: int, reps: int, threads: int) -> dict:
+    """Stages of one `rasterize` call timed apart (ms, min over `reps` after a warm-up): projection,
+    SH colours, binning, compositing forward, compositing backward, projection + SH backward."""
+    import torch
+
+    torch.set_num_threads(threads)
+    from reference.common.gaussians import raster
+    from reference.common.gaussians.project import project, sh_colors
+
+    means, quats, scales, opac, sh, view, K = synthetic_scene(n, size)
+    names = ["project", "sh", "bin", "composite_fwd", "composite_bwd", "project_sh_bwd"]
+    rows = []
+    for r in range(reps + 1):
+        m, q, s, o, h = (t.clone().requires_grad_() for t in (means, quats, scales, opac, sh))
+        t = [time.perf_counter()]
+        proj = project(m, q, s, view, K, size, size)
+        t.append(time.perf_counter())
+        feats = torch.cat([sh_colors(h, m, view, 3), proj["depths"][:, None]], -1)
+        t.append(time.perf_counter())
+        ids, starts, tx, _ = raster.bin_tiles(proj["means2d"], proj["radii"], proj["depths"], proj["valid"], size,
+                                             size, raster.TILE, conics=proj["conics"], opacities=o)
+        t.append(time.perf_counter())
+        out, alpha = raster.composite(proj["means2d"], proj["conics"], o, feats, torch.zeros(4), ids, starts, tx,
+                                      size, size)
+        t.append(time.perf_counter())
+        inputs = [proj["means2d"], proj["conics"], feats]
+        grads = torch.autograd.grad(out[..., :3].sum() + alpha.sum(), inputs + [o])
+        t.append(time.perf_counter())
+        torch.autograd.backward(inputs, grads[:3])
+        t.append(time.perf_counter())
+        if r:  # the first call warms up allocator and threads
+            rows.append([b - a for a, b in zip(t, t[1:])])
+    best = [1000 * min(col) for col in zip(*rows)]
+    return {"n": n, "size": size, "threads": threads, **{k: round(v, 1) for k, v in zip(names, best)},
+            "sum": round(sum(best), 1), "load": round(os.getloadavg()[0], 1)}
+
+
+def cmd_split(args) -> None:
+    for size in args.sizes:
+        for n in args.counts:
+            print(json.dumps(split_case(n, size, args.reps, args.threads)), flush=True)
+
+
 def cmd_fit(args) -> None:
     from reference.methods.gaussians3d import fit_curve
 
@@ -116,6 +160,12 @@ def main() -> None:
     r.add_argument("--threads", type=int, default=1, help="torch threads (1: see docs/reproduce.md)")
     r.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     r.set_defaults(fn=cmd_raster)
+    sp = sub.add_parser("split", help="time the stages of one rasterize call apart")
+    sp.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    sp.add_argument("--counts", type=int, nargs="+", default=[50_000, 200_000])
+    sp.add_argument("--reps", type=int, default=7)
+    sp.add_argument("--threads", type=int, default=1)
+    sp.set_defaults(fn=cmd_split)
     f = sub.add_parser("fit")
     f.add_argument("--preset", default="smoke")
     f.add_argument("--method", default="gaussians3d")

@@ -261,7 +261,7 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     lv = None
     if need_grad and bool((o > 0.989).any()):
         lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype))))
-    # Floor: exp never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
+    # Floor: exp2 never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
     alpha = L.clamp_(LOG2_FLOOR, log_amax).exp2_().mul_(keep)
     om = torch.rsub(alpha, 1.0)
     # w = alpha T_before = T_after alpha / (1 - alpha); r = alpha / (1 - alpha) is the backward's.
@@ -418,7 +418,7 @@ class _Composite(torch.autograd.Function):
         g_out = g_out.reshape(-1, n_ch).to(dtype)
         g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
         # Gradients of the per-Gaussian table, planar: (means2d, conics, opacity) [6, N], and
-        # colours [N, C].
+        # colours [C, N].
         d_table = torch.zeros(6, means2d.shape[0], dtype=dtype)
         d_colors = torch.zeros(n_ch, means2d.shape[0], dtype=dtype)  # planar, [C, N]
         d_bg = (g_out * t_final[:, None]).sum(0)  # d out / d bg = T_final everywhere

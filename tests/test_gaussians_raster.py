@@ -239,3 +239,11 @@ def test_gsplat_path_when_cuda():
     a = rasterize(*params, view.cuda(), K.cuda(), 24, 24)
     b = rasterize(*[p.cpu() for p in params], view, K, 24, 24)
     assert torch.allclose(a["rgb"].cpu(), b["rgb"], atol=2e-2)
+
+
+def test_sh_degree_beyond_the_coefficients_is_refused():
+    params = _scene(5, sh_bases=1)
+    view, K = _cam()
+    with pytest.raises(AssertionError, match="sh_degree 1 needs 4 SH bases, sh has 1"):
+        rasterize(*params, view, K, 24, 24, sh_degree=1)
+    assert rasterize(*params, view, K, 24, 24, sh_degree=0)["rgb"].shape == (24, 24, 3)

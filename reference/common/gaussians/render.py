@@ -33,6 +33,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     assert means.shape == (n, 3) and quats.shape == (n, 4) and scales.shape == (n, 3), (means.shape, quats.shape, scales.shape)
     assert opacities.shape == (n,) and sh.ndim == 3 and sh.shape[0] == n and sh.shape[2] == 3, (opacities.shape, sh.shape)
     deg = degree_for(sh.shape[1]) if sh_degree is None else sh_degree
+    assert 0 <= deg <= degree_for(sh.shape[1]), f"sh_degree {deg} needs {(deg + 1) ** 2} SH bases, sh has {sh.shape[1]}"
     dtype = means.dtype
     if background is None:
         background = torch.zeros(3, dtype=dtype, device=means.device)

@@ -244,6 +244,7 @@ def test_gsplat_path_when_cuda():
 def test_sh_degree_beyond_the_coefficients_is_refused():
     params = _scene(5, sh_bases=1)
     view, K = _cam()
-    with pytest.raises(AssertionError, match="sh_degree 1 needs 4 SH bases, sh has 1"):
-        rasterize(*params, view, K, 24, 24, sh_degree=1)
+    for fn in (rasterize, rasterize_dense):
+        with pytest.raises(AssertionError, match="sh_degree 1 needs 4 SH bases, sh has 1"):
+            fn(*params, view, K, 24, 24, sh_degree=1)
     assert rasterize(*params, view, K, 24, 24, sh_degree=0)["rgb"].shape == (24, 24, 3)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .project import SUPPORT_SIGMA, degree_for, project, sh_colors
+from .project import SUPPORT_SIGMA, project, resolve_degree, sh_colors
 from .raster import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 
@@ -46,7 +46,7 @@ def rasterize_dense(means, quats, scales, opacities, sh, viewmat, K, width, heig
                     sh_degree=None, near=0.01, far=1e10):
     """Same contract as `render.rasterize` (rgb, depth, alpha), computed densely."""
     dtype = means.dtype
-    deg = degree_for(sh.shape[1]) if sh_degree is None else sh_degree
+    deg = resolve_degree(sh, sh_degree)
     if background is None:
         background = torch.zeros(3, dtype=dtype)
     viewmat = viewmat.to(dtype)

@@ -201,3 +201,12 @@ def degree_for(num_bases: int) -> int:
     d = int(round(math.sqrt(num_bases))) - 1
     assert (d + 1) ** 2 == num_bases and 0 <= d <= 3, num_bases
     return d
+
+
+def resolve_degree(sh: torch.Tensor, sh_degree: int | None) -> int:
+    """The SH degree to render from sh [N, K, 3]: `sh_degree`, or all that sh holds (None);
+    more than sh holds is refused."""
+    held = degree_for(sh.shape[1])
+    deg = held if sh_degree is None else sh_degree
+    assert 0 <= deg <= held, f"sh_degree {deg} needs {(deg + 1) ** 2} SH bases, sh has {sh.shape[1]}"
+    return deg

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from . import raster
-from .project import degree_for, project, sh_colors
+from .project import project, resolve_degree, sh_colors
 
 
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -32,8 +32,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     n = means.shape[0]
     assert means.shape == (n, 3) and quats.shape == (n, 4) and scales.shape == (n, 3), (means.shape, quats.shape, scales.shape)
     assert opacities.shape == (n,) and sh.ndim == 3 and sh.shape[0] == n and sh.shape[2] == 3, (opacities.shape, sh.shape)
-    deg = degree_for(sh.shape[1]) if sh_degree is None else sh_degree
-    assert 0 <= deg <= degree_for(sh.shape[1]), f"sh_degree {deg} needs {(deg + 1) ** 2} SH bases, sh has {sh.shape[1]}"
+    deg = resolve_degree(sh, sh_degree)
     dtype = means.dtype
     if background is None:
         background = torch.zeros(3, dtype=dtype, device=means.device)

@@ -444,8 +444,7 @@ class _Composite(torch.autograd.Function):
                 d_ar = cs.mul_(r).add_(gw if lv is None else gw.mul_(lv))  # dL / d log alpha
                 # dL / d(A, B, C, D, E, F): six contiguous [T, B] planes from one GEMM with the
                 # [6, P] operand on the left (~5x faster than d_ar [T B, P] @ [P, 6]).
-                n_tb = d_ar.shape[0] * d_ar.shape[1]
-                gA, gB, gC, gD, gE, gF = torch.mm(feat_t, d_ar.reshape(n_tb, -1).T).reshape(6, *d_ar.shape[:2]).unbind(0)
+                gA, gB, gC, gD, gE, gF = torch.mm(feat_t, d_ar.flatten(0, 1).T).unflatten(1, d_ar.shape[:2]).unbind(0)
                 # Chain rule to the centre and conic (q = d^T Q d with d = p - m):
                 # dL/dm = 2 Q (m gF - (gD, gE)), dL/dQ = G - (m v^T + v m^T) + m m^T gF.
                 vx, vy = torch.addcmul(-gD, mx, gF), torch.addcmul(-gE, my, gF)

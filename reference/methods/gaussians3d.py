@@ -20,8 +20,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from reference.common.gaussians import init as ginit
 from reference.common.gaussians import rasterize
+from reference.common.geometry import region, sfm
 from reference.common.gaussians.model import GaussianModel
 from reference.common.gaussians.train import TrainConfig, View, psnr, train
 from reference.method import Method
@@ -149,18 +149,18 @@ class Gaussians3D(Method):
         aerial = list(scene.aerial)
         held = [f for i, f in enumerate(aerial) if cfg.holdout_every and i % cfg.holdout_every == cfg.holdout_every - 1]
         train_frames = [f for f in aerial if f not in held]
-        box = ginit.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
+        box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
         # 1. Initial points: SfM with the known poses, else the documented fallback.
         msg = "SfM disabled by config"
         xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
         if cfg.sfm:
-            xyz, rgb, msg = ginit.sfm_points(train_frames, self.scene_dir(scene) / "sfm")
-            keep = ginit.in_box(xyz, box) if len(xyz) else np.zeros(0, bool)
+            xyz, rgb, msg = sfm.sfm_points(train_frames, self.scene_dir(scene) / "sfm")
+            keep = region.in_box(xyz, box) if len(xyz) else np.zeros(0, bool)
             xyz, rgb = xyz[keep], rgb[keep]
             msg += f"; {len(xyz)} inside the ground cameras' region"
         if len(xyz) < cfg.min_sfm_points:
-            fx, frgb = ginit.ground_plane_points(train_frames, per_view=cfg.fallback_per_view, seed=self.seed)
-            keep = ginit.in_box(fx, box)
+            fx, frgb = sfm.ground_plane_points(train_frames, per_view=cfg.fallback_per_view, seed=self.seed)
+            keep = region.in_box(fx, box)
             xyz = np.concatenate([xyz, fx[keep]]) if len(xyz) else fx[keep]
             rgb = np.concatenate([rgb, frgb[keep]]) if len(rgb) else frgb[keep]
             msg += f"; too few (< {cfg.min_sfm_points}): fallback init (ground-plane rays) -> {len(xyz)} points"

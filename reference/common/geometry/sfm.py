@@ -1,5 +1,5 @@
-"""Initial point cloud for a scene: SfM triangulation with the known aerial poses (pycolmap),
-or a documented fallback when SfM fails or finds too few points.
+"""Sparse points for a scene: SfM triangulation with the known aerial poses (pycolmap), and the
+documented fallback when neither SfM nor MVS (`mvs.py`) yields enough points.
 
 Fallback ("ground-plane rays"): for a grid of pixels of every aerial view, the ray is cut with
 the ground plane z = 0 and the point is lifted to a random height in [0, max_height] along
@@ -103,18 +103,3 @@ def ground_plane_points(frames: list[Frame], *, per_view: int = 2000, max_height
         xyz.append(o + t[keep, None] * d[keep])
         rgb.append(img[v[keep].astype(int).clip(0, h - 1), u[keep].astype(int).clip(0, w - 1)])
     return np.concatenate(xyz), np.concatenate(rgb).astype(np.float32)
-
-
-def region_box(ground_frames: list[Frame], margin_m: float, z_range: tuple[float, float]) -> np.ndarray:
-    """[2, 3] axis-aligned box (min, max) around the ground cameras: the region they can see.
-
-    Horizontal: camera positions +- margin_m; vertical: z_range (m) in world coordinates.
-    """
-    c = np.array([f.c2w[:3, 3] for f in ground_frames])
-    lo = np.array([c[:, 0].min() - margin_m, c[:, 1].min() - margin_m, z_range[0]])
-    hi = np.array([c[:, 0].max() + margin_m, c[:, 1].max() + margin_m, z_range[1]])
-    return np.stack([lo, hi])
-
-
-def in_box(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
-    return np.all((xyz >= box[0]) & (xyz <= box[1]), axis=-1)

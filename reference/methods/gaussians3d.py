@@ -1,9 +1,17 @@
 """`gaussians3d`: vanilla 3D Gaussian splatting (Kerbl et al. 2023) fitted on a lane's aerial
 views, rendered from its ground cameras. Also the shared base of `sugar`.
 
-Per scene: SfM init (pycolmap, known poses) or the documented fallback, crop to the region the
-ground cameras see (+ margin), train, checkpoint atomically to `<workdir>/scenes/<scene>/`.
-A later `fit_scene` on the same workdir reuses the checkpoint (interrupted runs resume).
+Per scene: the start is the `mvs` method's fused cloud (dense stereo from the aerial views, each
+point a disc with its own size and orientation), as 3DGS starts from an SfM/MVS cloud; `init=sfm`
+uses pycolmap's sparse triangulation instead. Either falls back to "ground-plane rays" (with a
+warning) when it leaves fewer than `min_init_points` in the region the ground cameras see
+(+ margin). Then train, checkpoint atomically to `<workdir>/scenes/<scene>/`; a later
+`fit_scene` on the same workdir reuses the checkpoint (interrupted runs resume).
+
+What is learned on the train split (`fit_train`, shared with `mvs`): the colour map from aerial
+to ground colours and the background colours above and below the horizon, fitted on the `mvs`
+reconstructions of `train_lanes` train lanes (`reference.common.appearance`). Gaussians fitted
+to the aerial views carry the aerial colours, as the `mvs` discs do, so the same map applies.
 """
 
 from __future__ import annotations
@@ -21,12 +29,14 @@ import numpy as np
 import torch
 
 from reference.common.gaussians import rasterize
-from reference.common.geometry import region, sfm
+from reference.common.appearance import Backgrounds, ColourMap
+from reference.common.geometry import region, sfm, splat
 from reference.common.gaussians.model import GaussianModel
 from reference.common.gaussians.train import TrainConfig, View, psnr, train
 from reference.method import Method
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Frame, Scene, Sequence
+from skyeyes_bench.errors import UserError
 from skyeyes_bench.threads import set_threads
 
 log = logging.getLogger(__name__)
@@ -39,7 +49,12 @@ class Gaussians3DConfig(TrainConfig):
     Attributes:
         margin_m: horizontal margin around the ground cameras of the kept region (m).
         z_min, z_max: vertical extent of the kept region (world z, m).
-        sfm: try pycolmap triangulation first; min_sfm_points: fewer means the fallback init.
+        init: "mvs" (the fused dense cloud, `mvs_preset`'s stereo settings) or "sfm" (pycolmap).
+        min_init_points: fewer points in the region means the ground-plane fallback init.
+        init_voxel_m: the MVS cloud is merged per voxel of this side (m) before the start.
+        init_disc_size: start discs' diameter in footprints.
+        train_lanes: train lanes for the learned appearance (0: none; background from the aerial
+            views, no colour map).
         fallback_per_view: rays per aerial view for the fallback init.
         init_max_points: subsample the initial cloud to at most this many points.
         holdout_every: hold out every k-th aerial view from training (0: none), for curves.
@@ -55,8 +70,13 @@ class Gaussians3DConfig(TrainConfig):
     margin_m: float = 30.0
     z_min: float = -1.0
     z_max: float = 40.0
-    sfm: bool = True
-    min_sfm_points: int = 500
+    init: str = "mvs"
+    mvs_preset: str = "small"
+    min_init_points: int = 500
+    init_voxel_m: float = 0.5
+    init_disc_size: float = 1.0
+    train_lanes: int = 2
+    device: str = "cpu"
     fallback_per_view: int = 1500
     init_max_points: int = 20_000
     holdout_every: int = 0
@@ -127,6 +147,8 @@ class Gaussians3D(Method):
         super().__init__(config, workdir, seed=seed)
         self._models: dict[str, tuple[GaussianModel, torch.Tensor]] = {}
         self.scene_stats: dict[str, dict] = {}
+        self.colour_map = ColourMap()
+        self.learned_backgrounds: Backgrounds | None = None
 
     # ---------------------------------------------------------------- hooks for subclasses
     def regularizer(self, scene: Scene):
@@ -150,40 +172,21 @@ class Gaussians3D(Method):
         held = [f for i, f in enumerate(aerial) if cfg.holdout_every and i % cfg.holdout_every == cfg.holdout_every - 1]
         train_frames = [f for f in aerial if f not in held]
         box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
-        # 1. Initial points: SfM with the known poses, else the documented fallback.
-        msg = "SfM disabled by config"
-        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
-        if cfg.sfm:
-            xyz, rgb, msg = sfm.sfm_points(train_frames, self.scene_dir(scene) / "sfm")
-            keep = region.in_box(xyz, box) if len(xyz) else np.zeros(0, bool)
-            xyz, rgb = xyz[keep], rgb[keep]
-            msg += f"; {len(xyz)} inside the ground cameras' region"
-        if len(xyz) < cfg.min_sfm_points:
-            fx, frgb = sfm.ground_plane_points(train_frames, per_view=cfg.fallback_per_view, seed=self.seed)
-            keep = region.in_box(fx, box)
-            xyz = np.concatenate([xyz, fx[keep]]) if len(xyz) else fx[keep]
-            rgb = np.concatenate([rgb, frgb[keep]]) if len(rgb) else frgb[keep]
-            msg += f"; too few (< {cfg.min_sfm_points}): fallback init (ground-plane rays) -> {len(xyz)} points"
-        log.warning("%s: init: %s", scene.name, msg) if "fallback" in msg else log.info("%s: init: %s", scene.name, msg)
-        rng = np.random.default_rng(self.seed)
-        if len(xyz) > cfg.init_max_points:
-            sel = rng.choice(len(xyz), cfg.init_max_points, replace=False)
-            xyz, rgb = xyz[sel], rgb[sel]
-        model = GaussianModel.from_points(xyz, rgb, cfg.sh_degree, opacity=cfg.init_opacity, seed=self.seed,
-                                          max_scale=cfg.init_max_scale)
+        # 1. The start: the MVS cloud (or SfM points), else the documented fallback.
+        model, msg, n_init = self._initial_model(scene, train_frames, box)
         # 2. Views with loss masks (pixels whose rays miss the region cannot be explained).
         views = []
         for f in train_frames:
             v = frame_view(f)
             v.mask = torch.from_numpy(rays_hit_box(f, box))
             views.append(v)
-        bg = torch.from_numpy(sky_colour(aerial))
+        bg = torch.from_numpy(self._backgrounds(scene).sky)
         centres = np.array([f.c2w[:3, 3] for f in aerial])
         extent = max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 10.0)
         # 3. Train.
         stats = train(model, views, cfg, extent=extent, box=torch.tensor(box, dtype=torch.float32), background=bg,
                       seed=self.seed, regularizer=self.regularizer(scene), callback=callback, progress=progress)
-        stats.update({"init": msg, "init_points": int(len(xyz)), "extent_m": extent, "box": box.tolist(),
+        stats.update({"init": msg, "init_points": n_init, "extent_m": extent, "box": box.tolist(),
                       "background": bg.tolist(), "fit_seconds": time.perf_counter() - t0,
                       "held_out": [f.file for f in held]})
         # 4. Checkpoint atomically (a killed run leaves no half file; the next run refits).
@@ -193,6 +196,71 @@ class Gaussians3D(Method):
         fileio.write_json(self.scene_dir(scene) / "fit.json", stats)
         self._models[scene.name] = (model, bg)
         self.scene_stats[scene.name] = stats
+
+    def _initial_model(self, scene: Scene, frames: list[Frame], box: np.ndarray) -> tuple[GaussianModel, str, int]:
+        """The model training starts from, the log message saying where it came from, its size."""
+        cfg = self.config
+        rng = np.random.default_rng(self.seed)
+        cloud = None
+        if cfg.init == "mvs":
+            from reference.methods.mvs import PRESETS as MVS_PRESETS
+            from reference.methods.mvs import reconstruct
+
+            mcfg = dataclasses.replace(MVS_PRESETS[cfg.mvs_preset], margin_m=cfg.margin_m, z_min=cfg.z_min,
+                                       z_max=cfg.z_max, device=cfg.device)
+            cloud, mstats = reconstruct(scene, mcfg, aerial=frames)
+            cloud = splat.voxel_downsample(cloud, cfg.init_voxel_m)
+            msg = f"MVS: {len(cloud)} fused points (per {cfg.init_voxel_m} m voxel) from {len(frames)} aerial views"
+            if len(cloud) > cfg.init_max_points:
+                cloud = cloud.subset(np.sort(rng.choice(len(cloud), cfg.init_max_points, replace=False)))
+            if len(cloud) >= cfg.min_init_points:
+                model = GaussianModel.from_surfels(splat.surfels(cloud, size=cfg.init_disc_size), cfg.sh_degree,
+                                                   opacity=cfg.init_opacity)
+                log.info("%s: init: %s", scene.name, msg)
+                return model, msg, len(cloud)
+            xyz, rgb = cloud.xyz.astype(np.float64), cloud.rgb
+        elif cfg.init == "sfm":
+            xyz, rgb, msg = sfm.sfm_points(frames, self.scene_dir(scene) / "sfm")
+            keep = region.in_box(xyz, box) if len(xyz) else np.zeros(0, bool)
+            xyz, rgb = xyz[keep], rgb[keep]
+            msg += f"; {len(xyz)} inside the ground cameras' region"
+        else:
+            raise UserError(f"gaussians3d init={cfg.init!r}: expected 'mvs' or 'sfm'")
+        if len(xyz) < cfg.min_init_points:
+            fx, frgb = sfm.ground_plane_points(frames, per_view=cfg.fallback_per_view, seed=self.seed)
+            keep = region.in_box(fx, box)
+            xyz = np.concatenate([xyz, fx[keep]]) if len(xyz) else fx[keep]
+            rgb = np.concatenate([rgb, frgb[keep]]) if len(rgb) else frgb[keep]
+            msg += f"; too few (< {cfg.min_init_points}): fallback init (ground-plane rays) -> {len(xyz)} points"
+            log.warning("%s: init: %s", scene.name, msg)
+        else:
+            log.info("%s: init: %s", scene.name, msg)
+        if len(xyz) > cfg.init_max_points:
+            sel = rng.choice(len(xyz), cfg.init_max_points, replace=False)
+            xyz, rgb = xyz[sel], rgb[sel]
+        model = GaussianModel.from_points(xyz, rgb, cfg.sh_degree, opacity=cfg.init_opacity, seed=self.seed,
+                                          max_scale=cfg.init_max_scale)
+        return model, msg, len(xyz)
+
+    # ---------------------------------------------------------------- appearance (train split)
+    def fit_train(self, dataset) -> None:
+        """The colour map and backgrounds, learned as `mvs` learns them (its `fit_train`)."""
+        cfg = self.config
+        if cfg.train_lanes <= 0:
+            return
+        from reference.methods.mvs import MVS
+
+        mvs = MVS.from_preset(cfg.mvs_preset, self.workdir / "appearance", seed=self.seed,
+                              train_lanes=cfg.train_lanes, device=cfg.device, margin_m=cfg.margin_m,
+                              z_min=cfg.z_min, z_max=cfg.z_max)
+        mvs.fit_train(dataset)
+        self.colour_map, self.learned_backgrounds = mvs.colour_map, mvs.backgrounds
+
+    def _backgrounds(self, scene: Scene) -> Backgrounds:
+        if self.learned_backgrounds is not None:
+            return self.learned_backgrounds
+        sky = sky_colour(list(scene.aerial))
+        return Backgrounds(sky, sky)
 
     def _load(self, scene: Scene) -> tuple[GaussianModel, torch.Tensor]:
         if scene.name not in self._models:
@@ -209,12 +277,15 @@ class Gaussians3D(Method):
     # ---------------------------------------------------------------- rendering
     @torch.no_grad()
     def render_frame(self, scene: Scene, frame: Frame) -> np.ndarray:
-        model, bg = self._load(scene)
+        """The Gaussians over black, the learned colour map on what they cover, composited over
+        the background (above / below the horizon)."""
+        model, _ = self._load(scene)
         v = frame_view(frame, with_image=False)
         out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh, v.viewmat, v.K,
-                        v.width, v.height, background=bg, sh_degree=self.config.sh_degree,
-                        near=self.config.render_near_m)
-        return out["rgb"].clamp(0, 1).numpy().astype(np.float32)
+                        v.width, v.height, sh_degree=self.config.sh_degree, near=self.config.render_near_m)
+        alpha = out["alpha"].numpy()
+        colour = (out["rgb"] / out["alpha"].clamp_min(1e-6)[..., None]).clamp(0, 1).numpy()
+        return splat.over(self.colour_map(colour), alpha, self._backgrounds(scene).image(frame.camera()))
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         set_threads(self.config.threads)

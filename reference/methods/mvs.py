@@ -79,9 +79,11 @@ PRESETS = {
 }
 
 
-def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, progress: bool = False) -> tuple[gmvs.PointCloud, dict]:
-    """Fused cloud of one lane (cropped to its region box) and the stereo stats."""
-    aerial = list(scene.aerial)
+def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, aerial: list | None = None,
+                progress: bool = False) -> tuple[gmvs.PointCloud, dict]:
+    """Fused cloud of one lane (cropped to its region box) and the stereo stats; `aerial`: the
+    views to use (default all of the scene's)."""
+    aerial = list(scene.aerial) if aerial is None else aerial
     box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
     stereo = gmvs.MVSConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(gmvs.MVSConfig)})
     cloud, _, stats = gmvs.run_mvs([f.image() for f in aerial], [f.camera() for f in aerial], box, stereo,

@@ -50,6 +50,22 @@ class GaussianModel:
             "shN": torch.zeros(n, nb - 1, 3),
         })
 
+    @classmethod
+    def from_surfels(cls, surfels: dict[str, torch.Tensor], sh_degree: int, *, opacity: float = 0.1) -> "GaussianModel":
+        """Init from oriented discs (`reference.common.geometry.splat.surfels`: means, quats,
+        scales, colors), as 3DGS starts from an MVS cloud but with each point's own size and
+        orientation instead of its neighbours' distance."""
+        n = surfels["means"].shape[0]
+        nb = (sh_degree + 1) ** 2
+        return cls({
+            "means": surfels["means"].float(),
+            "log_scales": torch.log(surfels["scales"].float().clamp_min(1e-4)),
+            "quats": surfels["quats"].float(),
+            "logit_opacities": torch.full((n,), math.log(opacity / (1 - opacity))),
+            "sh0": rgb_to_sh0(surfels["colors"].float())[:, None, :],
+            "shN": torch.zeros(n, nb - 1, 3),
+        })
+
     def __len__(self) -> int:
         return self.params["means"].shape[0]
 

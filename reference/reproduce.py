@@ -104,7 +104,7 @@ def _setup_log(out: Path) -> tuple[logging.Handler, ...]:
 
 
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
-        force: bool = False, progress: bool = True) -> dict:
+        force: bool = False, progress: bool = True, device: str | None = None) -> dict:
     """The whole pipeline; returns the results dict (see module docstring for the files)."""
     from reference.methods import get_method_class
     from skyeyes_bench.data.layout import open_dataset
@@ -115,6 +115,12 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     cls = get_method_class(method)
     base = lookup(cls.presets, preset, f"preset of method {method!r}")
     config = dataclasses.replace(base, **parse_overrides(base, overrides or []))
+    if device is not None:
+        if any(f.name == "device" for f in dataclasses.fields(config)):
+            config = dataclasses.replace(config, device=device)
+            overrides = [*(overrides or []), f"device={device}"]
+        elif device != "cpu":
+            raise UserError(f"--device {device}: method {method!r} runs on the CPU only (its config has no device)")
     # 1. Data.
     if data is None:
         from skyeyes_bench.data.synthtown import ensure_dataset
@@ -148,7 +154,10 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         fit_s = fit_train_s
         for scene in scenes:
             t0 = time.perf_counter()
-            m.fit_scene(scene)
+            if "progress" in inspect.signature(m.fit_scene).parameters:
+                m.fit_scene(scene, progress=progress)
+            else:
+                m.fit_scene(scene)
             took = time.perf_counter() - t0
             stats = getattr(m, "scene_stats", {}).get(scene.name, {})
             fit_s += float(stats.get("fit_seconds", took))  # a resumed fit reports its original time
@@ -210,5 +219,5 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
 
 def main(args) -> int:
     run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
-        force=args.force, progress=not args.quiet)
+        force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device)
     return 0

@@ -21,8 +21,8 @@ def _one_thread():
 
 def test_overrides_are_typed_and_checked():
     cfg = PRESETS["smoke"]
-    got = parse_overrides(cfg, ["iterations=12", "sfm=false", "margin_m=7.5"])
-    assert got == {"iterations": 12, "sfm": False, "margin_m": 7.5}
+    got = parse_overrides(cfg, ["iterations=12", "init=plane", "margin_m=7.5"])
+    assert got == {"iterations": 12, "init": "plane", "margin_m": 7.5}
     assert isinstance(got["iterations"], int) and isinstance(got["margin_m"], float)
     with pytest.raises(UserError, match="not a field"):
         parse_overrides(cfg, ["nope=1"])
@@ -30,6 +30,19 @@ def test_overrides_are_typed_and_checked():
         parse_overrides(cfg, ["iterations=1.5"])
     with pytest.raises(UserError, match="KEY=VALUE"):
         parse_overrides(cfg, ["iterations"])
+
+
+def test_bool_overrides_accept_the_usual_spellings_only():
+    import dataclasses
+
+    @dataclasses.dataclass
+    class C:
+        flag: bool = True
+
+    for raw, want in [("false", False), ("0", False), ("No", False), ("true", True), ("1", True), ("YES", True)]:
+        assert parse_overrides(C(), [f"flag={raw}"]) == {"flag": want}
+    with pytest.raises(UserError, match="expected a bool"):
+        parse_overrides(C(), ["flag=maybe"])
 
 
 def test_cache_key_depends_on_every_input():
@@ -51,7 +64,7 @@ def test_unknown_method_and_preset_are_one_line_errors(tmp_path):
 def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     out = tmp_path / "run"
     args = ["reproduce", "--method", "gaussians3d", "--preset", "smoke", "--data", str(synthtown_smoke),
-            "--out", str(out), "--quiet", "--set", "iterations=6", "--set", "sfm=false",
+            "--out", str(out), "--quiet", "--set", "iterations=6", "--set", "init=plane", "--set", "train_lanes=0",
             "--set", "fallback_per_view=80", "--set", "densify_from=2", "--set", "densify_every=2"]
     rc, stdout, _ = run_cli(*args)
     assert "psnr" in stdout

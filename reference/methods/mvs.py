@@ -50,6 +50,12 @@ class MVSMethodConfig(gmvs.MVSConfig):
             across the ray only; grazing surfaces then leave gaps other views fill).
         disc_size: disc diameter in footprints.
         opacity: disc opacity (near 1: a z-buffer; lower blends the nearest surfaces).
+        ground_snap_m: fused points within this height (m) of the street (`ground_height`) are
+            put on it, points farther below it dropped; 0 turns the prior off. The stereo puts the
+            street up to ~1 m off its height (SynthTown small: fused street points spread over
+            -1..+1.5 m), which a ground camera 2 m above it sees as clutter smeared towards the
+            horizon. 2 m also flattens cars (measured on lane 0, 40 frames, PSNR after the colour
+            map: off 16.05, 0.5 m 16.07, 1 m 16.17, 1.5 m 16.32, 2 m 16.39, 3 m 16.46).
         render_near_m: discs nearer to a ground camera than this are not drawn.
         train_lanes: train lanes reconstructed to learn the colour map and backgrounds (0: none).
         device: torch device of the plane sweep and the renderer ("cpu", "cuda", ...).
@@ -63,6 +69,7 @@ class MVSMethodConfig(gmvs.MVSConfig):
     max_stretch: float = 1.0
     disc_size: float = 1.0
     opacity: float = 0.98
+    ground_snap_m: float = 2.0
     render_near_m: float = 0.5
     train_lanes: int = 2
     device: str = "cpu"
@@ -71,7 +78,7 @@ class MVSMethodConfig(gmvs.MVSConfig):
 
 PRESETS = {
     # Seconds at 48x48 (tests, CI).
-    "smoke": MVSMethodConfig(planes=32, num_sources=4, train_lanes=1),
+    "smoke": MVSMethodConfig(planes=32, num_sources=4, train_lanes=1, min_consistent=1),
     # The CPU default at 128x128 (about half a minute per lane).
     "small": MVSMethodConfig(),
     # GPU users at 512x512: more planes and sources, every train lane.
@@ -89,6 +96,11 @@ def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, aerial: list | None = Non
     cloud, _, stats = gmvs.run_mvs([f.image() for f in aerial], [f.camera() for f in aerial], box, stereo,
                                    device=cfg.device, progress=progress, max_stretch=cfg.max_stretch)
     stats["box"] = box.tolist()
+    z0 = gmvs.ground_height(cloud)
+    stats["street_height_m"] = z0
+    if z0 is not None and cfg.ground_snap_m > 0:
+        cloud = gmvs.snap_to_plane(cloud, (np.array([0.0, 0.0, 1.0]), z0), cfg.ground_snap_m)
+    stats["points"] = len(cloud)
     return cloud, stats
 
 

@@ -18,6 +18,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config field of the preset (repeatable), e.g. --set iterations=200")
+    p.add_argument("--device", default=None, metavar="DEV",
+                   help="torch device the method runs on, e.g. cpu, cuda, cuda:1 (default: the preset's, cpu)")
     p.add_argument("--force", action="store_true", help="discard cached stages and replace existing outputs")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (they are drawn only on a terminal anyway)")
     p.set_defaults(handler="reference.reproduce:main")

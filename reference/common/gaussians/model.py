@@ -89,6 +89,10 @@ class GaussianModel:
     def sh(self):
         return torch.cat([self.params["sh0"], self.params["shN"]], 1)
 
+    def to(self, device: str | torch.device) -> "GaussianModel":
+        """The same model with its parameters on `device` (new leaf tensors; make the optimiser after)."""
+        return GaussianModel({k: v.detach().to(device) for k, v in self.params.items()})
+
     def state_dict(self) -> dict:
         return {k: v.detach().clone() for k, v in self.params.items()}
 
@@ -138,7 +142,7 @@ class GaussianModel:
         p = {k: v.detach()[idx] for k, v in self.params.items()}
         scales = torch.exp(p["log_scales"]).repeat(n, 1)
         R = quat_to_rotmat(p["quats"]).repeat(n, 1, 1)
-        offs = torch.randn(scales.shape, generator=generator) * scales
+        offs = torch.randn(scales.shape, generator=generator).to(scales.device) * scales
         out = {k: v.repeat(n, *([1] * (v.ndim - 1))) for k, v in p.items()}
         out["means"] = out["means"] + (R @ offs[..., None])[..., 0]
         # NOTE: 0.8 * N shrink factor from 3DGS densify_and_split.

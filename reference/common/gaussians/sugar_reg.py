@@ -30,6 +30,7 @@ class SugarWeights:
 
     entropy_from: int
     sdf_from: int
+    entropy_until: int | None = None  # None: to the end
     lambda_entropy: float = 0.1
     lambda_sdf: float = 0.2
     lambda_normal: float = 0.2
@@ -51,17 +52,17 @@ class SugarRegularizer:
         if self._knn is None or self._knn.shape[0] != n or it - self._knn_it >= self.w.knn_every:
             from scipy.spatial import cKDTree
 
-            xyz = model.means.detach().numpy()
+            xyz = model.means.detach().cpu().numpy()
             k = min(self.w.knn, n)
             _, idx = cKDTree(xyz).query(xyz, k=k)
-            self._knn = torch.from_numpy(np.asarray(idx).reshape(n, k))
+            self._knn = torch.from_numpy(np.asarray(idx).reshape(n, k)).to(model.means.device)
             self._knn_it = it
         return self._knn
 
     def __call__(self, model: GaussianModel, it: int) -> torch.Tensor:
         w = self.w
         loss = model.means.new_zeros(())
-        if it >= w.entropy_from:
+        if it >= w.entropy_from and (w.entropy_until is None or it < w.entropy_until):
             o = model.opacities.clamp(1e-6, 1 - 1e-6)
             ent = (-o * torch.log(o) - (1 - o) * torch.log(1 - o)).mean()
             loss = loss + w.lambda_entropy * ent
@@ -77,11 +78,11 @@ def sdf_terms(model: GaussianModel, knn: torch.Tensor, samples: int, gen: torch.
     """(SDF alignment loss, normal loss), both scalars, from `samples` points drawn from the
     Gaussians (chosen uniformly). knn: [N, k] neighbour indices (self included)."""
     n = len(model)
-    src = torch.randint(0, n, (samples,), generator=gen)
+    src = torch.randint(0, n, (samples,), generator=gen).to(model.means.device)
     means, scales, opac = model.means, model.scales, model.opacities
     R = quat_to_rotmat(model.quats)  # [N, 3, 3]
     with torch.no_grad():  # sample p ~ N(mu, Sigma) of the source Gaussian
-        eps = torch.randn(samples, 3, generator=gen)
+        eps = torch.randn(samples, 3, generator=gen).to(means.device)
         p = means[src] + (R[src] @ (eps * scales[src])[..., None])[..., 0]  # [S, 3]
     nb = knn[src]  # [S, k]
     d = p[:, None, :] - means[nb]  # [S, k, 3]
@@ -91,7 +92,7 @@ def sdf_terms(model: GaussianModel, knn: torch.Tensor, samples: int, gen: torch.
     g = opac[nb] * torch.exp(-0.5 * (y * y).sum(-1))  # [S, k] density contributions
     dens = g.sum(-1).clamp(1e-6, 1 - 1e-6)
     star = g.detach().argmax(-1)  # g*: the most contributing neighbour
-    ar = torch.arange(samples)
+    ar = torch.arange(samples, device=means.device)
     smin, axis = sn[ar, star].min(-1)  # smallest scale and its axis
     n_star = Rn[ar, star, :, axis]  # [S, 3] normal of g*
     ideal = (d[ar, star] * n_star).sum(-1).abs()  # |<p - mu*, n*>|

@@ -111,12 +111,15 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
-    bg = background if background is not None else torch.zeros(3)
+    dev = model.means.device  # everything runs where the model's parameters live
+    bg = (background if background is not None else torch.zeros(3)).to(dev)
+    if box is not None:
+        box = box.to(dev)
     lrs = {"means": cfg.lr_means * extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
            "logit_opacities": cfg.lr_opacity, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
     opt = model.make_optimizer(lrs)
-    grad_acc = torch.zeros(len(model))
-    grad_cnt = torch.zeros(len(model))
+    grad_acc = torch.zeros(len(model), device=dev)
+    grad_cnt = torch.zeros(len(model), device=dev)
     order: list[int] = []
     losses = []
     t_train = 0.0
@@ -140,7 +143,7 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
         # 3. Densification statistics: view-space positional gradient in NDC units (as 3DGS).
         vis = out["visible"]
         if out["means2d"].grad is not None and it < cfg.densify_until:
-            g = out["means2d"].grad.detach() * torch.tensor([view.width / 2, view.height / 2])
+            g = out["means2d"].grad.detach() * torch.tensor([view.width / 2, view.height / 2], device=dev)
             grad_acc[vis] += g[vis].norm(dim=-1)
             grad_cnt[vis] += 1
         opt.step()
@@ -148,10 +151,10 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
         with torch.no_grad():
             if cfg.densify_from <= it < cfg.densify_until and it % cfg.densify_every == 0:
                 _densify(model, opt, grad_acc / grad_cnt.clamp_min(1), cfg, extent, box, gen)
-                grad_acc = torch.zeros(len(model))
-                grad_cnt = torch.zeros(len(model))
+                grad_acc = torch.zeros(len(model), device=dev)
+                grad_cnt = torch.zeros(len(model), device=dev)
             if cfg.opacity_reset_every and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
-                lo = torch.logit(torch.tensor(0.01))
+                lo = torch.logit(torch.tensor(0.01, device=dev))
                 model.params["logit_opacities"].clamp_(max=lo)
                 for group in opt.param_groups:
                     if group["name"] == "logit_opacities":
@@ -186,10 +189,10 @@ def _densify(model: GaussianModel, opt, grads: torch.Tensor, cfg: TrainConfig, e
         new_clone = {k: v.detach()[clone] for k, v in model.params.items()}
         new = {k: torch.cat([new_clone[k], new_split[k]]) for k in new_clone}
         model.append(opt, new)
-        drop = torch.zeros(len(model), dtype=torch.bool)
+        drop = torch.zeros(len(model), dtype=torch.bool, device=model.means.device)
         drop[split] = True  # split parents are replaced by their children
     else:
-        drop = torch.zeros(len(model), dtype=torch.bool)
+        drop = torch.zeros(len(model), dtype=torch.bool, device=model.means.device)
     drop |= model.opacities < cfg.prune_opacity
     if box is not None:
         m = model.means

@@ -44,6 +44,10 @@ class Method(abc.ABC):
         config = dataclasses.replace(lookup(cls.presets, preset, f"preset of method {cls.name!r}"), **overrides)
         return cls(config, workdir, seed=seed)
 
+    def scene_dir(self, scene: Scene) -> Path:
+        """Where a method keeps what it fitted on `scene` (checkpoints, fit.json)."""
+        return self.workdir / "scenes" / scene.name
+
     def config_dict(self) -> dict:
         return dataclasses.asdict(self.config)
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,9 +158,6 @@ class Gaussians3D(Method):
         return None
 
     # ---------------------------------------------------------------- fitting
-    def scene_dir(self, scene: Scene) -> Path:
-        return self.workdir / "scenes" / scene.name
-
     def fit_scene(self, scene: Scene, *, callback=None, progress: bool = True) -> None:
         cfg = self.config
         set_threads(cfg.threads)

@@ -22,7 +22,6 @@ import json
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Iterator
 
 import numpy as np
@@ -151,9 +150,6 @@ class MVS(Method):
                  np.round(self.backgrounds.sky, 3).tolist(), np.round(self.backgrounds.ground, 3).tolist())
 
     # ---------------------------------------------------------------- test scenes
-    def scene_dir(self, scene: Scene) -> Path:
-        return self.workdir / "scenes" / scene.name
-
     def _surfel_params(self, cloud: gmvs.PointCloud) -> dict:
         cfg = self.config
         params = splat.surfels(splat.voxel_downsample(cloud, cfg.voxel_m), size=cfg.disc_size)

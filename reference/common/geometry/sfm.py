@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Frame
 
 log = logging.getLogger(__name__)

@@ -63,10 +63,8 @@ class ColourMap:
 
 def above_horizon(cam) -> np.ndarray:
     """[H, W] bool: the pixel's ray points up (world z > 0)."""
-    h, w = cam.height, cam.width
-    v, u = np.mgrid[0:h, 0:w] + 0.5
-    d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-    return (d @ cam.c2w[:3, :3].T)[..., 2] > 0
+    _, d = cam.rays(normalize=False)
+    return (d[:, 2] > 0).reshape(cam.height, cam.width)
 
 
 @dataclass

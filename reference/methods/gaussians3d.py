@@ -114,9 +114,8 @@ def rays_hit_box(frame: Frame, box: np.ndarray) -> np.ndarray:
     """[H, W] bool: the pixel's ray crosses the box (else no Gaussian of ours can explain it)."""
     cam = frame.camera()
     h, w = frame.height, frame.width
-    v, u = np.mgrid[0:h, 0:w] + 0.5
-    d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-    d = d @ cam.c2w[:3, :3].T
+    _, d = cam.rays(normalize=False)
+    d = d.reshape(h, w, 3)
     o = cam.c2w[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t0 = (box[0] - o) / d

@@ -89,17 +89,18 @@ PRESETS = {
     # Seconds per scene on 2 CPU cores at 48x48 (tests, CI).
     "smoke": Gaussians3DConfig(iterations=80, densify_from=20, densify_until=60, densify_every=20,
                                sh_degree=0, max_gaussians=3000, init_max_points=1500, fallback_per_view=400,
-                               opacity_reset_every=0, init_max_scale=1.0),
+                               opacity_reset_every=0, init_max_scale=1.0, mvs_preset="smoke", train_lanes=1),
     # The CPU default at 128x128 (minutes per scene).
     # Ground PSNR against training seconds from the MVS start (bench/gaussians.py fit, lane 0,
-    # 2026-11-24): 16.27 dB at 400 iterations, 16.40 at 800, flat to 1200 (docs/reproduce.md).
+    # 2026-11-24): 16.15 dB at 400 iterations, 16.24 at 800, flat to 1200 (docs/reproduce.md).
     "small": Gaussians3DConfig(iterations=800, densify_from=50, densify_until=600, densify_every=50,
                                sh_degree=1, sh_increase_every=200, max_gaussians=40_000,
                                init_max_points=30_000, opacity_reset_every=0),
     # 3DGS's own schedule (GPU users; the paper trains SuGaR 15k iterations at 512x512).
     "paper": Gaussians3DConfig(iterations=15_000, densify_from=500, densify_until=7_000, densify_every=100,
                                sh_degree=3, sh_increase_every=1000, max_gaussians=1_000_000,
-                               init_max_points=200_000, opacity_reset_every=3000),
+                               init_max_points=200_000, opacity_reset_every=3000, mvs_preset="paper",
+                               init_voxel_m=0.1),
 }
 
 

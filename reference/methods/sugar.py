@@ -42,8 +42,9 @@ def _from(base: Gaussians3DConfig, **kw) -> SuGaRConfig:
 
 PRESETS = {
     "smoke": _from(G3D_PRESETS["smoke"], sdf_samples=500, knn=8),
-    # From the MVS start the SDF/normal terms help the ground views: 16.32 dB before them, 16.74
-    # 300 iterations after they start, flat after (bench/gaussians.py fit, lane 0, 2026-11-24).
+    # From the MVS start the SDF/normal terms help the ground views: 16.12 dB before them, 16.51
+    # ~230 iterations after they start, slowly less after (bench/gaussians.py fit, lane 0,
+    # 2026-11-24, docs/reproduce.md).
     "small": _from(G3D_PRESETS["small"], sdf_samples=1500, iterations=1000, densify_until=600),
     "paper": _from(G3D_PRESETS["paper"], sdf_samples=100_000),
 }

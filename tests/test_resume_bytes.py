@@ -170,3 +170,43 @@ def test_scene_fitting_methods_resume_to_the_same_bytes(method, synthtown_smoke,
     # 4. The last resume renders from the checkpoint read back (run A from the model in memory).
     reproduce(method, synthtown_smoke, b, tmp_path / "cache-b", monkeypatch)
     assert_same_run(a, b)
+
+
+def _diffusion_resume(method, data, tmp_path, monkeypatch):
+    """Run A; run B killed in the prior stage (Skyeyes), mid-stage in the ACM training (a
+    half-written checkpoint left beside the last good one) and mid-render; compare."""
+    pytest.importorskip("diffusers")
+    from reference.common.diffusion import train
+    from reference.methods.mvs import MVS
+
+    cls = get_method_class(method)
+    a, b = tmp_path / "a", tmp_path / "b"
+    # Separate caches: the diffusion stages and prior renders live in the cache, not in --out.
+    reproduce(method, data, a, tmp_path / "cache-a", monkeypatch)
+    if cls.presets["smoke"].condition == "prior":
+        # 1. Killed once the prior (mvs) has fitted the train lane, before its renders are cached.
+        with kill_after(monkeypatch, MVS, "fit_scene"):
+            reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
+    # 2. Killed in the ACM stage: base saves at steps 2 and 4, the ACM first at its step 2.
+    with kill_after(monkeypatch, train, "save_checkpoint", 3):
+        reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
+    (acm,) = (tmp_path / "cache-b" / "reference" / "diffusion").glob("acm-*/train-4.pt")
+    assert int(train.load_checkpoint(acm)["step"]) == 2
+    leave_half_written(acm, acm)
+    # 3. Killed mid second sequence.
+    with kill_after(monkeypatch, cls, "render_sequence", 21):
+        reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
+    # 4. Done.
+    reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
+    assert_same_run(a, b)
+    assert (a / "figure.png").read_bytes() == (b / "figure.png").read_bytes()
+
+
+def test_controlnet_resumes_to_the_same_bytes(synthtown_smoke, tmp_path, monkeypatch):
+    _diffusion_resume("controlnet", synthtown_smoke, tmp_path, monkeypatch)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["skyeyes", "skyeyes-no-vcm"])
+def test_skyeyes_resumes_to_the_same_bytes(method, synthtown_smoke, tmp_path, monkeypatch):
+    _diffusion_resume(method, synthtown_smoke, tmp_path, monkeypatch)

@@ -377,7 +377,9 @@ class Skyeyes(Method):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
                 _resize_hw(img[None], f.height, f.width)[0]
             out.append(core.tensor_to_images(img[None])[0])
-        if not self._figure_written:
+        # The figure shows the first sequence rendered in this workdir. A resumed run renders
+        # the sequences a killed one left undone first, so it keeps the figure already there.
+        if not self._figure_written and not (self.workdir / "figure.png").is_file():
             self._figure_written = True
             write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
                          condition=self.config.condition)

@@ -94,3 +94,51 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     assert renders[0].is_file()
     assert json.loads((out / "results.json").read_text())["metrics"]["psnr"]["status"] == "ok"
     assert other.stat().st_mtime_ns == other_mtime  # complete sequences are not re-rendered
+
+
+def test_an_out_of_another_run_is_refused_without_force(synthtown_smoke, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    base = ["reproduce", "--data", str(synthtown_smoke), "--out", str(out), "--quiet"]
+    run_cli(*base, "--method", "mean-frame")
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    # The same run again resumes (no --force needed).
+    run_cli(*base, "--method", "mean-frame")
+    assert json.loads((out / "config.json").read_text())["method"] == "mean-frame"
+
+    # Another method, another config, another seed, other code: one line, exit 2, nothing touched.
+    unchanged = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for extra, why in ((["--method", "gaussians3d"], "method 'mean-frame' there, 'gaussians3d' here"),
+                       (["--method", "mean-frame", "--set", "max_frames=7"], "max_frames=0 there, 7 here"),
+                       (["--method", "mean-frame", "--seed", "3"], "seed 0 there, 3 here")):
+        _, _, err = run_cli(*base, *extra, check=2)
+        assert err.count("\n") == 1 and str(out) in err and why in err and "--force" in err and "--out" in err, err
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == unchanged
+    with monkeypatch.context() as mp:
+        mp.setattr("reference.reproduce.code_sha", lambda cls: "changed")
+        _, _, err = run_cli(*base, "--method", "mean-frame", check=2)
+        assert "other code" in err
+    assert set(before) == set(unchanged)
+
+    # Checked before any work: the default dataset is not even generated.
+    monkeypatch.setattr("skyeyes_bench.data.synthtown.ensure_dataset",
+                        lambda *a, **k: pytest.fail("dataset generated before the --out check"))
+    _, _, err = run_cli("reproduce", "--out", str(out), "--quiet", "--method", "mvs", check=2)
+    assert "method 'mean-frame' there, 'mvs' here" in err
+
+    # --force replaces the other run's outputs.
+    run_cli(*base, "--method", "mean-frame", "--seed", "3", "--force")
+    assert json.loads((out / "config.json").read_text())["seed"] == 3
+    assert json.loads((out / "submission" / "submission.json").read_text())["config"]["seed"] == 3
+
+    # Outputs with no config.json are another run's too.
+    other = tmp_path / "evaluated"
+    other.mkdir()
+    (other / "results.json").write_text("{}")
+    _, _, err = run_cli("reproduce", "--data", str(synthtown_smoke), "--out", str(other), "--method", "mean-frame",
+                        check=2)
+    assert "outputs without a config.json" in err
+    # An empty or unrelated folder is fine.
+    (tmp_path / "fresh").mkdir()
+    (tmp_path / "fresh" / "notes.txt").write_text("mine")
+    run_cli("reproduce", "--data", str(synthtown_smoke), "--out", str(tmp_path / "fresh"), "--method", "mean-frame",
+            "--quiet")

@@ -202,7 +202,9 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             shutil.rmtree(work)
         fileio.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
-        m = cls(config, work / "method", seed=seed)
+        # Methods whose own stages draw bars (Skyeyes: training, priors) take `progress` here.
+        takes_progress = "progress" in inspect.signature(cls.__init__).parameters
+        m = cls(config, work / "method", seed=seed, **({"progress": progress} if takes_progress else {}))
         # 2. Fit: train split, then each test scene (checkpoints make this resumable).
         t0 = time.perf_counter()
         m.fit_train(ds)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import inspect
 import json
 import zlib
 from dataclasses import dataclass, field
@@ -151,7 +152,10 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
                 for f in scene.ground:
                     out[_frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
             continue
-        prior_method.fit_scene(scene)
+        if "progress" in inspect.signature(prior_method.fit_scene).parameters:
+            prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
+        else:
+            prior_method.fit_scene(scene)
         rendered: dict[str, np.ndarray] = {}
         for seq in scene.sequences.values():
             for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):

@@ -11,6 +11,9 @@ work/<key>/            stage cache, key = sha256(method, config, seed, dataset m
 submission/            the submission (SubmissionWriter)
 results.json           evaluate(...) of the submission
 ```
+
+An --out belongs to one run, the one its config.json records: the same run (same cache key)
+resumes there; any other run is refused (`check_out`) unless --force, which replaces its outputs.
 """
 
 from __future__ import annotations
@@ -86,13 +89,63 @@ def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str,
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def check_out(out: Path, mine: dict, *, force: bool) -> None:
+    """Refuse an --out that holds another run's outputs, unless `force`.
+
+    The run in `out` is the one its config.json records. The same run (same cache key) resumes
+    there without --force; a different one (or outputs with no config.json) would be silently
+    replaced, so that is a one-line UserError. `mine` holds what is known of this run so far:
+    before the dataset is opened, method, method_version, seed and the resolved config (a cheap
+    early check); after, also the cache key, which decides.
+    """
+    if force or not out.is_dir():
+        return
+    cfg = out / "config.json"
+    if cfg.is_file():
+        try:
+            theirs = json.loads(cfg.read_text())
+        except (OSError, ValueError):
+            theirs = {}
+        if "cache_key" in mine and theirs.get("cache_key") == mine["cache_key"]:
+            return
+        why = _difference(theirs, mine)
+        if why is None:
+            return  # the early check: nothing known so far differs
+    elif any((out / name).exists() for name in ("results.json", "submission", "work")):
+        why = "outputs without a config.json"
+    else:
+        return
+    raise UserError(f"{out}: holds the outputs of another run ({why}); pass --force to replace them, "
+                    "or choose another --out")
+
+
+def _difference(theirs: dict, mine: dict) -> str | None:
+    """The first way the recorded run `theirs` differs from `mine`, in words (None: none known)."""
+    for k in ("method", "method_version", "seed"):
+        if theirs.get(k) != mine[k]:
+            return f"{k} {theirs.get(k)!r} there, {mine[k]!r} here"
+    old, new = theirs.get("config") or {}, json.loads(json.dumps(mine["config"]))  # tuples as JSON lists
+    if old != new:
+        keys = [*new, *(k for k in old if k not in new)]
+        diff = [f"{k}={old.get(k, '<unset>')!r} there, {new.get(k, '<unset>')!r} here" for k in keys
+                if old.get(k) != new.get(k)]
+        return "config " + "; ".join(diff[:3]) + (f"; {len(diff) - 3} more" if len(diff) > 3 else "")
+    if "cache_key" not in mine:
+        return None
+    if (theirs.get("dataset") or {}).get("manifest_sha256") != mine["dataset"]["manifest_sha256"]:
+        return f"dataset {(theirs.get('dataset') or {}).get('root')!r} there, {mine['dataset']['root']!r} here"
+    if theirs.get("code_sha256") != mine["code_sha256"]:
+        return "made by other code of the method"
+    return f"cache key {theirs.get('cache_key')!r} there, {mine['cache_key']!r} here"
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
-def _setup_log(out: Path) -> tuple[logging.Handler, ...]:
+def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]:
     out.mkdir(parents=True, exist_ok=True)
-    fh = logging.FileHandler(out / "reproduce.log")
+    fh = logging.FileHandler(out / "reproduce.log", mode="w" if fresh else "a")
     fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     sh = logging.StreamHandler(sys.stderr)
     sh.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
@@ -121,6 +174,10 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             overrides = [*(overrides or []), f"device={device}"]
         elif device != "cpu":
             raise UserError(f"--device {device}: method {method!r} runs on the CPU only (its config has no device)")
+    out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
+    config_d = dataclasses.asdict(config)
+    ident = {"method": method, "method_version": cls.version, "seed": seed, "config": config_d}
+    check_out(out, ident, force=force)  # before the dataset is generated
     # 1. Data.
     if data is None:
         from skyeyes_bench.data.synthtown import ensure_dataset
@@ -128,24 +185,26 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         data = ensure_dataset(preset, progress=progress)
     root = Path(data)
     ds = open_dataset(root)
-    out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
-    handlers = _setup_log(out)
+    dsha, csha = dataset_sha(root, ds), code_sha(cls)
+    key = cache_key(method, cls.version, config_d, seed, dsha, csha)
+    record = {
+        "method": method, "method_version": cls.version, "preset": preset, "overrides": list(overrides or []),
+        "seed": seed, "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
+        "manifest_sha256": dsha}, "code_sha256": csha,
+        "repeat": f"skyeyes-bench reproduce --method {method} --preset {preset} --seed {seed} --data {root} "
+                  + " ".join(f"--set {o}" for o in overrides or []),
+    }
+    check_out(out, record, force=force)  # before anything is written to --out
+    handlers = _setup_log(out, fresh=force)
     try:
-        config_d = dataclasses.asdict(config)
-        dsha, csha = dataset_sha(root, ds), code_sha(cls)
-        key = cache_key(method, cls.version, config_d, seed, dsha, csha)
         work = out / "work" / key
         if force and work.exists():
             shutil.rmtree(work)
-        fileio.write_json(out / "config.json", {
-            "method": method, "method_version": cls.version, "preset": preset, "overrides": list(overrides or []),
-            "seed": seed, "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
-            "manifest_sha256": dsha}, "code_sha256": csha,
-            "repeat": f"skyeyes-bench reproduce --method {method} --preset {preset} --seed {seed} --data {root} "
-                      + " ".join(f"--set {o}" for o in overrides or []),
-        })
+        fileio.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
-        m = cls(config, work / "method", seed=seed)
+        # Methods whose own stages draw bars (Skyeyes: training, priors) take `progress` here.
+        takes_progress = "progress" in inspect.signature(cls.__init__).parameters
+        m = cls(config, work / "method", seed=seed, **({"progress": progress} if takes_progress else {}))
         # 2. Fit: train split, then each test scene (checkpoints make this resumable).
         t0 = time.perf_counter()
         m.fit_train(ds)
@@ -209,6 +268,8 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             with fileio.atomic_path(out / "figure.png") as tmp:
                 shutil.copyfile(fig, tmp)
             print(f"figure: {out / 'figure.png'}")
+        elif (out / "figure.png").is_file():
+            (out / "figure.png").unlink()  # another run's, replaced with --force
         return res
     finally:
         lg = logging.getLogger("reference")

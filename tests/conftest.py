@@ -1,3 +1,4 @@
+import io
 import os
 import sys
 from pathlib import Path
@@ -15,14 +16,19 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
     yield
 
 
-def run_cli(*args: str, check: int | None = 0):
-    """Run `skyeyes-bench ARGS` in-process; return (rc, stdout, stderr)."""
+class _TTYStringIO(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def run_cli(*args: str, check: int | None = 0, tty: bool = False):
+    """Run `skyeyes-bench ARGS` in-process; return (rc, stdout, stderr). tty=True: stderr says it
+    is a terminal (progress bars are drawn only there)."""
     import contextlib
-    import io
 
     from skyeyes_bench.cli import main
 
-    out, err = io.StringIO(), io.StringIO()
+    out, err = io.StringIO(), (_TTYStringIO() if tty else io.StringIO())
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
             rc = main(list(args))

@@ -1,6 +1,7 @@
 """`skyeyes-bench reproduce`: overrides, cache keys, an end-to-end smoke run and its resume."""
 
 import json
+import re
 
 import pytest
 import torch
@@ -94,3 +95,118 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     assert renders[0].is_file()
     assert json.loads((out / "results.json").read_text())["metrics"]["psnr"]["status"] == "ok"
     assert other.stat().st_mtime_ns == other_mtime  # complete sequences are not re-rendered
+
+
+def test_an_out_of_another_run_is_refused_without_force(synthtown_smoke, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    base = ["reproduce", "--data", str(synthtown_smoke), "--out", str(out), "--quiet"]
+    run_cli(*base, "--method", "mean-frame")
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    # The same run again resumes (no --force needed).
+    run_cli(*base, "--method", "mean-frame")
+    assert json.loads((out / "config.json").read_text())["method"] == "mean-frame"
+
+    # Another method, another config, another seed, other code: one line, exit 2, nothing touched.
+    unchanged = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for extra, why in ((["--method", "gaussians3d"], "method 'mean-frame' there, 'gaussians3d' here"),
+                       (["--method", "mean-frame", "--set", "max_frames=7"], "max_frames=0 there, 7 here"),
+                       (["--method", "mean-frame", "--seed", "3"], "seed 0 there, 3 here")):
+        _, _, err = run_cli(*base, *extra, check=2)
+        assert err.count("\n") == 1 and str(out) in err and why in err and "--force" in err and "--out" in err, err
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == unchanged
+    with monkeypatch.context() as mp:
+        mp.setattr("reference.reproduce.code_sha", lambda cls: "changed")
+        _, _, err = run_cli(*base, "--method", "mean-frame", check=2)
+        assert "other code" in err
+    assert set(before) == set(unchanged)
+
+    # Checked before any work: the default dataset is not even generated.
+    monkeypatch.setattr("skyeyes_bench.data.synthtown.ensure_dataset",
+                        lambda *a, **k: pytest.fail("dataset generated before the --out check"))
+    _, _, err = run_cli("reproduce", "--out", str(out), "--quiet", "--method", "mvs", check=2)
+    assert "method 'mean-frame' there, 'mvs' here" in err
+
+    # --force replaces the other run's outputs.
+    run_cli(*base, "--method", "mean-frame", "--seed", "3", "--force")
+    assert json.loads((out / "config.json").read_text())["seed"] == 3
+    assert json.loads((out / "submission" / "submission.json").read_text())["config"]["seed"] == 3
+
+    # Outputs with no config.json are another run's too.
+    other = tmp_path / "evaluated"
+    other.mkdir()
+    (other / "results.json").write_text("{}")
+    _, _, err = run_cli("reproduce", "--data", str(synthtown_smoke), "--out", str(other), "--method", "mean-frame",
+                        check=2)
+    assert "outputs without a config.json" in err
+    # An empty or unrelated folder is fine.
+    (tmp_path / "fresh").mkdir()
+    (tmp_path / "fresh" / "notes.txt").write_text("mine")
+    run_cli("reproduce", "--data", str(synthtown_smoke), "--out", str(tmp_path / "fresh"), "--method", "mean-frame",
+            "--quiet")
+
+
+#: A tqdm bar as drawn: "desc:  40%|####      | 2/5 [00:01<00:01, 2.00it/s]".
+BAR = re.compile(r"\d+/\d+ \[\d\d:\d\d")
+
+
+def _bars(err: str) -> set[str]:
+    """The descriptions of the progress bars drawn on `err`."""
+    return {line.split(":")[0].strip() for line in re.split(r"[\r\n]", err) if BAR.search(line)}
+
+
+def test_quiet_hides_every_progress_bar(synthtown_smoke, tmp_path):
+    args = ["reproduce", "--method", "sugar", "--data", str(synthtown_smoke), "--set", "iterations=4",
+            "--set", "init=plane", "--set", "train_lanes=0", "--set", "fallback_per_view=80"]
+    # On a terminal the bars are drawn (this is what the test can see) ...
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "a"), tty=True)
+    assert {"fit", "render", "per-frame metrics"} <= _bars(err), err
+    # ... and --quiet hides every one of them; so does a stderr that is not a terminal.
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "b"), "--quiet", tty=True)
+    assert not _bars(err), err
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "c"))
+    assert not _bars(err), err
+
+
+TINY_DIFFUSION = ["base_steps=2", "base_batch=2", "acm_steps=2", "acm_batch=2", "vcm_steps=2", "clip_frames=4",
+                  "sample_steps=1", "prior_method=mvs", "threads=1"]
+
+
+def test_quiet_hides_the_diffusion_training_bars(synthtown_smoke, tmp_path, monkeypatch):
+    pytest.importorskip("diffusers")
+    args = ["reproduce", "--method", "controlnet", "--data", str(synthtown_smoke),
+            *(f"--set={s}" for s in TINY_DIFFUSION)]
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "b"), "--quiet", tty=True)
+    assert not _bars(err), err
+    monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path / "cache-2"))  # nothing reused: every stage runs
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "a"), tty=True)
+    assert {"base", "acm", "render"} <= _bars(err), err
+
+
+def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
+    pytest.importorskip("diffusers")
+    from reference.methods.mvs import MVS
+    from reference.methods.skyeyes import render_priors
+    from skyeyes_bench.data.layout import open_dataset
+
+    class Recording(MVS):
+        def fit_scene(self, scene, *, progress=True):
+            told.append(progress)
+            super().fit_scene(scene, progress=progress)
+
+    told: list[bool] = []
+    ds = open_dataset(synthtown_smoke)
+    prior = Recording.from_preset("smoke", tmp_path / "prior", planes=4, num_sources=2, threads=1)
+    render_priors(ds, ds.split("test"), prior, progress=False)
+    assert told == [False]
+
+
+@pytest.mark.slow
+def test_quiet_hides_the_skyeyes_training_and_prior_bars(synthtown_smoke, tmp_path, monkeypatch):
+    pytest.importorskip("diffusers")
+    args = ["reproduce", "--method", "skyeyes", "--data", str(synthtown_smoke),
+            *(f"--set={s}" for s in TINY_DIFFUSION)]
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "b"), "--quiet", tty=True)
+    assert not _bars(err), err
+    monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path / "cache-2"))  # nothing reused: every stage runs
+    _, _, err = run_cli(*args, "--out", str(tmp_path / "a"), tty=True)
+    assert {"priors", "mvs", "base", "acm", "vcm", "render"} <= _bars(err), err

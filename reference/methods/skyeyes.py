@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import inspect
 import json
 import zlib
 from dataclasses import dataclass, field
@@ -151,7 +152,10 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
                 for f in scene.ground:
                     out[_frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
             continue
-        prior_method.fit_scene(scene)
+        if "progress" in inspect.signature(prior_method.fit_scene).parameters:
+            prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
+        else:
+            prior_method.fit_scene(scene)
         rendered: dict[str, np.ndarray] = {}
         for seq in scene.sequences.values():
             for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
@@ -377,7 +381,9 @@ class Skyeyes(Method):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
                 _resize_hw(img[None], f.height, f.width)[0]
             out.append(core.tensor_to_images(img[None])[0])
-        if not self._figure_written:
+        # The figure shows the first sequence rendered in this workdir. A resumed run renders
+        # the sequences a killed one left undone first, so it keeps the figure already there.
+        if not self._figure_written and not (self.workdir / "figure.png").is_file():
             self._figure_written = True
             write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
                          condition=self.config.condition)

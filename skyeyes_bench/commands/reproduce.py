@@ -9,7 +9,9 @@ def register(sub) -> None:
         description="Run a reference method end to end: data (SynthTown by default), fit on each test "
         "scene's aerial views, render its ground cameras, write a submission, evaluate it, print the "
         "summary and leave results.json in --out. Stages are cached by content hash under --out, so an "
-        "interrupted run resumes where it stopped.")
+        "interrupted run resumes where it stopped: run the same command again. An --out holding another "
+        "run's outputs (another method, config, seed, dataset or code: its config.json says) is refused "
+        "unless --force.")
     p.add_argument("--method", required=True, help="reference method id (e.g. sugar, gaussians3d, skyeyes)")
     p.add_argument("--preset", default="smoke", help="method preset: smoke | small | paper (default: smoke)")
     p.add_argument("--data", default=None, metavar="DIR",
@@ -20,6 +22,8 @@ def register(sub) -> None:
                    help="override one config field of the preset (repeatable), e.g. --set iterations=200")
     p.add_argument("--device", default=None, metavar="DEV",
                    help="torch device the method runs on, e.g. cpu, cuda, cuda:1 (default: the preset's, cpu)")
-    p.add_argument("--force", action="store_true", help="discard cached stages and replace existing outputs")
+    p.add_argument("--force", action="store_true",
+                   help="discard this run's cached stages and replace the outputs in --out, also another run's "
+                        "(without it the same run resumes, another run's --out is refused)")
     p.add_argument("--quiet", action="store_true", help="no progress bars (they are drawn only on a terminal anyway)")
     p.set_defaults(handler="reference.reproduce:main")

@@ -58,7 +58,9 @@ class MVSMethodConfig(gmvs.MVSConfig):
         render_near_m: discs nearer to a ground camera than this are not drawn.
         train_lanes: train lanes reconstructed to learn the colour map and backgrounds (0: none).
         device: torch device of the plane sweep and the renderer ("cpu", "cuda", ...).
-        threads: torch intra-op threads on the CPU.
+        threads: torch intra-op threads on the CPU. 1 by default, as `gaussians3d`: on this shared
+            2-core machine a second OpenMP thread made a smoke run 95 s instead of 14 s, and under
+            load 4-5 a small lane's stereo 170 s instead of 156 s.
     """
 
     margin_m: float = 30.0
@@ -72,7 +74,7 @@ class MVSMethodConfig(gmvs.MVSConfig):
     render_near_m: float = 0.5
     train_lanes: int = 2
     device: str = "cpu"
-    threads: int = 2
+    threads: int = 1
 
 
 PRESETS = {

@@ -12,12 +12,7 @@ from reference.reproduce import cache_key, parse_overrides
 from skyeyes_bench.errors import UserError
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # shared 2-core machine: a second OpenMP thread only spins
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest: a second thread only spins here
 
 
 def test_overrides_are_typed_and_checked():
@@ -171,15 +166,19 @@ TINY_DIFFUSION = ["base_steps=2", "base_batch=2", "acm_steps=2", "acm_batch=2", 
                   "sample_steps=1", "prior_method=mvs", "threads=1"]
 
 
-def test_quiet_hides_the_diffusion_training_bars(synthtown_smoke, tmp_path, monkeypatch):
+@pytest.mark.parametrize("method, bars", [
+    ("controlnet", {"base", "acm", "render"}),
+    pytest.param("skyeyes", {"priors", "mvs", "base", "acm", "vcm", "render"}, marks=pytest.mark.slow),
+])
+def test_quiet_hides_the_diffusion_training_bars(method, bars, synthtown_smoke, tmp_path, monkeypatch):
     pytest.importorskip("diffusers")
-    args = ["reproduce", "--method", "controlnet", "--data", str(synthtown_smoke),
+    args = ["reproduce", "--method", method, "--data", str(synthtown_smoke),
             *(f"--set={s}" for s in TINY_DIFFUSION)]
     _, _, err = run_cli(*args, "--out", str(tmp_path / "b"), "--quiet", tty=True)
     assert not _bars(err), err
     monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path / "cache-2"))  # nothing reused: every stage runs
     _, _, err = run_cli(*args, "--out", str(tmp_path / "a"), tty=True)
-    assert {"base", "acm", "render"} <= _bars(err), err
+    assert bars <= _bars(err), err
 
 
 def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
@@ -199,14 +198,3 @@ def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
     render_priors(ds, ds.split("test"), prior, progress=False)
     assert told == [False]
 
-
-@pytest.mark.slow
-def test_quiet_hides_the_skyeyes_training_and_prior_bars(synthtown_smoke, tmp_path, monkeypatch):
-    pytest.importorskip("diffusers")
-    args = ["reproduce", "--method", "skyeyes", "--data", str(synthtown_smoke),
-            *(f"--set={s}" for s in TINY_DIFFUSION)]
-    _, _, err = run_cli(*args, "--out", str(tmp_path / "b"), "--quiet", tty=True)
-    assert not _bars(err), err
-    monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path / "cache-2"))  # nothing reused: every stage runs
-    _, _, err = run_cli(*args, "--out", str(tmp_path / "a"), tty=True)
-    assert {"priors", "mvs", "base", "acm", "vcm", "render"} <= _bars(err), err

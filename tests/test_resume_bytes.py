@@ -27,12 +27,7 @@ class Killed(BaseException):
     """Stands in for SIGKILL: derives from BaseException so no `except Exception` swallows it."""
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # shared 2-core machine: a second OpenMP thread only spins
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest: a second thread only spins here
 
 
 #: Tiny settings per method: each run takes seconds.

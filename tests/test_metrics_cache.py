@@ -92,3 +92,38 @@ def test_mixed_sizes_in_one_batch(tmp_path):
     ex = get_extractor("random-image-64")
     for p, g in zip(ps, got):
         assert np.allclose(g, ex.features(read_image(p)[None])[0], rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("damage", ["delete", "flip"])
+def test_warm_cache_needs_verified_weights(frames, monkeypatch, damage):
+    """Issue 14: with the weight file deleted or one byte flipped, cached features must not be
+    served; the metric is unavailable with the fixing command."""
+    import hashlib
+
+    from skyeyes_bench.metrics import extractors as E
+    from skyeyes_bench.metrics import weights as W
+
+    blob = bytes(range(256)) * 8
+    wdir = paths.weights_dir()
+    wdir.mkdir(parents=True, exist_ok=True)
+    (wdir / "fake-weights.bin").write_bytes(blob)
+    monkeypatch.setitem(W.WEIGHT_FILES, "fake-weights.bin", W.WeightFile(
+        "fake-weights.bin", hashlib.sha256(blob).hexdigest(), note="test"))
+
+    class Weighted(E.RandomImage64):  # random features, but guarded by a real weight file
+        id, files = "weighted-image-64", ("fake-weights.bin",)
+        weights_sha256 = E.Extractor.weights_sha256
+        status = E.Extractor.status
+
+    monkeypatch.setitem(E.EXTRACTORS, Weighted.id, Weighted)
+    monkeypatch.delitem(E._INSTANCES, Weighted.id, raising=False)
+    cache.extract_image_features(Weighted.id, frames, progress=False)
+    cache.extract_image_features(Weighted.id, frames, progress=False)
+    assert cache.last_call["hits"] == len(frames)  # warm
+    p = wdir / "fake-weights.bin"
+    if damage == "delete":
+        p.unlink()
+    else:
+        p.write_bytes(bytes([blob[0] ^ 1]) + blob[1:])  # one bit, same size
+    with pytest.raises(W.MetricUnavailable, match="weighted-image-64 unavailable: weights (missing|mismatch).*fix: "):
+        cache.extract_image_features(Weighted.id, frames, progress=False)

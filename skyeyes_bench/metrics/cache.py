@@ -1,6 +1,7 @@
 """Feature cache: features of image files and clips, keyed by content, never recomputed.
 
-Key: (extractor id, weights sha256, content sha256), where the content sha256 is the file's
+Key: (extractor id, weights sha256, content sha256); the weight files are verified (memoised
+sha256) before any entry is read, so entries are only ever reused with the weights they came from, where the content sha256 is the file's
 sha256 for an image and, for a clip, the sha256 of its ordered member file sha256s. An entry is
 `<features_dir>/<extractor id>/<weights sha256[:16]>/<key[:2]>/<key>.f64`: the float64
 little-endian feature bytes followed by their own sha256 (32 bytes), so a truncated or
@@ -52,6 +53,9 @@ def _write_entry(path: Path, feat: np.ndarray) -> None:
 
 def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress: bool, unit: str) -> np.ndarray:
     ex = get_extractor(extractor_id)
+    # Cached features are reused only with verified weights: a deleted or altered weight file
+    # makes the metric unavailable (with the fixing command) even when every feature is cached.
+    ex._require()
     last_call.update(hits=0, misses=0, corrupt=0)
     out = np.zeros((len(keys), ex.dim), np.float64)
     todo = []

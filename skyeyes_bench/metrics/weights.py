@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+import time
 import zipfile
 from pathlib import Path
 
@@ -140,16 +141,21 @@ def check(name: str) -> tuple[str, str, str]:
     return "present", f"{w.path} (sha256 {digest[:16]}...)", ""
 
 
-_SHA_MEMO: dict[tuple[str, int, int], str] = {}
+_SHA_MEMO: dict[tuple[str, int, int, int, int], str] = {}
 
 
 def _cached_sha256(path: Path) -> str:
     """sha256 of a file, memoised on (path, size, mtime) so repeated checks are free."""
     st = path.stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _SHA_MEMO:
-        _SHA_MEMO[key] = sha256_file(path)
-    return _SHA_MEMO[key]
+    key = (str(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    if key in _SHA_MEMO:
+        return _SHA_MEMO[key]
+    digest = sha256_file(path)
+    # A file changed within the filesystem's timestamp granularity of an earlier look keeps its
+    # stat key ("racy git"); only files untouched for 2 s are memoised.
+    if time.time() - max(st.st_mtime, st.st_ctime) > 2.0:
+        _SHA_MEMO[key] = digest
+    return digest
 
 
 def require(name: str, metric: str) -> Path:

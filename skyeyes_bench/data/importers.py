@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,12 +18,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .. import fileio
+from .. import fields, fileio
 from ..cameras import from_carla, from_matrixcity, intrinsics
 from ..errors import UserError
 from .layout import DatasetWriter
 
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 #: CARLA depth camera: 24-bit code over 3 channels, far plane at 1000 m.
 #: NOTE: CARLA docs, "Sensors reference / Depth camera": normalized = (R + G*256 + B*256^2)
@@ -134,43 +132,21 @@ def resample_step(step_m: float, target_m: float, tol: float = 0.1) -> int | Non
 # --------------------------------------------------------------------------- field checks
 
 
-def _fail(where: str, msg: str):
-    raise UserError(f"{where}: {msg}")
+_fail, _numbers, _number, _int, _name = fields.fail, fields.numbers, fields.number, fields.integer, fields.name
 
 
-def _numbers(where: str, value: Any, n: int, what: str) -> np.ndarray:
-    ok = isinstance(value, list) and len(value) == n and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-    if not ok:
-        _fail(where, f"expected {what} ({n} finite numbers), got {value!r}")
-    return np.asarray(value, dtype=np.float64)
-
-
-def _number(where: str, value: Any, what: str, lo: float = -math.inf, hi: float = math.inf) -> float:
-    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and lo < value < hi):
-        _fail(where, f"expected {what}, got {value!r}")
-    return float(value)
-
-
-def _int(where: str, value: Any, what: str, lo: int = 0) -> int:
-    if not (isinstance(value, int) and not isinstance(value, bool) and value >= lo):
-        _fail(where, f"expected {what} (an integer >= {lo}), got {value!r}")
-    return int(value)
-
-
-def _name(where: str, value: Any, what: str) -> str:
-    if not (isinstance(value, str) and _NAME.match(value)):
-        _fail(where, f"expected {what} (letters, digits, '_', '.', '-'), got {value!r}")
-    return value
-
-
-def _rel_file(src: Path, where: str, value: Any, what: str) -> Path:
-    if not isinstance(value, str) or not value:
-        _fail(where, f"expected {what} (a path relative to {src}), got {value!r}")
-    p = Path(os.path.normpath(src / value))
+def _rel_file(base: Path, where: str, value: Any, what: str, root: Path | None = None) -> Path:
+    """A file named relative to `base` that stays inside `root` (default `base`) once '..' and
+    symlinks are resolved, and is a regular file."""
+    root = base if root is None else root
+    if not isinstance(value, str) or not value or "\x00" in value:
+        _fail(where, f"expected {what} (a path relative to {base}), got {value!r}")
+    p = Path(os.path.normpath(base / value))
+    if not fileio.inside(p, root):
+        _fail(where, f"{what} {value!r} leaves {root} (through '..', an absolute path or a symlink)")
     if not p.is_file():
-        _fail(where, f"{what} {p} not found")
-    return p
+        _fail(where, f"{what} {p} not found" + (" (not a regular file)" if p.exists() else ""))
+    return fileio.check_regular(p)
 
 
 def _check_size(path: Path, where: str, width: int, height: int) -> int:
@@ -208,7 +184,7 @@ def _check_sequences(scene: PlannedScene, where: str) -> None:
     for name, idx in sorted(seqs.items()):
         if sorted(idx) != list(range(len(idx))):
             dup = sorted({i for i in idx if idx.count(i) > 1})
-            gaps = sorted(set(range(max(idx) + 1)) - set(idx))
+            gaps = fields.gaps(idx)
             what = f"duplicate index {dup[0]}" if dup else f"missing index {gaps[0]}"
             _fail(where, f"scene {scene.name!r} sequence {name!r} has {what} (field 'index' must run 0..n-1)")
 
@@ -317,7 +293,7 @@ def plan_carla(src: str | Path, protocol, split: str | None = None) -> tuple[lis
                 seq = yaw_sequence_name(_number(f"{at}.yaw_offset_deg", rec.get("yaw_offset_deg"), "degrees"))
             else:
                 _fail(at, "a ground frame needs 'yaw_offset_deg' (or 'sequence')")
-            idx = _int(f"{at}.index", rec.get("index"), "the frame's position along the lane")
+            idx = _int(f"{at}.index", rec.get("index"), "the frame's position along the lane", 0, len(frames) - 1)
         cam = from_carla(loc, rot, fov, width, height)
         name = f"{town}-lane{lane:02d}"
         scene = scenes.setdefault(name, PlannedScene(name, meta={"source": "carla", "town": town, "lane": lane}))
@@ -394,12 +370,13 @@ def _mc_depth_path(image: Path, src: Path, depth_root: Path | None) -> Path | No
 def _mc_intrinsics(raw: dict, jfile: Path, img_w: int, img_h: int) -> dict:
     """fx, fy, cx, cy for the image size actually on disk (scaled from the JSON's w, h if given)."""
     if all(k in raw for k in ("fl_x", "w", "h")):
-        sw, sh = img_w / _number(f"{jfile}: field 'w'", raw["w"], "a width", 0), \
-            img_h / _number(f"{jfile}: field 'h'", raw["h"], "a height", 0)
+        w = _number(f"{jfile}: field 'w'", raw["w"], "a width", 0)
+        h = _number(f"{jfile}: field 'h'", raw["h"], "a height", 0)
+        sw, sh = img_w / w, img_h / h
         fx = _number(f"{jfile}: field 'fl_x'", raw["fl_x"], "a focal length in pixels", 0) * sw
         fy = _number(f"{jfile}: field 'fl_y'", raw.get("fl_y", raw["fl_x"]), "a focal length in pixels", 0) * sh
-        cx = _number(f"{jfile}: field 'cx'", raw.get("cx", raw["w"] / 2), "a principal point x", 0) * sw
-        cy = _number(f"{jfile}: field 'cy'", raw.get("cy", raw["h"] / 2), "a principal point y", 0) * sh
+        cx = _number(f"{jfile}: field 'cx'", raw.get("cx", w / 2), "a principal point x", 0) * sw
+        cy = _number(f"{jfile}: field 'cy'", raw.get("cy", h / 2), "a principal point y", 0) * sh
         return {"width": img_w, "height": img_h, "fx": fx, "fy": fy, "cx": cx, "cy": cy}
     if "camera_angle_x" not in raw:
         _fail(jfile, "field 'camera_angle_x' missing (expected the horizontal field of view in radians)")
@@ -423,7 +400,7 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
             _fail(at, "expected an object")
         if fmt == "raw":
             if "file_path" in fr:
-                image = _rel_file(jfile.parent, f"{at}.file_path", fr["file_path"], "image")
+                image = _rel_file(jfile.parent, f"{at}.file_path", fr["file_path"], "image", src)
             else:
                 fi = _int(f"{at}.frame_index", fr.get("frame_index"), "the frame index")
                 image = jfile.parent / f"{fi:04d}.png"
@@ -434,12 +411,10 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
             fp = fr.get("file_path")
             if isinstance(fp, str) and not Path(fp).suffix:
                 fp += ".png"  # NeRF-style file paths may omit the extension
-            image = _rel_file(jfile.parent, f"{at}.file_path", fp, "image")
+            image = _rel_file(jfile.parent, f"{at}.file_path", fp, "image", src)
             mat_key = "transform_matrix"
         mat = fr.get(mat_key)
-        if not (isinstance(mat, list) and len(mat) == 4 and all(isinstance(r, list) and len(r) == 4 for r in mat)):
-            _fail(f"{at}.{mat_key}", "expected a 4x4 matrix")
-        m = np.array(mat, dtype=np.float64)
+        m = fields.matrix(f"{at}.{mat_key}", mat, 4, 4, "a 4x4 matrix")
         m[3] = [0, 0, 0, 1]  # NOTE: MatrixCity's rgbd2pc.py also resets the last row (stored scaled)
         hdr = fileio.image_header(image)
         if size is None:

@@ -28,7 +28,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .. import fileio
+from .. import fields, fileio
 from ..cameras import Camera, K_from_dict, rigid_problem
 from ..errors import UserError, ValidationError
 
@@ -38,6 +38,8 @@ KINDS = ("ground", "aerial")
 LAYERS = ("depth", "semantics")
 _LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+#: Largest image side accepted in intrinsics (the decoders' pixel limit is fileio.MAX_PIXELS).
+_MAX_SIDE = 65536
 _PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$")
 
 
@@ -187,11 +189,11 @@ def _intrinsics_problem(d: Any, where: str) -> str | None:
     missing = [k for k in _INTRINSIC_KEYS if k not in d]
     if missing:
         return f"{where}: missing {', '.join(missing)}"
-    try:
-        w, h, fx, fy, cx, cy = (float(d[k]) for k in _INTRINSIC_KEYS)
-    except (TypeError, ValueError):
-        return f"{where}: values must be numbers"
-    if w < 1 or h < 1 or w != int(w) or h != int(h):
+    bad = [k for k in _INTRINSIC_KEYS if not fields.is_number(d[k])]
+    if bad:
+        return f"{where}: {', '.join(bad)} must be finite numbers, got {', '.join(repr(d[k]) for k in bad)}"
+    w, h, fx, fy, cx, cy = (float(d[k]) for k in _INTRINSIC_KEYS)
+    if not (1 <= w <= _MAX_SIDE and 1 <= h <= _MAX_SIDE) or w != int(w) or h != int(h):
         return f"{where}: width/height must be positive integers, got {d['width']}x{d['height']}"
     if not (fx > 0 and fy > 0 and np.isfinite(fx) and np.isfinite(fy)):
         return f"{where}: focal lengths must be positive, got fx={fx}, fy={fy}"
@@ -238,6 +240,11 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             if not isinstance(e, dict) or not isinstance(e.get("file"), str):
                 problems.append(f"{where}: expected an object with 'file' and 'c2w'")
                 continue
+            try:
+                fields.rel_path(f"{where} field 'file'", e["file"], "the image file within the scene folder")
+            except UserError as err:
+                problems.append(str(err))
+                continue
             where = f"{sfile}: {kind}[{i}] ({e['file']})"
             if e["file"] in seen_files:
                 problems.append(f"{where}: field 'file' repeats {kind}[{seen_files[e['file']]}]'s file")
@@ -251,24 +258,23 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
                 problems.append(f"{where}: field 'c2w' missing (expected a 4x4 camera-to-world matrix)")
                 continue
             try:
-                c2w = np.asarray(e["c2w"], dtype=np.float64)
-            except (TypeError, ValueError):
-                problems.append(f"{where}: field 'c2w' must be a 4x4 array of numbers")
+                c2w = fields.matrix(f"{where}: field 'c2w'", e["c2w"], 4, 4, "a camera-to-world matrix")
+            except UserError as err:
+                problems.append(str(err))
                 continue
             if p := rigid_problem(c2w):
                 problems.append(f"{where}: field 'c2w' is not a rigid transform: {p}")
                 continue
             seq, idx = e.get("sequence"), e.get("index")
             if kind == "ground":
-                if not isinstance(seq, str) or not seq:
-                    problems.append(f"{where}: field 'sequence' must be a non-empty string")
+                try:
+                    fields.name(f"{where}: field 'sequence'", seq, "a sequence name")
+                    # an index past the frame count is reported as a gap, which is bounded by the
+                    # frames (not by the index: 10**12 once made a set of 10**12 numbers)
+                    fields.integer(f"{where}: field 'index'", idx, "the frame's position in its sequence")
+                except UserError as err:
+                    problems.append(str(err))
                     continue
-                if not isinstance(idx, int) or isinstance(idx, bool) or idx < 0:
-                    problems.append(f"{where}: field 'index' must be an integer >= 0")
-                    continue
-            if Path(e["file"]).is_absolute() or ".." in Path(e["file"]).parts:
-                problems.append(f"{where}: field 'file' must be a relative path inside the scene folder")
-                continue
             frame = Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
             if check_files:
                 _check_frame_files(frame, problems, check_pixels)
@@ -290,7 +296,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         idx = [f.index for f in seq.frames]
         if idx != list(range(len(idx))):
             dup = sorted({i for i in idx if idx.count(i) > 1})
-            gaps = sorted(set(range(max(idx) + 1)) - set(idx))
+            gaps = fields.gaps(idx)
             what = "; ".join(w for w in (f"duplicate indices {dup[:5]}" if dup else "",
                                          f"missing indices {gaps[:5]}" if gaps else "") if w)
             problems.append(f"{sfile}: sequence {seq.name!r} is not numbered 0..n-1 ({what}; field 'index')")
@@ -361,7 +367,15 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check
     if not _PROTOCOL_REF.match(raw["protocol"]):
         problems.append(f"{dfile}: field 'protocol' is {raw['protocol']!r}, expected '<id>@<N>' (e.g. 'synthtown@1')")
     names = raw["scenes"]
-    if len(set(names)) != len(names) or not all(isinstance(n, str) and n and "/" not in n for n in names):
+    bad_names = []
+    for i, n in enumerate(names):
+        try:  # scene names become folder names: '..', '/' or a NUL would leave the dataset
+            fields.name(f"{dfile}: field 'scenes[{i}]'", n, "a scene folder name")
+        except UserError as err:
+            bad_names.append(str(err))
+    if bad_names:
+        return None, problems + bad_names
+    if len(set(names)) != len(names):
         return None, [f"{dfile}: field 'scenes' must list unique scene folder names"]
     splits: dict[str, tuple[str, ...]] = {}
     for split, members in raw["splits"].items():

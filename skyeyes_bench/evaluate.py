@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, fileio, paths, stats
+from . import __version__, fields, fileio, paths, stats
 from .errors import UserError, ValidationError
 from .submission import SUBMISSION_FILE, expected_frames, frame_relpath, read_submission, validate_submission
 
@@ -54,6 +54,10 @@ def _stage(timing: dict, name: str):
 
 def _digest(lines: list[str]) -> str:
     return hashlib.sha256("".join(sorted(lines)).encode()).hexdigest()
+
+
+def _sha_or_missing(path: Path) -> str:
+    return fileio.sha256_file(path) if path.exists() or path.is_symlink() else "missing"
 
 
 def features_path(results_path: Path) -> Path:
@@ -142,19 +146,24 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     from .protocol import load_protocol
 
     shard = parse_shard(shard)
+    sub = Path(submission_dir)
     out = Path(out) if out is not None else None
-    if out is not None and out.exists() and not force:
-        raise UserError(f"{out}: already exists; pass --force to replace it")
+    if out is not None:  # before any work: a refused output never costs a scoring run
+        fileio.check_output(out, force=force, sidecars=[features_path(out)], outside=[sub])
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
-    sub = Path(submission_dir)
     with _stage(timing, "validate_s"):
         manifest = read_submission(sub)
         protocol = load_protocol(manifest["protocol"])
         ds = open_dataset(resolve_data(manifest, protocol, data))
+        if out is not None:
+            fileio.check_output(out, force=force, outside=[ds.root])
         _check_extractors(protocol)
         all_seqs = ds.sequences("test")
         seq_ids = [q.id for q in all_seqs]
+        if shard is not None and shard[1] > len(all_seqs):
+            raise UserError(f"--shard {shard[0]}/{shard[1]}: the test split has {len(all_seqs)} sequences, so "
+                            f"at most {len(all_seqs)} shards (each shard scores whole sequences)")
         mine = [k for k in range(len(all_seqs)) if shard is None or k % shard[1] == shard[0]]
         frames = [(all_seqs[k].scene, f) for k in mine for f in all_seqs[k].frames]
         problems = validate_submission(sub, ds, protocol, manifest, frames=frames, progress=progress)
@@ -169,7 +178,10 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
                     "resolution": sorted({f"{f.width}x{f.height}" for _, f in expected_frames(ds)}),
                     "official_resolution": f"{protocol.data.width}x{protocol.data.height}"},
         "submission": {"path": str(sub.resolve()), **{k: manifest.get(k) for k in (
-            "method", "method_version", "created", "timings", "peak_memory_mb", "hardware", "config")}},
+            "method", "method_version", "created", "timings", "peak_memory_mb", "hardware", "config")},
+            # every frame, not only this shard's: `merge` refuses parts of different submissions
+            "frames_sha256": _digest([f"{frame_relpath(sc, f)} {_sha_or_missing(sub / frame_relpath(sc, f))}\n"
+                                      for sc, f in expected_frames(ds)])},
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
     seq_index = {sid: k for k, sid in enumerate(seq_ids)}
@@ -427,28 +439,103 @@ def write_results(out: Path, doc: dict, features: dict) -> None:
     fileio.write_json(out, doc)
 
 
+_RESULTS_SHAPE = {
+    "format": str,
+    "protocol": {"ref": str, "sha256": str},
+    "dataset": {"name": str, "sequences": [str]},
+    "submission": {"method": fields.Optional(str)},
+    "extractors": {str: {"kind": str, "dim": int}},
+    "frames": [{"scene": str, "file": str, "sequence": int, "index": int, "sha256": str, "gt_sha256": str}],
+}
+_FINAL_SHAPE = {
+    "metrics": {str: {"status": str}},
+    "sequences": {str: {str: fields.Optional(fields.Number)}},
+    "sha256": {"ground_truth": str, "submission_frames": str},
+}
+_PARTIAL_SHAPE = {"shard": fields.Optional({"index": int, "count": int}), "unavailable": {str: dict}}
+
+
+def _results_problem(doc: dict, path: Path, partial: bool) -> None:
+    """Raise a one-line UserError at the first field of a results (or partial) file that this
+    version cannot use: wrong type, missing, or an index outside what the file itself holds."""
+    fields.conform(str(path), doc, {**_RESULTS_SHAPE, **(_PARTIAL_SHAPE if partial else _FINAL_SHAPE)})
+    n_seq = len(doc["dataset"]["sequences"])
+    for i, r in enumerate(doc["frames"]):
+        fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
+        for name in stats.FRAME_METRICS:
+            if name in r:
+                fields.conform(str(path), r[name], fields.Number, f"frames[{i}].{name}")
+    shard = doc.get("shard")
+    if partial and shard is not None:  # a shard holds at least one sequence: N <= sequences
+        fields.integer(f"{path}: field 'shard.count'", shard["count"], "the number of shards", 1, max(n_seq, 1))
+        fields.integer(f"{path}: field 'shard.index'", shard["index"], "the shard's number", 0, shard["count"] - 1)
+    if not partial:
+        for name, m in doc["metrics"].items():
+            if m["status"] == "ok":
+                fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
+                if m["kind"] == "set":
+                    fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
+
+
+def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The features sidecar, checked against the results file before any array is trusted: only
+    stored (uncompressed) .npy members, so no member can inflate past the file's own size."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(fileio.open_regular(fpath)) as zf:
+            for info in zf.infolist():
+                if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                    raise UserError(f"{fpath}: member {info.filename!r} is not a stored .npy array (expected "
+                                    f"the sidecar `evaluate` writes)")
+        out: dict[str, dict[str, np.ndarray]] = {}
+        with np.load(fpath, allow_pickle=False) as z:
+            for key in z.files:
+                ex_id, _, part = key.rpartition("|")
+                out.setdefault(ex_id, {})[part] = z[key]
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, MemoryError) as e:
+        raise UserError(f"{fpath}: not a features sidecar ({fileio._one_line(e)})") from None
+    n_seq = len(doc["dataset"]["sequences"])
+    for ex_id, f in out.items():
+        info = doc["extractors"].get(ex_id)
+        where = f"{fpath}: array '{ex_id}"
+        if info is None:
+            raise UserError(f"{where}|...': extractor not listed in {path.name}'s field 'extractors'")
+        sub, gt, seq = f.get("sub"), f.get("gt"), f.get("seq")
+        if any(a is None for a in (sub, gt, seq)):
+            raise UserError(f"{where}|sub|gt|seq': one of the three arrays is missing")
+        for part, a in (("sub", sub), ("gt", gt)):
+            if a.dtype.kind != "f" or a.ndim != 2 or a.shape[1] != info["dim"] or len(a) != len(seq):
+                raise UserError(f"{where}|{part}': expected float [{len(seq)}, {info['dim']}], got {a.dtype} "
+                                f"{list(a.shape)}")
+        if seq.dtype.kind not in "iu" or seq.ndim != 1 or (len(seq) and not (0 <= seq.min() and seq.max() < n_seq)):
+            raise UserError(f"{where}|seq': expected sequence numbers in 0..{n_seq - 1}")
+    return out
+
+
 def read_results(path, *, features: bool = False, partial: bool = False) -> tuple[dict, dict | None]:
-    """Read a results (or partial) JSON and optionally its features sidecar (sha256-checked)."""
+    """Read a results (or partial) JSON and optionally its features sidecar (sha256-checked).
+    Every field used later is checked here; a bad one is a one-line UserError naming it."""
     path = Path(path)
-    doc = fileio.read_json(path)
+    doc = fileio.read_json(path, allow_nan=True)  # a perfect frame's PSNR is Infinity
     want = PARTIAL_FORMAT if partial else RESULTS_FORMAT
     if not isinstance(doc, dict) or doc.get("format") != want:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise UserError(f"{path}: field 'format' is {got!r}, expected {want!r}")
+        raise UserError(f"{path}: field 'format' is {fields._short(got)}, expected {want!r}")
+    _results_problem(doc, path, partial)
     if not features:
         return doc, None
     info = doc.get("features") or {}
-    fpath = path.with_name(info.get("file", features_path(path).name))
+    if not isinstance(info, dict):
+        raise UserError(f"{path}: field 'features' must be an object")
+    name = info.get("file", features_path(path).name)
+    fields.name(f"{path}: field 'features.file'", name, "the sidecar's file name beside it")
+    fpath = path.with_name(name)
     if not fpath.is_file():
         raise UserError(f"{fpath}: features sidecar of {path.name} missing (needed to resample set metrics)")
     if info.get("sha256") and fileio.sha256_file(fpath) != info["sha256"]:
         raise UserError(f"{fpath}: sha256 differs from the one recorded in {path.name} (file changed)")
-    out: dict[str, dict[str, np.ndarray]] = {}
-    with np.load(fpath, allow_pickle=False) as z:
-        for key in z.files:
-            ex_id, _, part = key.rpartition("|")
-            out.setdefault(ex_id, {})[part] = z[key]
-    return doc, out
+    return doc, _read_sidecar(fpath, doc, path)
 
 
 def default_out(submission_dir, shard: tuple[int, int] | None = None) -> Path:
@@ -465,8 +552,11 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     """Merge the partial results of `evaluate --shard I/N` (all N of them) into results that
     equal an unsharded run."""
     out = Path(out) if out is not None else None
-    if out is not None and out.exists() and not force:
-        raise UserError(f"{out}: already exists; pass --force to replace it")
+    if out is not None:
+        fileio.check_output(out, force=force, sidecars=[features_path(out)])
+        for p in parts:
+            if Path(p).resolve() in (out.resolve(), features_path(out).resolve()):
+                raise UserError(f"{out}: is one of the parts being merged; write the merged results elsewhere")
     if not parts:
         raise UserError("merge: no partial results given")
     loaded = [(Path(p), *read_results(p, features=True, partial=True)) for p in parts]
@@ -479,7 +569,10 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
                 a, b = ({k: v for k, v in (x or {}).items() if k != "path"} for x in (a, b))
             if key == "dataset":
                 a, b = ({k: v for k, v in (x or {}).items() if k != "root"} for x in (a, b))
-            if a != b:
+            if key == "submission" and a.get("frames_sha256") != b.get("frames_sha256"):
+                problems.append(f"{p}: field 'submission.frames_sha256' differs from {first_path.name}'s: the "
+                                f"parts scored different frames (not the same submission)")
+            elif a != b:
                 problems.append(f"{p}: field '{key}' differs from {first_path.name}'s")
     n = (first.get("shard") or {}).get("count")
     seen: dict[int, Path] = {}

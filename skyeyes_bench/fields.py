@@ -25,6 +25,13 @@ def fail(where: str, msg: str):
     raise UserError(f"{where}: {msg}")
 
 
+def _expected(where: str, value: Any, expected: str):
+    """'missing (expected X)' for an absent field (None), else 'expected X, got V'."""
+    if value is None:
+        fail(where, f"missing (expected {expected})")
+    fail(where, f"expected {expected}, got {_short(value)}")
+
+
 def is_number(value: Any) -> bool:
     """A finite JSON number (bool is not a number; NaN and infinities are not finite)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
@@ -32,8 +39,8 @@ def is_number(value: Any) -> bool:
 
 def name(where: str, value: Any, what: str) -> str:
     if not (isinstance(value, str) and NAME.match(value)):
-        fail(where, f"expected {what} (a plain name: letters, digits, '_', '.', '-', at most 128, "
-                    f"not starting with '.' or '-'), got {value!r}")
+        _expected(where, value, f"{what} (a plain name: letters, digits, '_', '.', '-', at most 128, "
+                                f"not starting with '.' or '-')")
     return value
 
 
@@ -41,8 +48,7 @@ def rel_path(where: str, value: Any, what: str) -> str:
     """A relative POSIX path made of plain names (`ground/000012.png`): it cannot leave its folder."""
     if not (isinstance(value, str) and value and len(value) <= 1024
             and all(NAME.match(part) for part in value.split("/"))):
-        fail(where, f"expected {what} (a relative path of plain names such as 'ground/000012.png'), "
-                    f"got {value!r}")
+        _expected(where, value, f"{what} (a relative path of plain names such as 'ground/000012.png')")
     return value
 
 
@@ -50,7 +56,7 @@ def number(where: str, value: Any, what: str, lo: float = -math.inf, hi: float =
            *, lo_open: bool = True) -> float:
     """A finite number with lo < value < hi (lo <= value if not lo_open)."""
     if not (is_number(value) and (lo < value if lo_open else lo <= value) and value < hi):
-        fail(where, f"expected {what}, got {value!r}")
+        _expected(where, value, what)
     return float(value)
 
 
@@ -59,14 +65,14 @@ def integer(where: str, value: Any, what: str, lo: int = 0, hi: int | None = Non
     if not (isinstance(value, int) and not isinstance(value, bool) and value >= lo
             and (hi is None or value <= hi)):
         rng = f">= {lo}" if hi is None else f"in {lo}..{hi}"
-        fail(where, f"expected {what} (an integer {rng}), got {value!r}")
+        _expected(where, value, f"{what} (an integer {rng})")
     return int(value)
 
 
 def numbers(where: str, value: Any, n: int, what: str) -> np.ndarray:
     """A list of exactly n finite numbers, as float64 [n]."""
     if not (isinstance(value, list) and len(value) == n and all(is_number(v) for v in value)):
-        fail(where, f"expected {what} ({n} finite numbers), got {_short(value)}")
+        _expected(where, value, f"{what} ({n} finite numbers)")
     return np.asarray(value, dtype=np.float64)
 
 
@@ -74,13 +80,13 @@ def matrix(where: str, value: Any, rows: int, cols: int, what: str) -> np.ndarra
     """A rows x cols list of lists of finite numbers, as float64 [rows, cols]."""
     if not (isinstance(value, list) and len(value) == rows and all(
             isinstance(r, list) and len(r) == cols and all(is_number(v) for v in r) for r in value)):
-        fail(where, f"expected {what} ({rows}x{cols} finite numbers), got {_short(value)}")
+        _expected(where, value, f"{what} ({rows}x{cols} finite numbers)")
     return np.asarray(value, dtype=np.float64)
 
 
 def string(where: str, value: Any, what: str, *, pattern: re.Pattern | None = None) -> str:
     if not (isinstance(value, str) and value and (pattern is None or pattern.match(value))):
-        fail(where, f"expected {what}, got {_short(value)}")
+        _expected(where, value, what)
     return value
 
 
@@ -102,3 +108,56 @@ def gaps(indices: list[int], limit: int = 5) -> list[int]:
             break
         expect = v + 1
     return out
+
+
+class Number:
+    """Shape marker for `conform`: any JSON number (results hold inf for a perfect PSNR)."""
+
+
+class Optional:
+    """Shape marker for `conform`: null or the given shape."""
+
+    def __init__(self, shape):
+        self.shape = shape
+
+
+def conform(where: str, value: Any, shape, at: str = "") -> None:
+    """Check `value` against `shape` and raise a one-line UserError naming the first field that
+    differs. Shapes: a type (str, int, bool, dict, list), `Number`, `Optional(shape)`, a dict of
+    required keys -> shapes (other keys allowed; key `str` -> shape: every value), or a
+    one-element list [shape] (every item)."""
+    def bad(expected: str):
+        fail(f"{where}: field '{at or '.'}'", f"expected {expected}, got {_short(value)}")
+
+    if isinstance(shape, Optional):
+        if value is not None:
+            conform(where, value, shape.shape, at)
+        return
+    if shape is Number:
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool)):
+            bad("a number")
+        return
+    if shape is int:
+        if not (isinstance(value, int) and not isinstance(value, bool)):
+            bad("an integer")
+        return
+    if isinstance(shape, type):
+        if not isinstance(value, shape):
+            bad({str: "a string", bool: "true or false", dict: "an object", list: "a list"}.get(shape, shape.__name__))
+        return
+    if isinstance(shape, list):
+        if not isinstance(value, list):
+            bad("a list")
+        for i, item in enumerate(value):
+            conform(where, item, shape[0], f"{at}[{i}]")
+        return
+    if not isinstance(value, dict):
+        bad("an object")
+    for key, sub in shape.items():
+        if key is str:
+            for k, v in value.items():
+                conform(where, v, sub, f"{at}.{k}" if at else k)
+            continue
+        if key not in value:
+            fail(f"{where}: field '{f'{at}.{key}' if at else key}'", "missing")
+        conform(where, value[key], sub, f"{at}.{key}" if at else key)

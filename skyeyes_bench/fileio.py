@@ -13,7 +13,9 @@ import math
 import os
 import shutil
 import stat
+import struct
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
@@ -68,6 +70,30 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=()) -> Path:
+    """Refuse, before any work, an output file that could not be written or must not be:
+    a folder, an existing file (or sidecar) without `force`, a parent that is a file or not
+    writable, or a place inside one of the `outside` folders (e.g. the submission being scored,
+    where it would become an extra file)."""
+    path = Path(path)
+    for p in (path, *map(Path, sidecars)):
+        if p.is_dir():
+            raise UserError(f"{p}: is a folder; expected the path of an output file")
+        if (p.exists() or p.is_symlink()) and not force:
+            raise UserError(f"{p}: already exists; pass --force to replace it")
+    for root in outside:
+        if Path(root).exists() and inside(path, root):
+            raise UserError(f"{path}: lies inside {root}; write the output elsewhere")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UserError(f"{path}: cannot be created ({parent} is a file, not a folder)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"{path}: cannot be created ({parent} is not writable)")
+    return path
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, allow_nan=True) + "\n")
@@ -120,7 +146,7 @@ def check_regular(path: str | os.PathLike, *, root: str | os.PathLike | None = N
         return Path(path)
 
 
-def _walk_problem(obj: Any, allow_nan: bool) -> str | None:
+def json_problem(obj: Any, allow_nan: bool) -> str | None:
     """Too deep a nesting, or (unless allow_nan) the first non-finite number, with its field."""
     stack: list[tuple[Any, str, int]] = [(obj, "", 1)]
     while stack:
@@ -161,7 +187,7 @@ def read_json(path: str | os.PathLike, *, root: str | os.PathLike | None = None,
         raise UserError(f"{path}: not valid JSON here (nested more than {MAX_JSON_DEPTH} levels deep)") from None
     except ValueError as e:  # an integer of more than 4300 digits
         raise UserError(f"{path}: not valid JSON here ({_one_line(e)})") from None
-    if problem := _walk_problem(obj, allow_nan):
+    if problem := json_problem(obj, allow_nan):
         raise UserError(f"{path}: {problem}")
     return obj
 
@@ -206,9 +232,70 @@ def image_header(path: str | os.PathLike) -> tuple[int, int, int, str]:
         inp.close()
 
 
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def png_problem(data: bytes) -> str | None:
+    """What is wrong with the bytes of a PNG file, checked before any decoder sees them (libpng
+    prints its own lines to stderr on a truncated or corrupt file): every chunk complete with a
+    matching CRC up to IEND, an IHDR within the pixel limit, and compressed image data that
+    inflates to exactly the rows the header promises (never more: no decompression bomb)."""
+    if data[:8] != PNG_MAGIC:
+        return "not a PNG file"
+    pos, ihdr, idat = 8, None, []
+    while True:
+        if pos + 12 > len(data):
+            return "truncated PNG (the file ends before its IEND chunk)"
+        n, typ = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 12 + n
+        if end > len(data):
+            return f"truncated PNG (chunk {typ.decode('latin-1')!r} runs past the end of the file)"
+        if zlib.crc32(data[pos + 4:pos + 8 + n]) != struct.unpack(">I", data[end - 4:end])[0]:
+            return f"corrupt PNG (chunk {typ.decode('latin-1')!r} fails its CRC)"
+        if typ == b"IHDR":
+            ihdr = data[pos + 8:pos + 8 + n]
+        elif typ == b"IDAT":
+            idat.append(data[pos + 8:pos + 8 + n])
+        elif typ == b"IEND":
+            break
+        pos = end
+    if ihdr is None or len(ihdr) != 13:
+        return "corrupt PNG (no valid IHDR chunk)"
+    w, h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", ihdr)
+    if colour not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16) or interlace not in (0, 1):
+        return f"corrupt PNG (IHDR: bit depth {depth}, colour type {colour}, interlace {interlace})"
+    if w == 0 or h == 0 or w * h > MAX_PIXELS:
+        return f"image of {w}x{h} outside 1..{MAX_PIXELS} pixels"
+    bits = _PNG_CHANNELS[colour] * depth
+    if interlace == 0:
+        expected = h * (1 + (w * bits + 7) // 8)
+    else:  # Adam7: seven passes, each a sub-image with its own filter bytes
+        expected = 0
+        for x0, y0, dx, dy in ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4),
+                               (1, 0, 2, 2), (0, 1, 1, 2)):
+            pw, ph = (w - x0 + dx - 1) // dx, (h - y0 + dy - 1) // dy
+            if pw and ph:
+                expected += ph * (1 + (pw * bits + 7) // 8)
+    inflate = zlib.decompressobj()
+    try:
+        rows = inflate.decompress(b"".join(idat), expected + 1)
+    except zlib.error as e:
+        return f"corrupt PNG (image data: {e})"
+    if len(rows) > expected or inflate.unconsumed_tail:
+        return f"corrupt PNG (image data inflates past the {expected} bytes of a {w}x{h} image)"
+    if not inflate.eof or len(rows) < expected:
+        return f"truncated PNG (image data holds {len(rows)} of the {expected} bytes of a {w}x{h} image)"
+    return None
+
+
 def _read_pixels(path: str | os.PathLike, fmt: str) -> np.ndarray:
     oiio = _oiio()
-    check_regular(path)
+    with open_regular(path) as f:  # never a named pipe (the decoder opens by name and would block)
+        head = f.read(8)
+        if head == PNG_MAGIC:
+            if problem := png_problem(head + f.read(4 * MAX_PIXELS * 2 + (1 << 20))):
+                raise UserError(f"{path}: cannot decode image ({problem})")
     # PNG alpha is unassociated; without this OpenImageIO premultiplies colour by alpha on read,
     # so dropping alpha would leave darkened RGB.
     config = oiio.ImageSpec()

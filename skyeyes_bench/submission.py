@@ -17,13 +17,14 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import platform
+import re
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import __version__, fileio
+from . import __version__, fields, fileio
 from .errors import UserError, ValidationError
 
 SUBMISSION_FILE = "submission.json"
@@ -116,8 +117,7 @@ class SubmissionWriter:
 
     def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
                  overwrite: bool = False):
-        if not method or "/" in method:
-            raise UserError(f"method name {method!r}: expected a non-empty name without '/'")
+        fields.name("method name", method, "the method's name")
         self.final = Path(out_dir)
         self.ds = dataset
         self.method, self.method_version, self.config = method, str(method_version), dict(config or {})
@@ -167,6 +167,12 @@ class SubmissionWriter:
         manifest = make_manifest(self.ds, method=self.method, method_version=self.method_version,
                                  config=self.config, timings=timings, peak_memory_mb=peak_memory_mb,
                                  hardware=hardware)
+        # the method's own numbers pass the same check as a submission read from disk
+        problems = _manifest_problems(manifest, self.final / SUBMISSION_FILE)
+        if nonfinite := fileio.json_problem(manifest, allow_nan=False):
+            problems.append(f"{self.final / SUBMISSION_FILE}: {nonfinite}")
+        if problems:
+            raise ValidationError(f"submission {self.final}", problems)
         fileio.write_json(self.root / SUBMISSION_FILE, manifest)
         self._finished = True
 
@@ -181,30 +187,55 @@ class SubmissionWriter:
 # --------------------------------------------------------------------------- reading
 
 
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+_PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d{0,8}$")
+
+
 def _manifest_problems(m: Any, file: Path) -> list[str]:
+    """Every problem of a submission.json object (the edge: nothing later sees an unchecked field)."""
     if not isinstance(m, dict):
         return [f"{file}: expected a JSON object"]
     problems = []
+
+    def check(fn, key: str, *args, **kw):
+        try:
+            fn(f"{file}: field '{key}'", *args, **kw)
+        except UserError as e:
+            problems.append(str(e))
+
     if m.get("format") != FORMAT:
-        problems.append(f"{file}: field 'format' is {m.get('format')!r}, expected {FORMAT!r}")
-    for key in ("method", "protocol"):
-        if not isinstance(m.get(key), str) or not m.get(key):
-            problems.append(f"{file}: field '{key}' missing or not a non-empty string")
-    if not isinstance(m.get("dataset"), dict) or not isinstance(m["dataset"].get("name"), str):
+        problems.append(f"{file}: field 'format' is {fields._short(m.get('format'))}, expected {FORMAT!r}")
+    check(fields.name, "method", m.get("method"), "the method's name")
+    check(fields.string, "protocol", m.get("protocol"), "a protocol '<id>@<N>'", pattern=_PROTOCOL_REF)
+    if m.get("protocol_sha256") is not None:
+        check(fields.string, "protocol_sha256", m.get("protocol_sha256"), "null or a sha256 (64 hex digits)",
+              pattern=_SHA256)
+    for key in ("method_version", "created", "tool_version"):
+        if key in m and not isinstance(m[key], str):
+            problems.append(f"{file}: field '{key}' must be a string, got {fields._short(m[key])}")
+    ds = m.get("dataset")
+    if not isinstance(ds, dict) or not isinstance(ds.get("name"), str) or not ds.get("name"):
         problems.append(f"{file}: field 'dataset.name' missing (the dataset the frames were made for)")
+    for key in ("hardware", "config"):
+        if m.get(key) is not None and not isinstance(m[key], dict):
+            problems.append(f"{file}: field '{key}' must be an object, got {fields._short(m[key])}")
     t = m.get("timings", {})
     if not isinstance(t, dict):
         problems.append(f"{file}: field 'timings' must be an object with {', '.join(_TIMING_KEYS)}")
     else:
+        for k in t:
+            if k not in _TIMING_KEYS:
+                problems.append(f"{file}: field 'timings.{k}' unknown (known: {', '.join(_TIMING_KEYS)})")
         for k in ("fit_s", "render_s"):
-            if k in t and (not isinstance(t[k], (int, float)) or isinstance(t[k], bool) or t[k] < 0):
-                problems.append(f"{file}: field 'timings.{k}' must be a number of seconds >= 0, got {t[k]!r}")
+            if k in t:
+                check(fields.number, f"timings.{k}", t[k], "a number of seconds >= 0", 0, lo_open=False)
         pf = t.get("per_frame_render_s", [])
-        if not isinstance(pf, list) or not all(isinstance(v, (int, float)) for v in pf):
-            problems.append(f"{file}: field 'timings.per_frame_render_s' must be a list of seconds")
-    pm = m.get("peak_memory_mb")
-    if pm is not None and (not isinstance(pm, (int, float)) or pm < 0):
-        problems.append(f"{file}: field 'peak_memory_mb' must be a number >= 0 or null, got {pm!r}")
+        if not (isinstance(pf, list) and all(fields.is_number(v) and v >= 0 for v in pf)):
+            problems.append(f"{file}: field 'timings.per_frame_render_s' must be a list of seconds >= 0, "
+                            f"got {fields._short(pf)}")
+    if m.get("peak_memory_mb") is not None:
+        check(fields.number, "peak_memory_mb", m["peak_memory_mb"], "a number of MB >= 0 or null", 0,
+              lo_open=False)
     return problems
 
 
@@ -222,14 +253,6 @@ def read_submission(sub_dir) -> dict[str, Any]:
     if problems:
         raise ValidationError(f"submission {sub}", problems)
     return m
-
-
-def _inside(path: Path, root: Path) -> bool:
-    try:
-        path.resolve().relative_to(root)
-        return True
-    except ValueError:
-        return False
 
 
 def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, decode: bool = True,
@@ -272,7 +295,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
         for name in dirnames + filenames:
             p = d / name
             rel = p.relative_to(sub).as_posix()
-            if p.is_symlink() and not _inside(p, root):
+            if p.is_symlink() and not fileio.inside(p, root):
                 problems.append(f"{p}: symlink leaves the submission folder (points to {os.readlink(p)})")
                 escaped.add(rel)
                 continue
@@ -289,7 +312,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
                              file=sys.stderr):
         rel = frame_relpath(scene, frame)
         p = sub / rel
-        if not _inside(p, root):
+        if not fileio.inside(p, root):
             reported = any(rel == e or rel.startswith(e + "/") for e in escaped)
             if (p.exists() or p.is_symlink()) and not reported:
                 problems.append(f"{p}: path leaves the submission folder")
@@ -297,7 +320,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
         if not p.exists():
             missing.append(rel)
             continue
-        problems.extend(image_problems(p, frame.width, frame.height, decode=decode))
+        problems.extend(image_problems(p, frame.width, frame.height, decode=decode, root=root))
     if missing:
         shown = ", ".join(missing[:5]) + (f", ... ({len(missing) - 5} more)" if len(missing) > 5 else "")
         problems.append(f"{sub}: {len(missing)} expected frame(s) missing: {shown}")
@@ -308,7 +331,8 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_COLOUR = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
 
 
-def image_problems(path: Path, width: int, height: int, *, decode: bool = True) -> list[str]:
+def image_problems(path: Path, width: int, height: int, *, decode: bool = True,
+                   root: Path | None = None) -> list[str]:
     """Problems of one submitted frame: not a decodable 8-bit RGB PNG of width x height.
 
     The size, bit depth and colour type come from the PNG header (IHDR) read by hand, so an
@@ -317,8 +341,10 @@ def image_problems(path: Path, width: int, height: int, *, decode: bool = True) 
     import struct
 
     try:
-        with open(path, "rb") as f:
+        with fileio.open_regular(path, root=root) as f:  # never a named pipe or a file outside
             head = f.read(33)
+    except UserError as e:
+        return [str(e)]
     except OSError as e:
         return [f"{path}: unreadable ({e.strerror})"]
     if head[:8] != _PNG_MAGIC:

@@ -227,7 +227,7 @@ def test_frame_fields(ds_root):
     p.write_text(json.dumps(raw))
     problems = _problems(ds_root)
     joined = "\n".join(problems)
-    assert "ground[0] (ground/000000.png): field 'sequence': expected a sequence name (a plain name" in joined
+    assert "ground[0] (ground/000000.png): field 'sequence': missing (expected a sequence name (a plain name" in joined
     assert "ground[1] (ground/000001.png): field 'index': expected the frame's position in its sequence (an integer >= 0), got -1" in joined
     assert "ground[3] (ground/000003.png): field 'c2w' missing" in joined
     assert "ground[4] field 'file': expected the image file within the scene folder (a relative path of plain names such as 'ground/000012.png'), got '../escape.png'" in joined

@@ -147,7 +147,7 @@ def _mutate_capture(src: Path, fn):
 @pytest.mark.parametrize(
     "mutate, expect",
     [
-        (lambda r: r["frames"][1].pop("rotation"), "frames[1].rotation: expected [pitch, yaw, roll] in degrees"),
+        (lambda r: r["frames"][1].pop("rotation"), "frames[1].rotation: missing (expected [pitch, yaw, roll] in degrees (3 finite numbers))"),
         (lambda r: r["frames"][2].update(location=[1, 2, "z"]), "frames[2].location: expected [x, y, z] in CARLA metres"),
         (lambda r: r["frames"][0].update(fov=180), "frames[0].fov: expected the horizontal field of view"),
         (lambda r: r["frames"][3].update(kind="street"), "frames[3].kind: expected 'ground' or 'aerial'"),
@@ -342,7 +342,7 @@ def test_import_matrixcity_bad_input(tmp_path):
     del raw["frames"][3]["rot_mat"]
     tj.write_text(json.dumps(raw))
     _, _, err = _mc_import(src, out, check=2)
-    assert f"{tj}: frames[3].rot_mat: expected a 4x4 matrix" in err and err.count("\n") == 1
+    assert f"{tj}: frames[3].rot_mat: missing (expected a pose matrix (4x4 finite numbers))" in err and err.count("\n") == 1
     # a raw file read as paper: the rotation is not orthonormal
     _, _, err = _mc_import(src, out, "--pose-format", "paper", check=2)
     assert "no transforms_*.json found" in err

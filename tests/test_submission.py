@@ -129,7 +129,7 @@ def test_protocol_and_manifest_mismatch(tiny, proto, tmp_path):
     del m["method"]
     (sub / "submission.json").write_text(json.dumps(m))
     rc, _, err = run_cli("evaluate", str(sub), "--data", str(tiny), "--quiet", check=2)
-    assert "field 'method' missing" in err
+    assert "field 'method': missing (expected the method's name" in err
     assert not list(tmp_path.glob("*.results.json"))
 
 

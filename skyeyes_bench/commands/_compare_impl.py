@@ -4,6 +4,7 @@ import json
 import sys
 
 from .. import fileio
+from ..errors import UserError
 from ..evaluate import read_results
 from ..stats import compare_results
 
@@ -13,6 +14,12 @@ def _fmt(v) -> str:
 
 
 def compare_cmd(args) -> int:
+    if args.out:  # before any work; compare's output is replaced freely, but never an input
+        fileio.check_output(args.out, force=True)
+        from pathlib import Path
+
+        if Path(args.out).resolve() in (Path(args.a).resolve(), Path(args.b).resolve()):
+            raise UserError(f"{args.out}: is one of the results being compared; write the comparison elsewhere")
     a, fa = read_results(args.a, features=False)
     b, fb = read_results(args.b, features=False)
     sets = any(m.get("kind") == "set" and m["status"] == "ok" for m in a["metrics"].values())

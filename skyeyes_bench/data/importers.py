@@ -414,7 +414,7 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
             image = _rel_file(jfile.parent, f"{at}.file_path", fp, "image", src)
             mat_key = "transform_matrix"
         mat = fr.get(mat_key)
-        m = fields.matrix(f"{at}.{mat_key}", mat, 4, 4, "a 4x4 matrix")
+        m = fields.matrix(f"{at}.{mat_key}", mat, 4, 4, "a pose matrix")
         m[3] = [0, 0, 0, 1]  # NOTE: MatrixCity's rgbd2pc.py also resets the last row (stored scaled)
         hdr = fileio.image_header(image)
         if size is None:

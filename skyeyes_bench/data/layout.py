@@ -37,6 +37,7 @@ SCENE_FILE = "scene.json"
 KINDS = ("ground", "aerial")
 LAYERS = ("depth", "semantics")
 _LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
+_ANY = object()  # marks "a rejected frame of unknown sequence"
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 #: Largest image side accepted in intrinsics (the decoders' pixel limit is fileio.MAX_PIXELS).
 _MAX_SIDE = 65536
@@ -194,7 +195,7 @@ def _intrinsics_problem(d: Any, where: str) -> str | None:
         return f"{where}: {', '.join(bad)} must be finite numbers, got {', '.join(repr(d[k]) for k in bad)}"
     w, h, fx, fy, cx, cy = (float(d[k]) for k in _INTRINSIC_KEYS)
     if not (1 <= w <= _MAX_SIDE and 1 <= h <= _MAX_SIDE) or w != int(w) or h != int(h):
-        return f"{where}: width/height must be positive integers, got {d['width']}x{d['height']}"
+        return f"{where}: width/height must be integers in 1..{_MAX_SIDE}, got {d['width']}x{d['height']}"
     if not (fx > 0 and fy > 0 and np.isfinite(fx) and np.isfinite(fy)):
         return f"{where}: focal lengths must be positive, got fx={fx}, fy={fy}"
     if not (0 < cx < w and 0 < cy < h):
@@ -223,12 +224,14 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         return None
     frames: dict[str, list[Frame]] = {k: [] for k in KINDS}
     seen_files: dict[str, int] = {}
-    rejected_seqs: set[str] = set()
+    rejected_seqs: set = set()  # names, or _ANY
+    group_rejected = False
     for kind in KINDS:
         group = intr.get(kind)
         p = _intrinsics_problem(group, f"{sfile}: field 'intrinsics.{kind}'")
         if p:
             problems.append(p)
+            group_rejected = group_rejected or kind == "ground"
             continue
         entries = raw.get(kind)
         if not isinstance(entries, list):
@@ -281,8 +284,11 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             frames[kind].append(frame)
             accepted.add(i)
         if kind == "ground":  # a rejected frame leaves a hole in its sequence: reported already
-            rejected_seqs.update(str(e.get("sequence")) for i, e in enumerate(entries)
-                                 if i not in accepted and isinstance(e, dict))
+            rejected = [e for i, e in enumerate(entries) if i not in accepted]
+            rejected_seqs.update(str(e.get("sequence")) for e in rejected if isinstance(e, dict))
+            if any(not isinstance(e, dict) or not isinstance(e.get("sequence"), str)
+                   or not fields.NAME.match(e["sequence"]) for e in rejected):
+                rejected_seqs.add(_ANY)  # its sequence is unknown: any hole may be its
     meta = raw.get("meta", {})
     if meta is None:
         meta = {}
@@ -291,7 +297,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         meta = {}
     scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), meta)
     for seq in scene.sequences.values():
-        if seq.name in rejected_seqs:
+        if seq.name in rejected_seqs or _ANY in rejected_seqs:
             continue
         idx = [f.index for f in seq.frames]
         if idx != list(range(len(idx))):
@@ -300,7 +306,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             what = "; ".join(w for w in (f"duplicate indices {dup[:5]}" if dup else "",
                                          f"missing indices {gaps[:5]}" if gaps else "") if w)
             problems.append(f"{sfile}: sequence {seq.name!r} is not numbered 0..n-1 ({what}; field 'index')")
-    if not scene.ground:
+    if not scene.ground and not group_rejected:  # rejected intrinsics: reported already
         problems.append(f"{sfile}: scene has no ground frames")
     return scene
 

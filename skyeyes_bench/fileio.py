@@ -54,6 +54,9 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
     path = Path(path)
     if path.exists() and not overwrite:
         raise UserError(f"{path}: already exists; pass --force to replace it")
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{path}: is a file; expected a folder (or a path that does not exist)")
+    creatable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
     try:
@@ -84,6 +87,13 @@ def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), o
     for root in outside:
         if Path(root).exists() and inside(path, root):
             raise UserError(f"{path}: lies inside {root}; write the output elsewhere")
+    return creatable(path)
+
+
+def creatable(path: str | os.PathLike) -> Path:
+    """`path` if its nearest existing ancestor is a writable folder, else a one-line UserError
+    (a parent that is a file used to surface as NotADirectoryError after the work was done)."""
+    path = Path(path)
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent

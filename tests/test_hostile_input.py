@@ -216,7 +216,13 @@ CASES = {
     "tpl-scene-dotdot": (lambda w: _json_edit(w / "ds" / "dataset.json", _set("scenes.1", "..")),
                          lambda w: ["submission", "template", "--data", str(w / "ds"), "--out", str(w / "tpl" / "s"),
                                     "--from-ground-truth"], "field 'scenes[1]'"),
+    "tpl-out-parent-file": (lambda w: (w / "afile").write_text("x"),
+                            lambda w: ["submission", "template", "--data", str(w / "ds"), "--out",
+                                       str(w / "afile" / "s")], "afile is a file"),
     # ------------------------------------------------------------------ import-carla
+    "carla-out-parent-file": (lambda w: (w / "afile").write_text("x"),
+                              lambda w: ["data", "import-carla", str(w / "carla"), str(w / "afile" / "x" / "out"),
+                                         "--no-progress"], "afile is a file"),
     "carla-index-huge": (lambda w: _json_edit(w / "carla" / "capture.json", _set("frames.0.index", 10**12)), _carla,
                          "frames[0].index"),
     "carla-capture-folder": (lambda w: _folder(w / "carla" / "capture.json"), _carla, "capture.json"),
@@ -255,6 +261,9 @@ CASES = {
                              lambda w: ["merge", str(w / "p0.json"), "--out", str(w / "m.json")], "features.file"),
     "merge-not-utf8": (lambda w: (w / "p0.json").write_bytes(b"\xff"),
                        lambda w: ["merge", str(w / "p0.json"), "--out", str(w / "m.json")], "p0.json: not UTF-8"),
+    "merge-out-parent-file": (lambda w: (w / "afile").write_text("x"),
+                              lambda w: ["merge", str(w / "p0.json"), "--out", str(w / "afile" / "m.json")],
+                              "afile is a file"),
     "merge-out-is-part": (lambda w: None, lambda w: ["merge", str(w / "p0.json"), "--out", str(w / "p0.json"), "--force"],
                           "p0.json"),
     # ------------------------------------------------------------------ compare

@@ -228,7 +228,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         from tqdm import tqdm
 
         total = sum(len(s) for sc in scenes for s in sc.sequences.values())
-        bar = tqdm(total=total, desc="render", disable=not progress, leave=False)
+        bar = tqdm(total=total, desc="render", disable=None if progress else True, leave=False)
         for scene in scenes:
             for seq in scene.sequences.values():
                 paths = [renders / scene.name / f.file for f in seq]

@@ -40,9 +40,10 @@ _FRAME_BATCH = 16
 
 
 def _tqdm(progress: bool, **kw):
+    """A progress bar on stderr, drawn only when stderr is a terminal (disable=None: tqdm's TTY test)."""
     from tqdm import tqdm
 
-    return tqdm(disable=not progress, file=sys.stderr, leave=False, **kw)
+    return tqdm(disable=None if progress else True, file=sys.stderr, leave=False, **kw)
 
 
 @contextlib.contextmanager

@@ -308,7 +308,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     missing = []
     from tqdm import tqdm
 
-    for scene, frame in tqdm(check, desc="validate", unit="frame", disable=not progress, leave=False,
+    for scene, frame in tqdm(check, desc="validate", unit="frame", disable=None if progress else True, leave=False,
                              file=sys.stderr):
         rel = frame_relpath(scene, frame)
         p = sub / rel

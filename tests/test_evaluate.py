@@ -230,3 +230,11 @@ def test_protocol_resize_must_match_the_extractor():
         for m in p.metrics)})
     with pytest.raises(UserError, match="metrics.fid.resize"):
         _check_extractors(bad)
+
+
+@pytest.mark.parametrize("tty", [False, True])
+def test_progress_bars_only_on_a_terminal(tiny, scored, tmp_path, tty):
+    """Without --quiet, bars are drawn only when stderr is a terminal: logs stay readable."""
+    blur = scored[1]["b1"]
+    _, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(tmp_path / "r.json"), tty=tty)
+    assert ("per-frame metrics" in err) == tty, err

@@ -144,7 +144,7 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
     out: dict[str, np.ndarray] = {}
     ident = {"method": prior_method.name, "version": prior_method.version,
              "config": prior_method.config_dict(), "seed": prior_method.seed}
-    for scene in tqdm(scenes, desc="priors", disable=not progress, leave=False):
+    for scene in tqdm(scenes, desc="priors", disable=None if progress else True, leave=False):
         key = _sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
         path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
         if path.is_file():

@@ -400,7 +400,7 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check
     scenes = {}
     from tqdm import tqdm
 
-    for n in tqdm(names, desc=f"check {root.name}", unit="scene", file=sys.stderr, disable=not progress):
+    for n in tqdm(names, desc=f"check {root.name}", unit="scene", file=sys.stderr, disable=None if progress else True):
         s = _load_scene(root, n, problems, check_files, check_pixels)
         if s is not None:
             scenes[n] = s

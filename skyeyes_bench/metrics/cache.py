@@ -77,7 +77,7 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
         if keys[i] not in seen:
             seen.add(keys[i])
             uniq.append(i)
-    bar = tqdm(total=len(uniq), desc=f"{ex.id} features", unit=unit, disable=not progress, leave=False)
+    bar = tqdm(total=len(uniq), desc=f"{ex.id} features", unit=unit, disable=None if progress else True, leave=False)
     for s in range(0, len(uniq), batch_size):
         idx = uniq[s:s + batch_size]
         items = [load(i) for i in idx]

@@ -113,7 +113,7 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                                "cpu_seconds": cpu + time.process_time() - c0})
 
     model.train()
-    bar = tqdm(range(start, steps), desc=desc, disable=not progress, leave=False, initial=start, total=steps)
+    bar = tqdm(range(start, steps), desc=desc, disable=None if progress else True, leave=False, initial=start, total=steps)
     done_now = start
     for step in bar:
         # 1. batch + noise from the step's own generator; 2. loss; 3. clipped AdamW update.

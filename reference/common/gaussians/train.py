@@ -123,7 +123,7 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
     order: list[int] = []
     losses = []
     t_train = 0.0
-    bar = tqdm(range(1, cfg.iterations + 1), desc="fit", disable=not progress, file=None, leave=False)
+    bar = tqdm(range(1, cfg.iterations + 1), desc="fit", disable=None if progress else True, file=None, leave=False)
     for it in bar:
         t0 = time.perf_counter()
         # 1. Schedules: exponential position rate decay, SH degree warm-up.

@@ -447,7 +447,7 @@ def run_mvs(images: list[np.ndarray], cams: list[Camera], box: np.ndarray, cfg: 
     imgs = [torch.from_numpy(np.ascontiguousarray(i)).permute(2, 0, 1).float().to(device) for i in images]
     sources = select_sources(cams, box, cfg)
     raw = [plane_sweep(imgs, cams, r, sources[r], box, cfg)
-           for r in tqdm(range(len(cams)), desc="mvs", disable=not progress, leave=False)]
+           for r in tqdm(range(len(cams)), desc="mvs", disable=None if progress else True, leave=False)]
     # Consistency is checked against every view that shares sources either way.
     neighbours = [sorted(set(sources[r]) | {s for s in range(len(cams)) if r in sources[s]}) for r in range(len(cams))]
     filt = consistency_filter(raw, cams, neighbours, cfg)

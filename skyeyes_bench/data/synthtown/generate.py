@@ -133,7 +133,7 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
     from tqdm import tqdm
 
     n_workers = workers or _default_workers(p)
-    bar = tqdm(total=len(where), desc=f"synthtown-{p.name}", unit="img", file=sys.stderr, disable=not progress)
+    bar = tqdm(total=len(where), desc=f"synthtown-{p.name}", unit="img", file=sys.stderr, disable=None if progress else True)
     pool = None
     try:
         if n_workers > 1:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import logging
 from pathlib import Path
 from typing import Any, ClassVar, Iterator
 
@@ -47,6 +48,16 @@ class Method(abc.ABC):
     def scene_dir(self, scene: Scene) -> Path:
         """Where a method keeps what it fitted on `scene` (checkpoints, fit.json)."""
         return self.workdir / "scenes" / scene.name
+
+    def resume_scene(self, scene: Scene, file: str, load) -> bool:
+        """Resume: if `scene_dir(scene)/file` (a fit's last, atomically written output) exists,
+        call `load(scene)` and return True; else False (fit it)."""
+        ckpt = self.scene_dir(scene) / file
+        if not ckpt.is_file():
+            return False
+        load(scene)
+        logging.getLogger(type(self).__module__).info("%s: reusing %s", scene.name, ckpt)
+        return True
 
     def config_dict(self) -> dict:
         return dataclasses.asdict(self.config)

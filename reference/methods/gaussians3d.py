@@ -161,10 +161,7 @@ class Gaussians3D(Method):
     def fit_scene(self, scene: Scene, *, callback=None, progress: bool = True) -> None:
         cfg = self.config
         set_threads(cfg.threads)
-        ckpt = self.scene_dir(scene) / "model.pt"
-        if ckpt.is_file():
-            self._load(scene)
-            log.info("%s: reusing fitted model %s", scene.name, ckpt)
+        if self.resume_scene(scene, "model.pt", self._load):
             return
         t0 = time.perf_counter()
         aerial = list(scene.aerial)
@@ -192,7 +189,7 @@ class Gaussians3D(Method):
                       "held_out": [f.file for f in held]})
         # 4. Checkpoint atomically (a killed run leaves no half file; the next run refits).
         self.scene_dir(scene).mkdir(parents=True, exist_ok=True)
-        with fileio.atomic_path(ckpt) as tmp:
+        with fileio.atomic_path(self.scene_dir(scene) / "model.pt") as tmp:
             torch.save({"params": {k: v.cpu() for k, v in model.state_dict().items()}, "background": bg, "config": dataclasses.asdict(cfg)}, tmp)
         fileio.write_json(self.scene_dir(scene) / "fit.json", stats)
         self._models[scene.name] = (model, bg)

@@ -160,10 +160,7 @@ class MVS(Method):
     def fit_scene(self, scene: Scene, *, progress: bool = True) -> None:
         cfg = self.config
         set_threads(cfg.threads)
-        ckpt = self.scene_dir(scene) / "cloud.npz"
-        if ckpt.is_file():
-            self._load(scene)
-            log.info("%s: reusing fused cloud %s", scene.name, ckpt)
+        if self.resume_scene(scene, "cloud.npz", self._load):
             return
         t0 = time.perf_counter()
         cloud, stats = reconstruct(scene, cfg, progress=progress)
@@ -171,7 +168,7 @@ class MVS(Method):
             log.warning("%s: MVS fused no point (%s): every ground frame will be the background", scene.name, stats)
         stats["fit_seconds"] = time.perf_counter() - t0
         self.scene_dir(scene).mkdir(parents=True, exist_ok=True)
-        with fileio.atomic_path(ckpt) as tmp:
+        with fileio.atomic_path(self.scene_dir(scene) / "cloud.npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, **dataclasses.asdict(cloud))
         fileio.write_json(self.scene_dir(scene) / "fit.json", stats)

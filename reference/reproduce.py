@@ -103,8 +103,8 @@ def check_out(out: Path, mine: dict, *, force: bool) -> None:
     cfg = out / "config.json"
     if cfg.is_file():
         try:
-            theirs = json.loads(cfg.read_text())
-        except (OSError, ValueError):
+            theirs = fileio.read_json(cfg, allow_nan=True)
+        except UserError:
             theirs = {}
         if "cache_key" in mine and theirs.get("cache_key") == mine["cache_key"]:
             return
@@ -224,7 +224,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         # 3. Render every test sequence; frames already in the cache are reused.
         renders = work / "renders"
         tfile = renders / "timings.json"
-        timings = json.loads(tfile.read_text()) if tfile.is_file() else {}
+        timings = fileio.read_json(tfile, allow_nan=True) if tfile.is_file() else {}
         from tqdm import tqdm
 
         total = sum(len(s) for sc in scenes for s in sc.sequences.values())

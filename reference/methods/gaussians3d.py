@@ -17,7 +17,6 @@ to the aerial views carry the aerial colours, as the `mvs` discs do, so the same
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -275,7 +274,7 @@ class Gaussians3D(Method):
             self._models[scene.name] = (GaussianModel.from_state_dict(sd["params"]).to(self.config.device), sd["background"])
             fit = self.scene_dir(scene) / "fit.json"
             if fit.is_file():
-                self.scene_stats[scene.name] = json.loads(fit.read_text())
+                self.scene_stats[scene.name] = fileio.read_json(fit, allow_nan=True)
         return self._models[scene.name]
 
     # ---------------------------------------------------------------- rendering

@@ -18,7 +18,6 @@ with `fit.json`; a later run on the same workdir reuses it.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -122,7 +121,7 @@ class MVS(Method):
         cfg = self.config
         path = self.workdir / "train" / "appearance.json"
         if path.is_file():
-            d = json.loads(path.read_text())
+            d = fileio.read_json(path, allow_nan=True)
             self.colour_map = ColourMap.from_dict(d["colour_map"])
             self.backgrounds = Backgrounds.from_dict(d["backgrounds"]) if d.get("backgrounds") else None
             log.info("appearance: reusing %s", path)
@@ -187,7 +186,7 @@ class MVS(Method):
             self._surfels[scene.name] = (self._surfel_params(cloud), splat.ground_colour(cloud))
             fit = self.scene_dir(scene) / "fit.json"
             if fit.is_file():
-                self.scene_stats[scene.name] = json.loads(fit.read_text())
+                self.scene_stats[scene.name] = fileio.read_json(fit, allow_nan=True)
         return self._surfels[scene.name]
 
     def _backgrounds(self, scene: Scene, ground: np.ndarray | None) -> Backgrounds:

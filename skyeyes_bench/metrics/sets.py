@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import atomic_path
+from ..fileio import atomic_path, read_json
 
 
 def _clip_spectrum(w: np.ndarray) -> np.ndarray:
@@ -217,7 +217,7 @@ class FeatureStats:
     def load(cls, path: str | os.PathLike) -> "FeatureStats":
         path = Path(path)
         if path.suffix == ".json":
-            return cls.from_dict(json.loads(path.read_text()))
+            return cls.from_dict(read_json(path, allow_nan=True))
         with np.load(path, allow_pickle=False) as z:
             s = cls(int(z["dim"]))
             s.n = int(z["n"])

@@ -474,6 +474,11 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         for name, m in doc["metrics"].items():
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
+                if m["kind"] not in ("frame", "set"):
+                    fields.fail(f"{path}: field 'metrics.{name}.kind'", f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
+                if m["kind"] == "frame":  # compared per sequence: every sequence holds a value
+                    for sid in doc["dataset"]["sequences"]:
+                        fields.conform(str(path), doc["sequences"].get(sid), {name: fields.Number}, f"sequences.{sid}")
                 if m["kind"] == "set":
                     fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
 

@@ -275,6 +275,10 @@ CASES = {
                               lambda w: ["compare", str(w / "res.json"), str(w / "res.json")], "dataset.sequences[0]"),
     "cmp-psnr-string": (lambda w: _json_edit(w / "res.json", _set("frames.0.psnr", "high")),
                         lambda w: ["compare", str(w / "res.json"), str(w / "res.json")], "frames[0].psnr"),
+    "cmp-kind-empty": (lambda w: _json_edit(w / "res.json", _set("metrics.ssim.kind", "")),  # found by the fuzz
+                       lambda w: ["compare", str(w / "res.json"), str(w / "res.json")], "field 'metrics.ssim.kind'"),
+    "cmp-sequence-value-missing": (lambda w: _json_edit(w / "res.json", lambda r: r["sequences"].popitem()),
+                                   lambda w: ["compare", str(w / "res.json"), str(w / "res.json")], "field 'sequences."),
     "cmp-out-parent-file": (lambda w: (w / "afile").write_text("x"),
                             lambda w: ["compare", str(w / "res.json"), str(w / "res.json"), "--out", str(w / "afile" / "c.json")],
                             "afile is a file"),

@@ -49,6 +49,11 @@ class Method(abc.ABC):
         """Where a method keeps what it fitted on `scene` (checkpoints, fit.json)."""
         return self.workdir / "scenes" / scene.name
 
+    def cached_seconds(self) -> float:
+        """Original seconds of the work this instance took from caches instead of doing (stages,
+        priors), so a run's reported time is what producing its result cost. Default: none."""
+        return 0.0
+
     def resume_scene(self, scene: Scene, file: str, load) -> bool:
         """Resume: if `scene_dir(scene)/file` (a fit's last, atomically written output) exists,
         call `load(scene)` and return True; else False (fit it)."""

@@ -70,6 +70,7 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     n_frames = len(res["frames"])
     assert len(sub["timings"]["per_frame_render_s"]) == n_frames
     assert sub["timings"]["fit_s"] > 0 and sub["peak_memory_mb"] > 0
+    assert sub["timings"]["cached_s"] == 0  # nothing came from a cache
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["config"]["iterations"] == 6 and cfg["overrides"][0] == "iterations=6"
     (work,) = (out / "work").iterdir()
@@ -90,6 +91,12 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     assert renders[0].is_file()
     assert json.loads((out / "results.json").read_text())["metrics"]["psnr"]["status"] == "ok"
     assert other.stat().st_mtime_ns == other_mtime  # complete sequences are not re-rendered
+    # the resumed run reports what producing the result cost: the first fit's seconds, and the
+    # reused fit and frames as cached
+    sub2 = json.loads((out / "submission" / "submission.json").read_text())
+    assert sub2["timings"]["fit_s"] == pytest.approx(sub["timings"]["fit_s"], rel=0.05, abs=0.5)
+    reused = sub2["timings"]["cached_s"]
+    assert 0 < reused <= sub2["timings"]["fit_s"] + sub2["timings"]["render_s"]
 
 
 def test_an_out_of_another_run_is_refused_without_force(synthtown_smoke, tmp_path, monkeypatch):

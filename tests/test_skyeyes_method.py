@@ -188,3 +188,19 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
     assert train.load_checkpoint(m._stage_ckpt("acm", key, 7))["step"] == 6
     assert train.load_checkpoint(m._stage_ckpt("acm", key, 5))["step"] == 4
     assert train.load_checkpoint(m._stage_ckpt("acm", key, 3))["step"] == 2
+
+
+def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
+    """Issue 13: a run whose stages and priors come from the cache reports what producing them
+    cost (training.json's seconds), not the ~0 s of loading them."""
+    m1, _, _ = _run(Skyeyes, tiny, tmp_path / "a")
+    assert m1.cached_seconds() == 0.0  # everything computed
+    spent = sum(s["seconds"] for s in m1.training.values())
+    m2, prior, _ = _run(Skyeyes, tiny, tmp_path / "b")
+    assert prior.fitted == []  # priors from the cache too
+    # the checkpoint is written at the last step, a little before the stage's clock stops
+    assert all(s["cached_seconds"] == pytest.approx(m1.training[k]["seconds"], rel=0.1, abs=0.2)
+               for k, s in m2.training.items())
+    stages = sum(s["cached_seconds"] for s in m2.training.values())
+    assert stages > 0.5 * spent
+    assert m2.cached_seconds() > stages  # plus the priors' recorded fit + render seconds

@@ -24,6 +24,7 @@ import dataclasses
 import hashlib
 import inspect
 import json
+import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,13 +129,21 @@ def scene_aerial_hash(scene: Scene) -> str:
     return h.hexdigest()
 
 
+#: Key of a prior cache entry holding the seconds it cost (frame keys are relative file paths).
+_SECONDS = "_seconds"
+
+
 def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *,
-                  progress: bool = True) -> dict[str, np.ndarray]:
+                  progress: bool = True, timing: dict | None = None) -> dict[str, np.ndarray]:
     """Fit `prior_method` per scene and render every ground pose.
 
     The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
     `render_sequence`; renders are cached by (method, config, seed, scene content) hash under
     `<cache>/reference/priors/`.
+
+    Args:
+        timing: if given, `timing["cached_s"]` grows by the original seconds (fit + render) of
+            every scene taken from the cache, or of a prior fit resumed from its checkpoint.
 
     Returns:
         {"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame.
@@ -147,22 +156,33 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
     for scene in tqdm(scenes, desc="priors", disable=None if progress else True, leave=False):
         key = _sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
         path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
+        cached = 0.0
         if path.is_file():
             with np.load(path) as z:
                 for f in scene.ground:
                     out[_frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
+                cached = float(z[_SECONDS]) if _SECONDS in z.files else 0.0  # older caches: unknown
+            if timing is not None:
+                timing["cached_s"] = timing.get("cached_s", 0.0) + cached
             continue
+        t0 = time.perf_counter()
         if "progress" in inspect.signature(prior_method.fit_scene).parameters:
             prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
         else:
             prior_method.fit_scene(scene)
+        took = time.perf_counter() - t0
+        original = float(getattr(prior_method, "scene_stats", {}).get(scene.name, {}).get("fit_seconds", took))
+        resumed = max(0.0, original - took)  # a fit resumed from its checkpoint reports its first run's time
+        if timing is not None:
+            timing["cached_s"] = timing.get("cached_s", 0.0) + resumed
         rendered: dict[str, np.ndarray] = {}
         for seq in scene.sequences.values():
             for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
                 rendered[frame.file] = fileio.to_uint8(np.asarray(img))
+        seconds = np.float64(resumed + time.perf_counter() - t0)  # what producing this entry cost
         with fileio.atomic_path(path, suffix=".npz") as tmp:
             with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **rendered)
+                np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})
         out.update({f"{scene.name}/{k}": v.astype(np.float32) / 255.0 for k, v in rendered.items()})
     return out
 
@@ -201,9 +221,13 @@ class Skyeyes(Method):
         self.vcm = None
         self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, 3]
         self.training: dict[str, Any] = {}
+        self.timing: dict[str, float] = {"cached_s": 0.0}  # original seconds of work taken from caches
         self._figure_written = False
 
     # ---------------------------------------------------------------- helpers
+    def cached_seconds(self) -> float:
+        return float(self.timing["cached_s"])
+
     @property
     def prior(self) -> Method:
         if self._prior is None:
@@ -218,7 +242,7 @@ class Skyeyes(Method):
     def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
         if self.config.condition == "aerial":
             return {_frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}
-        return render_priors(dataset, scenes, self.prior, progress=self.progress)
+        return render_priors(dataset, scenes, self.prior, progress=self.progress, timing=self.timing)
 
     def _to_model(self, images: list[np.ndarray]):
         import torch
@@ -345,7 +369,9 @@ class Skyeyes(Method):
                    "it_per_s": round(res["steps"] / max(res["seconds"], 1e-9), 4),
                    "cpu_s_per_it": round(res["cpu_seconds"] / max(res["steps"], 1), 4),
                    "final_loss": float(np.mean(tail)) if tail else None,
+                   "cached_seconds": round(res["resumed_seconds"], 2),
                    "trainable_parameters": sum(p.numel() for p in params)}
+        self.timing["cached_s"] += res["resumed_seconds"]
         fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
         fileio.write_json(self.workdir / "config.json", self.config_dict())
         return summary

@@ -92,7 +92,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
 
     Returns:
         {"steps": steps done in total, "losses": [per step], "seconds": wall time of this call
-        plus the checkpoint's, "cpu_seconds": likewise in process CPU time, "done": bool}.
+        plus the checkpoint's, "cpu_seconds": likewise in process CPU time, "resumed_seconds": the
+        checkpoint's wall time (work this call reused, not redid), "done": bool}.
     """
     from tqdm import tqdm
 
@@ -134,4 +135,4 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     # CPU seconds (all threads of this process) are reported beside wall time: on a shared
     # machine they say what the run would take alone.
     return {"steps": done_now, "losses": losses, "seconds": seconds + time.perf_counter() - t0,
-            "cpu_seconds": cpu + time.process_time() - c0, "done": done_now >= steps}
+            "cpu_seconds": cpu + time.process_time() - c0, "resumed_seconds": seconds, "done": done_now >= steps}

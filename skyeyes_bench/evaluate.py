@@ -475,10 +475,12 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
                 if m["kind"] not in ("frame", "set"):
-                    fields.fail(f"{path}: field 'metrics.{name}.kind'", f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
+                    fields.fail(f"{path}: field 'metrics.{name}.kind'",
+                                f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
                 if m["kind"] == "frame":  # compared per sequence: every sequence holds a value
                     for sid in doc["dataset"]["sequences"]:
-                        fields.conform(str(path), doc["sequences"].get(sid), {name: fields.Number}, f"sequences.{sid}")
+                        fields.conform(str(path), doc["sequences"].get(sid), {name: fields.Number},
+                                       f"sequences.{sid}")
                 if m["kind"] == "set":
                     fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
 
@@ -489,7 +491,7 @@ def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.
     import zipfile
 
     try:
-        with zipfile.ZipFile(fileio.open_regular(fpath)) as zf:
+        with fileio.open_regular(fpath) as fh, zipfile.ZipFile(fh) as zf:
             for info in zf.infolist():
                 if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
                     raise UserError(f"{fpath}: member {info.filename!r} is not a stored .npy array (expected "

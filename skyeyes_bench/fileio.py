@@ -169,7 +169,8 @@ def json_problem(obj: Any, allow_nan: bool) -> str | None:
             items = [(v, f"{where}[{i}]") for i, v in enumerate(o)]
         else:
             if not allow_nan and isinstance(o, float) and not math.isfinite(o):
-                return f"field '{where}' is {o!r}: JSON numbers are finite (NaN, Infinity and overflowing numbers are refused)"
+                return (f"field '{where}' is {o!r}: JSON numbers are finite (NaN, Infinity and overflowing "
+                        f"numbers are refused)")
             continue
         stack.extend((v, w, depth + 1) for v, w in reversed(items))
     return None

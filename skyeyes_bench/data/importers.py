@@ -199,7 +199,8 @@ def write_plan(out: Path, scenes: list[PlannedScene], *, name: str, protocol: st
 
     total = sum(len(s.ground) + len(s.aerial) for s in scenes)
     with DatasetWriter(out, name=name, protocol=protocol, overwrite=force, validate=True) as w, \
-            tqdm(total=total, desc=f"import {name}", unit="frame", file=sys.stderr, disable=None if progress else True) as bar:
+            tqdm(total=total, desc=f"import {name}", unit="frame", file=sys.stderr,
+                 disable=None if progress else True) as bar:
         for s in scenes:
             ground = sorted(s.ground, key=lambda f: (f.sequence, f.index))
             groups = {"ground": _group_intrinsics(ground), "aerial": _group_intrinsics(s.aerial)}

@@ -328,7 +328,6 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     return problems
 
 
-_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_COLOUR = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
 
 
@@ -348,7 +347,7 @@ def image_problems(path: Path, width: int, height: int, *, decode: bool = True,
         return [str(e)]
     except OSError as e:
         return [f"{path}: unreadable ({e.strerror})"]
-    if head[:8] != _PNG_MAGIC:
+    if head[:8] != fileio.PNG_MAGIC:
         return [f"{path}: not a PNG file"]
     if len(head) < 33 or head[12:16] != b"IHDR":
         return [f"{path}: truncated or corrupt PNG (no IHDR header)"]

@@ -561,10 +561,8 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     equal an unsharded run."""
     out = Path(out) if out is not None else None
     if out is not None:
-        fileio.check_output(out, force=force, sidecars=[features_path(out)])
-        for p in parts:
-            if Path(p).resolve() in (out.resolve(), features_path(out).resolve()):
-                raise UserError(f"{out}: is one of the parts being merged; write the merged results elsewhere")
+        fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=parts,
+                            inputs_are="the parts being merged")
     if not parts:
         raise UserError("merge: no partial results given")
     loaded = [(Path(p), *read_results(p, features=True, partial=True)) for p in parts]

@@ -73,13 +73,19 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=()) -> Path:
+def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=(), inputs=(),
+                 inputs_are: str = "the inputs") -> Path:
     """Refuse, before any work, an output file that could not be written or must not be:
     a folder, an existing file (or sidecar) without `force`, a parent that is a file or not
-    writable, or a place inside one of the `outside` folders (e.g. the submission being scored,
-    where it would become an extra file)."""
+    writable, a place inside one of the `outside` folders (e.g. the submission being scored,
+    where it would become an extra file), or one of the `inputs` files (`inputs_are` names them)."""
     path = Path(path)
-    for p in (path, *map(Path, sidecars)):
+    mine = (path, *map(Path, sidecars))
+    taken = {Path(p).resolve() for p in inputs}
+    for p in mine:
+        if p.resolve() in taken:
+            raise UserError(f"{path}: is one of {inputs_are}; write the output elsewhere")
+    for p in mine:
         if p.is_dir():
             raise UserError(f"{p}: is a folder; expected the path of an output file")
         if (p.exists() or p.is_symlink()) and not force:

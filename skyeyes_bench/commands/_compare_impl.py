@@ -4,7 +4,6 @@ import json
 import sys
 
 from .. import fileio
-from ..errors import UserError
 from ..evaluate import read_results
 from ..stats import compare_results
 
@@ -15,11 +14,7 @@ def _fmt(v) -> str:
 
 def compare_cmd(args) -> int:
     if args.out:  # before any work; compare's output is replaced freely, but never an input
-        fileio.check_output(args.out, force=True)
-        from pathlib import Path
-
-        if Path(args.out).resolve() in (Path(args.a).resolve(), Path(args.b).resolve()):
-            raise UserError(f"{args.out}: is one of the results being compared; write the comparison elsewhere")
+        fileio.check_output(args.out, force=True, inputs=[args.a, args.b], inputs_are="the results being compared")
     a, fa = read_results(args.a, features=False)
     b, fb = read_results(args.b, features=False)
     sets = any(m.get("kind") == "set" and m["status"] == "ok" for m in a["metrics"].values())

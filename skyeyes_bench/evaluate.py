@@ -170,6 +170,8 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         problems = validate_submission(sub, ds, protocol, manifest, frames=frames, progress=progress)
         if problems:
             raise ValidationError(f"submission {sub}", problems)
+    # Each submitted frame is hashed once: for this part's records and for the whole-submission digest.
+    sub_sha = {frame_relpath(sc, f): _sha_or_missing(sub / frame_relpath(sc, f)) for sc, f in expected_frames(ds)}
     doc: dict[str, Any] = {
         "format": PARTIAL_FORMAT,
         "tool": {"name": "skyeyes-bench", "version": __version__},
@@ -181,12 +183,11 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         "submission": {"path": str(sub.resolve()), **{k: manifest.get(k) for k in (
             "method", "method_version", "created", "timings", "peak_memory_mb", "hardware", "config")},
             # every frame, not only this shard's: `merge` refuses parts of different submissions
-            "frames_sha256": _digest([f"{frame_relpath(sc, f)} {_sha_or_missing(sub / frame_relpath(sc, f))}\n"
-                                      for sc, f in expected_frames(ds)])},
+            "frames_sha256": _digest([f"{rel} {sha}\n" for rel, sha in sub_sha.items()])},
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
     seq_index = {sid: k for k, sid in enumerate(seq_ids)}
-    records, unavailable = _frame_metrics(sub, frames, protocol, seq_index, timing, progress)
+    records, unavailable = _frame_metrics(sub, frames, protocol, seq_index, sub_sha, timing, progress)
     features, extractors = _features(sub, frames, protocol, seq_index, unavailable, timing, progress)
     doc.update(frames=records, unavailable=unavailable, extractors=extractors)
     if shard is None:
@@ -216,8 +217,9 @@ def _check_extractors(protocol) -> None:
                                 f"{m.extractor!r} implements {have!r}")
 
 
-def _frame_metrics(sub: Path, frames, protocol, seq_index, timing, progress):
-    """Per-frame PSNR / SSIM / LPIPS (those the protocol asks for) and file hashes."""
+def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, str], timing, progress):
+    """Per-frame PSNR / SSIM / LPIPS (those the protocol asks for) and file hashes (the
+    submission's from `sub_sha`, relative path -> sha256, hashed once by the caller)."""
     from .metrics import MetricUnavailable, lpips, psnr, ssim
 
     names = [m for m in stats.FRAME_METRICS if protocol.metric(m)]
@@ -244,7 +246,7 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, timing, progress):
             for i, (scene, f) in enumerate(batch):
                 rec = {"scene": scene, "file": f.file, "sequence": seq_index[f"{scene}/{f.sequence}"],
                        "index": int(f.index),
-                       "sha256": fileio.sha256_file(sub / frame_relpath(scene, f)),
+                       "sha256": sub_sha[frame_relpath(scene, f)],
                        "gt_sha256": fileio.sha256_file(f.path)}
                 for name, v in values.items():
                     rec[name] = float(v[i])

@@ -54,6 +54,12 @@ class Method(abc.ABC):
         priors), so a run's reported time is what producing its result cost. Default: none."""
         return 0.0
 
+    def scene_fit_seconds(self, scene: Scene, took: float) -> float:
+        """What fitting `scene` cost: the seconds its fit recorded (`scene_stats[...]["fit_seconds"]`;
+        a fit resumed from its checkpoint records its first run's), else `took`, the wall time
+        of the call."""
+        return float(getattr(self, "scene_stats", {}).get(scene.name, {}).get("fit_seconds", took))
+
     def resume_scene(self, scene: Scene, file: str, load) -> bool:
         """Resume: if `scene_dir(scene)/file` (a fit's last, atomically written output) exists,
         call `load(scene)` and return True; else False (fit it)."""

@@ -220,8 +220,9 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
                 m.fit_scene(scene)
             took = time.perf_counter() - t0
             stats = getattr(m, "scene_stats", {}).get(scene.name, {})
-            fit_s += float(stats.get("fit_seconds", took))  # a resumed fit reports its original time
-            resumed_fits_s += max(0.0, float(stats.get("fit_seconds", took)) - took)
+            cost = m.scene_fit_seconds(scene, took)  # a resumed fit reports its original time
+            fit_s += cost
+            resumed_fits_s += max(0.0, cost - took)
             log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
         # 3. Render every test sequence; frames already in the cache are reused.
         renders = work / "renders"

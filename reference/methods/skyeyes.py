@@ -171,8 +171,7 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
         else:
             prior_method.fit_scene(scene)
         took = time.perf_counter() - t0
-        original = float(getattr(prior_method, "scene_stats", {}).get(scene.name, {}).get("fit_seconds", took))
-        resumed = max(0.0, original - took)  # a fit resumed from its checkpoint reports its first run's time
+        resumed = max(0.0, prior_method.scene_fit_seconds(scene, took) - took)  # a resumed fit: its first run's time
         if timing is not None:
             timing["cached_s"] = timing.get("cached_s", 0.0) + resumed
         rendered: dict[str, np.ndarray] = {}

@@ -37,7 +37,6 @@ SCENE_FILE = "scene.json"
 KINDS = ("ground", "aerial")
 LAYERS = ("depth", "semantics")
 _LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
-_ANY = object()  # marks "a rejected frame of unknown sequence"
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 #: Largest image side accepted in intrinsics (the decoders' pixel limit is fileio.MAX_PIXELS).
 _MAX_SIDE = 65536
@@ -224,7 +223,8 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         return None
     frames: dict[str, list[Frame]] = {k: [] for k in KINDS}
     seen_files: dict[str, int] = {}
-    rejected_seqs: set = set()  # names, or _ANY
+    rejected_seqs: set[str] = set()
+    unknown_seq_rejected = False  # a rejected frame whose sequence is unknown: any hole may be its
     group_rejected = False
     for kind in KINDS:
         group = intr.get(kind)
@@ -286,9 +286,9 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         if kind == "ground":  # a rejected frame leaves a hole in its sequence: reported already
             rejected = [e for i, e in enumerate(entries) if i not in accepted]
             rejected_seqs.update(str(e.get("sequence")) for e in rejected if isinstance(e, dict))
-            if any(not isinstance(e, dict) or not isinstance(e.get("sequence"), str)
-                   or not fields.NAME.match(e["sequence"]) for e in rejected):
-                rejected_seqs.add(_ANY)  # its sequence is unknown: any hole may be its
+            unknown_seq_rejected = unknown_seq_rejected or any(
+                not isinstance(e, dict) or not isinstance(e.get("sequence"), str) or not fields.NAME.match(e["sequence"])
+                for e in rejected)
     meta = raw.get("meta", {})
     if meta is None:
         meta = {}
@@ -297,7 +297,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         meta = {}
     scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), meta)
     for seq in scene.sequences.values():
-        if seq.name in rejected_seqs or _ANY in rejected_seqs:
+        if seq.name in rejected_seqs or unknown_seq_rejected:
             continue
         idx = [f.index for f in seq.frames]
         if idx != list(range(len(idx))):

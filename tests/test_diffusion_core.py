@@ -267,9 +267,9 @@ def _train(tmp, stop_after=None, ckpt_every=2):
     data = torch.rand(6, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 2 - 1
     params = core.trainable(m)
 
-    def loss_fn(g):
+    def loss_fn(net, g, part):
         idx = torch.randint(0, 6, (2,), generator=g)
-        return train.denoise_loss(m, sched, data[idx], None, g)
+        return train.denoise_loss(net, sched, data[idx], None, g, part=part)
 
     res = train.train_loop(m, params, loss_fn, steps=5, lr=1e-3, seed=0, ckpt=tmp / "c.pt",
                            ckpt_every=ckpt_every, stop_after=stop_after, progress=False)
@@ -287,3 +287,132 @@ def test_killed_training_resumes_to_identical_weights(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert r2["losses"][:2] == r_full["losses"][:2] and len(r2["losses"]) == 5
     assert sorted(p.name for p in (tmp_path / "killed").iterdir()) == ["c.pt"]  # no temp files left
+
+
+# --------------------------------------------------------------------------- CPU formulation (issue 13)
+
+CONCAT = core.replace_config(TINY_V, conditioning="concat", residual=True, residual_scale=2.0)
+
+
+def test_concat_model_sees_its_condition_from_the_first_step():
+    """The condition enters at the input: an untrained model's output already depends on it
+    (a fresh ControlNet branch's zero convolutions hide it, the test below that)."""
+    m = core.build_model(CONCAT, control=True, seed=0).eval()
+    assert m.unet.conv_in.in_channels == 6 and m.unet.conv_out.out_channels == 3 and m.controlnet is None
+    x, t = torch.randn(2, 3, 16, 16), torch.full((2,), 500)
+    with torch.no_grad():
+        a, b = m(x, t, torch.zeros(2, 3, 16, 16)), m(x, t, torch.ones(2, 3, 16, 16))
+    assert (a - b).abs().max() > 1e-4
+    with pytest.raises(AssertionError, match="condition"):
+        m(x, t, None)
+    c = core.build_model(TINY_V, control=True, seed=0).eval()
+    with torch.no_grad():
+        torch.testing.assert_close(c(x, t, torch.zeros(2, 3, 16, 16)), c(x, t, torch.ones(2, 3, 16, 16)))
+    with pytest.raises(ValueError, match="concat"):
+        core.replace_config(TINY, residual=True)
+    with pytest.raises(ValueError, match="conditioning"):
+        core.replace_config(TINY, conditioning="crossattn")
+
+
+def test_residual_round_trip_and_its_range_is_not_clipped():
+    """z = (x0 - c) k; the sampler's x0 clip for a residual spans [-2k, 2k], not [-1, 1]."""
+    g = torch.Generator().manual_seed(0)
+    x0, c = torch.rand(3, 3, 8, 8, generator=g) * 2 - 1, torch.rand(3, 3, 8, 8, generator=g) * 2 - 1
+    z = core.to_diffused(x0, c, CONCAT)
+    torch.testing.assert_close(z, (x0 - c) * 2.0)
+    torch.testing.assert_close(core.from_diffused(z, c, CONCAT), x0)
+    assert torch.equal(core.to_diffused(x0, c, TINY_V), x0)  # no residual: the frames themselves
+    target = torch.rand(3, 3, 8, 8, generator=g) * 7 - 3.5  # residuals up to |3.5| (k = 2)
+    out = sample.ddim(OracleModel(target, CONCAT), c, steps=8, generator=torch.Generator().manual_seed(1))
+    np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
+    clipped = sample.ddim(OracleModel(target, TINY_V), c, steps=8, generator=torch.Generator().manual_seed(1))
+    assert clipped.abs().max() <= 1.0 + 1e-6  # a frame model clips to the image range
+
+
+def test_sdedit_start_noises_the_prior_to_the_strength():
+    """strength s: the first step is the first scheduled timestep below s T, from
+    x = sqrt(1 - ab_t) noise (the residual of the prior is zero) with the same noise draw."""
+    ab = _alpha_bar()
+    sched = sample._scheduler(CONCAT, 10)  # trailing: 999, 899, ..., 99
+    x, steps = sample._start(sched, (2, 3, 4, 4), torch.Generator().manual_seed(3), 0.5, None)
+    assert steps.tolist() == [499, 399, 299, 199, 99]
+    noise = torch.randn((2, 3, 4, 4), generator=torch.Generator().manual_seed(3))
+    np.testing.assert_allclose(x.numpy(), (np.sqrt(1 - ab[499]) * noise.double()).numpy(), rtol=1e-5, atol=1e-6)
+    target = torch.rand(2, 3, 8, 8) * 2 - 1
+    m = OracleModel(target, CONCAT)
+    out = sample.ddim(m, torch.zeros(2, 3, 8, 8), steps=10, generator=torch.Generator().manual_seed(1), strength=0.5)
+    np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
+    assert [int(t[0]) for _, t in m.calls] == [499, 399, 299, 199, 99]
+    for bad in (0.0, -1.0, 0.05):  # 0.05 T = 50 < the last step 99: no step left
+        with pytest.raises(ValueError, match="strength"):
+            sample._start(sched, (1, 3, 4, 4), torch.Generator(), bad, None)
+
+
+def test_min_snr_weights_closed_form():
+    """Hang et al. 2023: w = min(SNR, g) / (SNR + 1) for v, min(SNR, g) / SNR for epsilon."""
+    ab = _alpha_bar()
+    t = torch.tensor([0, 100, 300, 600, 999])
+    snr = ab[t.numpy()] / (1 - ab[t.numpy()])
+    for cfg, want in ((TINY_V, np.minimum(snr, 5.0) / (snr + 1)), (TINY, np.minimum(snr, 5.0) / snr)):
+        got = train.loss_weight(core.train_scheduler(cfg), t, 5.0)
+        np.testing.assert_allclose(got.numpy(), want, rtol=5e-4)  # the schedule is float32
+    assert torch.equal(train.loss_weight(core.train_scheduler(TINY), t, None), torch.ones(5))
+    # weighted loss = mean over rows of w_t * per-row squared error
+    x0 = torch.rand(4, 3, 8, 8) * 2 - 1
+
+    class Zero(torch.nn.Module):
+        def forward(self, x_t, t, cond):
+            return torch.zeros_like(x_t)
+
+    s = core.train_scheduler(TINY)
+    g1, g2 = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
+    tt = torch.randint(0, 1000, (4,), generator=g2)
+    noise = torch.randn(x0.shape, generator=g2)
+    want = (train.loss_weight(s, tt, 5.0) * noise.pow(2).flatten(1).mean(1)).mean()
+    torch.testing.assert_close(train.denoise_loss(Zero(), s, x0, None, g1, snr_gamma=5.0), want)
+
+
+def test_batch_share_of_a_process():
+    """Process r of w takes rows [r B/w, (r + 1) B/w) of the global draw; shares tile it."""
+    x0 = torch.rand(6, 3, 8, 8) * 2 - 1
+    seen = []
+
+    class Rec(torch.nn.Module):
+        def forward(self, x_t, t, cond):
+            seen.append(t.clone())
+            return torch.zeros_like(x_t)
+
+    s = core.train_scheduler(TINY)
+    whole = train.denoise_loss(Rec(), s, x0, None, torch.Generator().manual_seed(4))
+    parts = [train.denoise_loss(Rec(), s, x0, None, torch.Generator().manual_seed(4), part=(r, 3)) for r in range(3)]
+    assert torch.equal(torch.cat(seen[1:]), seen[0])
+    torch.testing.assert_close(torch.stack(parts).mean(), whole)
+    with pytest.raises(ValueError, match="split"):
+        train.denoise_loss(Rec(), s, x0, None, torch.Generator(), part=(0, 4))
+
+
+def test_vcm_sits_in_the_unet_down_and_up_blocks_only():
+    """Skyeyes Sec. 3.3: VCM in the LDM's down- and up-sampling blocks; the middle block and the
+    ControlNet branch (the frozen ACM) keep per-frame self-attention."""
+    m = core.build_model(TINY, control=True, seed=0)
+    before = {n: type(a.processor) for n, a in vcm.self_attention_layers(m).items()}
+    assert any(".mid_block." in n for n in before) and any(n.startswith("controlnet.") for n in before)
+    vcm.install_vcm(m)
+    for n, a in vcm.self_attention_layers(m).items():
+        rewired = isinstance(a.processor, vcm.ClipSelfAttnProcessor)
+        assert rewired == n.startswith(("unet.down_blocks.", "unet.up_blocks.")), n
+    names = [n for n, p in m.named_parameters() if n.startswith(tuple(vcm.vcm_parameter_names(m)))]
+    assert names and not any(".mid_block." in n or n.startswith("controlnet.") for n in names)
+
+
+def test_device_and_precision_resolution(monkeypatch):
+    """--device auto is CUDA when present; mixed precision is bf16 (fp16 without bf16) on CUDA,
+    none on the CPU (no GPU needed: the choice is a pure function of what torch reports)."""
+    assert train.precision_for("cpu", "auto", cuda=False, bf16=False) == "no"
+    assert train.precision_for("cuda", "auto", cuda=True, bf16=True) == "bf16"
+    assert train.precision_for("cuda:1", "auto", cuda=True, bf16=False) == "fp16"
+    assert train.precision_for("cuda", "no", cuda=True, bf16=True) == "no"
+    with pytest.raises(ValueError, match="mixed precision"):
+        train.precision_for("cpu", "fp8", cuda=False, bf16=False)
+    acc = train.make_accelerator("cpu", "auto")
+    assert acc.device.type == "cpu" and acc.mixed_precision == "no"

@@ -69,6 +69,18 @@ class SkyeyesConfig:
     vcm_lr: float = 2e-4
     clip_frames: int = 12  # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames"
     sample_steps: int = 10  # DDIM steps
+    # SDEdit start (Meng et al. 2022): 1 samples from pure noise; s < 1 starts from the prior
+    # noised to timestep s T (needs `core.residual`: the prior is the residual model's zero).
+    sample_strength: float = 1.0
+    # Exponential moving average of the trained weights (0: none); the sampler uses the average.
+    ema_decay: float = 0.0
+    # min-SNR-gamma loss weighting (Hang et al. 2023; 0: uniform weights).
+    snr_gamma: float = 0.0
+    # torch device of every stage (priors, diffusion training, sampling): "auto" is CUDA when
+    # available, else the CPU. Mixed precision ("auto": bf16/fp16 on CUDA, none on the CPU).
+    # Under `accelerate launch` the diffusion stages take their devices from the launcher.
+    device: str = "auto"
+    mixed_precision: str = "auto"
     ckpt_every: int = 50
     figure_frames: int = 6
     # torch threads of the diffusion stages (0: every core; OMP_NUM_THREADS wins when set).
@@ -78,24 +90,24 @@ class SkyeyesConfig:
 
 
 PRESETS: dict[str, SkyeyesConfig] = {
-    # CI: whole `reproduce --preset smoke` (SynthTown smoke, 48x48) in a few minutes.
-    # NOTE: measured here (one thread, shared machine): at 48x48 the 2x2 fold (24x24x12) made
-    # a base step ~1.8x cheaper but the loss fell far slower per CPU-second (0.38 after 150
-    # steps vs 0.10 after 90 unfolded), so smoke stays unfolded with narrow top levels.
+    # CI: whole `reproduce --preset smoke` (SynthTown smoke, 48x48) in a few minutes. CPU
+    # formulation (docs/skyeyes.md, "What was tried"): the prior concatenated to the UNet's
+    # input, the residual from the prior diffused, EMA weights, min-SNR weighting.
     "smoke": SkyeyesConfig(
-        core=CoreConfig(resolution=48, patch=1, channels=(16, 32, 64), attention=(False, False, True),
-                        head_dim=32, embed_dim=64),
-        prior_preset="smoke", base_steps=400, base_batch=8, acm_steps=400, acm_batch=8,
-        vcm_steps=60, vcm_batch=1, sample_steps=10),
+        core=CoreConfig(resolution=48, patch=1, channels=(32, 64, 64), attention=(False, False, True),
+                        head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0),
+        prior_preset="smoke", base_steps=0, acm_steps=600, acm_batch=8, acm_lr=1e-3,
+        vcm_steps=60, vcm_batch=1, sample_steps=10, ema_decay=0.995, snr_gamma=5.0),
     # CPU default (SynthTown small, 128x128 folded to 64x64x12: at 128 the fold is what keeps
-    # a step near the 64x64 cost, ~0.6-0.8 s on an idle 2-core machine per issue 7's figures).
+    # a step near the 64x64 cost).
     "small": SkyeyesConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
-                        head_dim=32, embed_dim=64),
-        prior_preset="small", base_steps=600, base_batch=12, acm_steps=300, acm_batch=12,
-        vcm_steps=60, vcm_batch=1, sample_steps=20, ckpt_every=50),
+                        head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0),
+        prior_preset="small", base_steps=0, acm_steps=2000, acm_batch=12, acm_lr=1e-3,
+        vcm_steps=100, vcm_batch=1, sample_steps=20, ckpt_every=100, ema_decay=0.995, snr_gamma=5.0),
     # NOTE: Skyeyes Sec. 4.2: 512x512, ACM 30k iterations at batch 32, VCM 3k iterations at
-    # batch 2 (12-frame clips). GPU users; the base stage is skipped with --pretrained.
+    # batch 2 (12-frame clips). For GPU users with --pretrained (SD1.5: ControlNet branch,
+    # epsilon objective; the base stage is skipped); without it, a ControlNet from scratch.
     "paper": SkyeyesConfig(
         core=CoreConfig(resolution=512, patch=4, channels=(128, 256, 512, 512),
                         attention=(False, True, True, True), layers_per_block=2, head_dim=64,
@@ -106,8 +118,9 @@ PRESETS: dict[str, SkyeyesConfig] = {
 
 
 #: Bumped whenever a change makes old stage checkpoints mean something else (architecture,
-#: losses): it is part of every stage cache key. 2: heads sized by `head_dim`.
-STAGE_VERSION = 2
+#: losses): it is part of every stage cache key. 2: heads sized by `head_dim`. 3: data-parallel
+#: batch split, loss weights, VCM in the UNet's down and up blocks only.
+STAGE_VERSION = 3
 
 
 def _sha(obj: Any) -> str:
@@ -193,10 +206,14 @@ def nearest_aerial(scene: Scene, frame: Frame) -> Frame:
     return scene.aerial[int(np.argmin(np.linalg.norm(centres - frame.c2w[:3, 3], axis=1)))]
 
 
-def make_prior_method(config: SkyeyesConfig, workdir: Path, seed: int) -> Method:
+def make_prior_method(config: SkyeyesConfig, workdir: Path, seed: int, device: str | None = None) -> Method:
+    """The prior method of `config`, on `device` when its config has one."""
     from reference.methods import get_method_class
 
-    return get_method_class(config.prior_method).from_preset(config.prior_preset, workdir, seed=seed)
+    cls = get_method_class(config.prior_method)
+    has_device = any(f.name == "device" for f in dataclasses.fields(cls.presets[config.prior_preset]))
+    extra = {"device": device} if device is not None and has_device else {}
+    return cls.from_preset(config.prior_preset, workdir, seed=seed, **extra)
 
 
 # --------------------------------------------------------------------------- the method
@@ -209,10 +226,17 @@ class Skyeyes(Method):
 
     def __init__(self, config: SkyeyesConfig, workdir: Path, *, seed: int = 0, prior_method: Method | None = None,
                  progress: bool = True):
-        if config.pretrained and (config.core.pretrained, config.core.prediction) != (config.pretrained, "epsilon"):
-            # SD1.5's UNet was trained on the epsilon objective; its fine-tuning keeps it.
-            config = dataclasses.replace(config, core=dataclasses.replace(config.core, pretrained=config.pretrained,
-                                                                          prediction="epsilon"))
+        want = dict(pretrained=config.pretrained, prediction="epsilon", conditioning="controlnet", residual=False)
+        if config.pretrained and any(getattr(config.core, k) != v for k, v in want.items()):
+            # SD1.5's UNet was trained on the epsilon objective and its condition enters through
+            # a ControlNet branch (the paper's ACM); its fine-tuning keeps both.
+            config = dataclasses.replace(config, core=dataclasses.replace(config.core, **want), sample_strength=1.0)
+        if config.sample_strength < 1.0 and not config.core.residual:
+            raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
+        if config.condition == "aerial" and config.core.residual:
+            # the residual from a view taken elsewhere means nothing: diffuse the frames
+            config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
+                                         sample_strength=1.0)
         super().__init__(config, workdir, seed=seed)
         self._prior = prior_method  # tests inject a stand-in; else built lazily from the registry
         self.progress = progress
@@ -230,7 +254,7 @@ class Skyeyes(Method):
     @property
     def prior(self) -> Method:
         if self._prior is None:
-            self._prior = make_prior_method(self.config, self.workdir / "prior", self.seed)
+            self._prior = make_prior_method(self.config, self.workdir / "prior", self.seed, self.device)
         return self._prior
 
     def config_dict(self) -> dict:
@@ -286,51 +310,61 @@ class Skyeyes(Method):
         from ..common.diffusion import core, train, vcm
 
         cfg, c = self.config.core, self.config
+        acc = train.make_accelerator(self.device, c.mixed_precision)
         scenes = dataset.split("train")
         frames = [(s, f) for s in scenes for f in s.ground]
-        conds = self._conditions(dataset, scenes)
+        with acc.main_process_first():  # under `accelerate launch`, one process fits the priors
+            conds = self._conditions(dataset, scenes)
         set_threads(self.config.threads)  # the prior stage runs single-threaded; the UNet wants every core
-        # 1. tensors in model space: targets and conditions, one row per train ground frame.
+        # 1. tensors in model space: targets and conditions, one row per train ground frame; the
+        # model diffuses z0 (the frames, or their residual from the prior: `core.to_diffused`).
         x0 = core.encode(self._to_model([f.image() for _, f in frames]), cfg)
         cc = core.encode_cond(self._to_model([conds[_frame_key(s, f)] for s, f in frames]), cfg)
+        z0 = core.to_diffused(x0, cc, cfg)
         data_hash = hashlib.sha256(x0.numpy().tobytes()).hexdigest()
         cond_hash = hashlib.sha256(cc.numpy().tobytes()).hexdigest()
         sched = core.train_scheduler(cfg)
         n = len(frames)
+        gamma = c.snr_gamma or None
+        run = dict(accelerator=acc, ema_decay=c.ema_decay)
 
-        # 2. base UNet on ground truth (skipped when a pretrained UNet is given).
+        # 2. base UNet on ground truth: only for a ControlNet branch trained from scratch (a
+        # pretrained UNet replaces it; a concat-conditioned UNet is trained whole in stage 3).
         model = core.build_model(cfg, control=False, seed=self.seed)
         # Stage keys hold everything a stage depends on except its own step count, plus the
         # full identity (with steps) of the stage it starts from.
         base_key = {"core": dataclasses.asdict(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
-                    "data": data_hash}
-        if not cfg.pretrained:
+                    "data": data_hash, "ema": c.ema_decay, "snr_gamma": c.snr_gamma}
+        has_base = cfg.conditioning == "controlnet" and not cfg.pretrained
+        if has_base:
             params = core.trainable(model, ["unet.", "prompt"])
 
-            def base_loss(g):
+            def base_loss(net, g, part):
                 idx = torch.randint(0, n, (c.base_batch,), generator=g)
-                return train.denoise_loss(model, sched, x0[idx], None, g)
+                return train.denoise_loss(net, sched, z0[idx], None, g, part=part, snr_gamma=gamma)
 
-            self.training["base"] = self._run("base", model, params, base_loss, c.base_steps, c.base_lr, base_key)
-        base_id = {**base_key, "steps": 0 if cfg.pretrained else c.base_steps}
+            self.training["base"] = self._run("base", model, params, base_loss, c.base_steps, c.base_lr, base_key, run)
+        base_id = {**base_key, "steps": c.base_steps if has_base else 0}
 
-        # 3. ACM: ControlNet branch from the UNet, UNet frozen.
+        # 3. ACM: the condition's way in (a ControlNet branch from the UNet, UNet frozen; or the
+        # concatenated input of a UNet trained whole).
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed + 1)
             model.add_control()
         acm_key = {"base": base_id, "batch": c.acm_batch, "lr": c.acm_lr, "condition": c.condition,
                    "cond": cond_hash}
-        params = core.trainable(model, ["controlnet."])
+        params = core.trainable(model, ["controlnet."] if cfg.conditioning == "controlnet" else ["unet.", "prompt"])
 
-        def acm_loss(g):
+        def acm_loss(net, g, part):
             idx = torch.randint(0, n, (c.acm_batch,), generator=g)
-            return train.denoise_loss(model, sched, x0[idx], cc[idx], g)
+            return train.denoise_loss(net, sched, z0[idx], cc[idx], g, part=part, snr_gamma=gamma)
 
-        self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key)
+        self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
         core.trainable(model, [])
         self.acm = model
 
-        # 4. VCM: clip attention on a copy of the frozen ACM; fine-tune the attn1 projections.
+        # 4. VCM: clip attention in the UNet's down and up blocks of a copy of the frozen ACM;
+        # only those layers' projections are trained (the ACM keeps its own, for frame 1).
         if not c.vcm:
             return
         seqs = [[frames.index((s, f)) for f in q.frames] for s in scenes for q in s.sequences.values()]
@@ -340,9 +374,9 @@ class Skyeyes(Method):
         vcm.install_vcm(vmodel)
         params = core.trainable(vmodel, vcm.vcm_parameter_names(vmodel))
         vcm_key = {"acm": {**acm_key, "steps": c.acm_steps}, "batch": c.vcm_batch, "lr": c.vcm_lr,
-                   "frames": f_clip}
+                   "frames": f_clip, "layers": list(vcm.VCM_BLOCKS)}
 
-        def vcm_loss(g):
+        def vcm_loss(net, g, part):
             rows = []
             for _ in range(c.vcm_batch):
                 q = seqs[int(torch.randint(0, len(seqs), (1,), generator=g))]
@@ -350,18 +384,28 @@ class Skyeyes(Method):
                 rows.append(q[s0:s0 + f_clip])
             idx = torch.tensor(rows)  # [B, F]
             with vcm.clip_frames(vmodel, f_clip):
-                return train.clip_denoise_loss(vmodel, sched, x0[idx], cc[idx], g)
+                return train.clip_denoise_loss(net, sched, z0[idx], cc[idx], g, part=part, snr_gamma=gamma)
 
-        self.training["vcm"] = self._run("vcm", vmodel, params, vcm_loss, c.vcm_steps, c.vcm_lr, vcm_key)
+        self.training["vcm"] = self._run("vcm", vmodel, params, vcm_loss, c.vcm_steps, c.vcm_lr, vcm_key, run)
         core.trainable(vmodel, [])
         self.vcm = vmodel
 
-    def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict) -> dict:
+    @property
+    def device(self) -> str:
+        """The configured device with "auto" resolved (CUDA when available, else the CPU)."""
+        import torch
+
+        if self.config.device == "auto":
+            return "cuda" if torch.cuda.is_available() else "cpu"
+        return self.config.device
+
+    def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict, run: dict) -> dict:
         from ..common.diffusion import train
 
         ckpt = self._stage_ckpt(stage, key, steps)
         res = train.train_loop(model, params, loss_fn, steps=steps, lr=lr, seed=self.seed, ckpt=ckpt,
-                               ckpt_every=self.config.ckpt_every, progress=self.progress, desc=stage)
+                               ckpt_every=self.config.ckpt_every, progress=self.progress, desc=stage, **run)
+        acc = run["accelerator"]
         tail = res["losses"][-max(1, steps // 10):]
         summary = {"checkpoint": str(ckpt), "steps": res["steps"], "seconds": round(res["seconds"], 2),
                    "cpu_seconds": round(res["cpu_seconds"], 2),
@@ -369,10 +413,13 @@ class Skyeyes(Method):
                    "cpu_s_per_it": round(res["cpu_seconds"] / max(res["steps"], 1), 4),
                    "final_loss": float(np.mean(tail)) if tail else None,
                    "cached_seconds": round(res["resumed_seconds"], 2),
-                   "trainable_parameters": sum(p.numel() for p in params)}
+                   "trainable_parameters": sum(p.numel() for p in params),
+                   "device": str(acc.device), "processes": acc.num_processes,
+                   "mixed_precision": acc.mixed_precision}
         self.timing["cached_s"] += res["resumed_seconds"]
-        fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
-        fileio.write_json(self.workdir / "config.json", self.config_dict())
+        if acc.is_main_process:
+            fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
+            fileio.write_json(self.workdir / "config.json", self.config_dict())
         return summary
 
     def fit_scene(self, scene: Scene) -> None:
@@ -384,11 +431,11 @@ class Skyeyes(Method):
     def _generate(self, conds):
         from ..common.diffusion import sample
 
-        seed = self._seq_seed
-        if self.config.vcm:
-            return sample.sample_sequence(self.acm, self.vcm, conds, steps=self.config.sample_steps, seed=seed,
-                                          clip=self.config.clip_frames)
-        return sample.sample_frames(self.acm, conds, steps=self.config.sample_steps, seed=seed)
+        seed, c = self._seq_seed, self.config
+        if c.vcm:
+            return sample.sample_sequence(self.acm, self.vcm, conds, steps=c.sample_steps, seed=seed,
+                                          clip=c.clip_frames, strength=c.sample_strength)
+        return sample.sample_frames(self.acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         from ..common.diffusion import core
@@ -399,7 +446,7 @@ class Skyeyes(Method):
         cc = core.encode_cond(self._to_model(priors), cfg)
         # Seed per sequence from its id, so frames do not depend on rendering order.
         self._seq_seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
-        x = self._generate(cc)
+        x = core.from_diffused(self._generate(cc), cc, cfg)
         imgs = core.decode(x, cfg)  # [N, 3, res, res]
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):

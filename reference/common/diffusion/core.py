@@ -52,11 +52,33 @@ class CoreConfig:
     # frames come out as noise (x0 error 0.18 vs a signal variance of 0.13); v keeps the x0 error
     # bounded at every t. See docs/skyeyes.md for the figures.
     prediction: str = "v_prediction"
-    pretrained: str | None = None  # local SD1.5 diffusers folder (untested offline)
+    pretrained: str | None = None  # local SD1.5 diffusers folder
+    # How the condition (prior) enters the denoiser: "controlnet" (the paper's ACM: a
+    # ControlNet branch beside a UNet, the pretrained path) or "concat" (the condition is
+    # concatenated to the noisy sample at the UNet's input, as SR3, Palette and
+    # InstructPix2Pix do: the model sees it from its first step, with no zero convolutions to
+    # grow first). See docs/skyeyes.md for the measurements behind the CPU presets' choice.
+    conditioning: str = "controlnet"
+    # Diffuse the residual (x0 - condition) * residual_scale instead of x0 (concat only): an
+    # untrained model's x0 estimate is then the condition itself, not a grey frame.
+    residual: bool = False
+    residual_scale: float = 1.0
+
+    def __post_init__(self):
+        if self.conditioning not in ("controlnet", "concat"):
+            raise ValueError(f"conditioning {self.conditioning!r}: expected 'controlnet' or 'concat'")
+        if self.residual and self.conditioning != "concat":
+            raise ValueError("residual diffusion needs conditioning='concat'")
+
+    @property
+    def sample_channels(self) -> int:
+        """Channels of the diffused sample: SD VAE latents have 4; pixels folded p x p have 3 p^2."""
+        return 4 if self.pretrained else 3 * self.patch**2
 
     @property
     def in_channels(self) -> int:
-        return 4 if self.pretrained else 3 * self.patch**2  # SD VAE latents have 4 channels
+        """Channels of the UNet's input (the sample, plus the condition when concatenated)."""
+        return self.sample_channels * (2 if self.conditioning == "concat" else 1)
 
     @property
     def heads_per_level(self) -> tuple[int, ...]:
@@ -97,6 +119,8 @@ def sample_scheduler(cfg: CoreConfig):
     return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
                          beta_end=cfg.beta_end, beta_schedule="linear", prediction_type=cfg.prediction,
                          clip_sample=cfg.pretrained is None, set_alpha_to_one=True,
+                         # a residual of images in [-1, 1] lies in [-2, 2] (times its scale)
+                         clip_sample_range=2.0 * cfg.residual_scale if cfg.residual else 1.0,
                          timestep_spacing="trailing")
 
 
@@ -171,7 +195,7 @@ def build_unet(cfg: CoreConfig):
     down = tuple("CrossAttnDownBlock2D" if a else "DownBlock2D" for a in cfg.attention)
     up = tuple("CrossAttnUpBlock2D" if a else "UpBlock2D" for a in reversed(cfg.attention))
     return UNet2DConditionModel(
-        sample_size=cfg.latent_size, in_channels=cfg.in_channels, out_channels=cfg.in_channels,
+        sample_size=cfg.latent_size, in_channels=cfg.in_channels, out_channels=cfg.sample_channels,
         down_block_types=down, up_block_types=up, mid_block_type="UNetMidBlock2DCrossAttn",
         block_out_channels=tuple(cfg.channels), layers_per_block=cfg.layers_per_block,
         # NOTE: diffusers' UNet2DConditionModel reads `attention_head_dim` as the number of
@@ -200,8 +224,12 @@ class ControlledUNet(nn.Module):
         self.prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02)
 
     def add_control(self) -> None:
+        """Give the model its condition input: a ControlNet branch (`conditioning="controlnet"`);
+        with `"concat"` the UNet's input already has the condition's channels (nothing to add)."""
         from diffusers import ControlNetModel
 
+        if self.cfg.conditioning == "concat":
+            return
         if self.cfg.pretrained:
             # SD1.5 layout: the branch takes [0, 1] pixels and downsamples them 8x to the latent.
             root = Path(self.cfg.pretrained) / "controlnet"
@@ -210,13 +238,21 @@ class ControlledUNet(nn.Module):
             return
         # Pixel space: the condition has the sample's layout, so no downsampling in its embedding.
         self.controlnet = ControlNetModel.from_unet(
-            self.unet, conditioning_embedding_out_channels=(16,), conditioning_channels=self.cfg.in_channels)
+            self.unet, conditioning_embedding_out_channels=(16,), conditioning_channels=self.cfg.sample_channels)
+
+    @property
+    def conditioned(self) -> bool:
+        return self.cfg.conditioning == "concat" or self.controlnet is not None
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
-        """x_t [B, C, h, w] noisy, t [B] integer timesteps, cond [B, C, h, w] (model space) -> eps [B, C, h, w]."""
+        """x_t [B, C, h, w] noisy, t [B] integer timesteps, cond [B, C, h, w] (model space) ->
+        the prediction [B, C, h, w] (epsilon or v, per `cfg.prediction`)."""
         b = x_t.shape[0]
         assert t.shape == (b,), (t.shape, b)
         emb = self.prompt.expand(b, -1, -1)
+        if self.cfg.conditioning == "concat":
+            assert cond is not None and cond.shape == x_t.shape, "a concat-conditioned model needs a condition"
+            return self.unet(torch.cat([x_t, cond], dim=1), t, encoder_hidden_states=emb, return_dict=False)[0]
         down = mid = None
         if self.controlnet is not None:
             assert cond is not None and cond.shape[0] == b, "a controlled model needs a condition"
@@ -224,6 +260,17 @@ class ControlledUNet(nn.Module):
                                         return_dict=False)
         return self.unet(x_t, t, encoder_hidden_states=emb, down_block_additional_residuals=down,
                          mid_block_additional_residual=mid, return_dict=False)[0]
+
+
+def to_diffused(x0: torch.Tensor, cond: torch.Tensor | None, cfg: CoreConfig) -> torch.Tensor:
+    """Model-space images -> the variable the model diffuses: x0 itself, or with `cfg.residual`
+    the scaled residual (x0 - cond) * residual_scale."""
+    return (x0 - cond) * cfg.residual_scale if cfg.residual else x0
+
+
+def from_diffused(z: torch.Tensor, cond: torch.Tensor | None, cfg: CoreConfig) -> torch.Tensor:
+    """Inverse of `to_diffused`."""
+    return cond + z / cfg.residual_scale if cfg.residual else z
 
 
 def build_model(cfg: CoreConfig, *, control: bool, seed: int = 0) -> ControlledUNet:
@@ -271,6 +318,11 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
     if control:
         model.add_control()
     return model
+
+
+def device_of(model: nn.Module) -> torch.device:
+    """Where `model`'s parameters live (the CPU for a model without any)."""
+    return next((p.device for p in model.parameters()), torch.device("cpu"))
 
 
 def trainable(model: nn.Module, names: list[str] | None = None) -> list[nn.Parameter]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .core import ControlledUNet, sample_scheduler
+from .core import ControlledUNet, device_of, sample_scheduler
 from .vcm import clip_frames
 
 
@@ -23,39 +23,63 @@ def _scheduler(cfg, steps: int):
     return sched
 
 
+def _start(sched, shape, generator: torch.Generator, strength: float, init: torch.Tensor | None):
+    """The starting sample and the timesteps still to run. strength 1: pure noise, every step.
+    strength s < 1 (SDEdit, Meng et al. 2022): `init` (zeros when None: for a residual model,
+    the condition itself) noised to the first scheduled timestep below s T, and the steps from
+    there. Noise is drawn on the CPU from `generator` (identical frames on every device)."""
+    noise = torch.randn(shape, generator=generator)
+    if strength >= 1.0:
+        return noise * sched.init_noise_sigma, sched.timesteps
+    if not 0.0 < strength:
+        raise ValueError(f"strength {strength}: expected 0 < strength <= 1")
+    limit = strength * sched.config.num_train_timesteps
+    steps = sched.timesteps[sched.timesteps < limit]
+    if len(steps) == 0:
+        raise ValueError(f"strength {strength} leaves no sampling step")
+    init = torch.zeros(shape) if init is None else init.cpu()
+    return sched.add_noise(init, noise, steps[:1].expand(shape[0])), steps
+
+
 @torch.no_grad()
 def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, generator: torch.Generator,
-         shape: tuple[int, ...] | None = None) -> torch.Tensor:
-    """Denoise pure noise into model-space images with deterministic DDIM (eta = 0).
+         shape: tuple[int, ...] | None = None, strength: float = 1.0,
+         init: torch.Tensor | None = None) -> torch.Tensor:
+    """Denoise noise into model-space samples with deterministic DDIM (eta = 0).
 
     Args:
         conds: [N, C, h, w] conditions (model space), or None for an uncontrolled model.
         shape: [N, C, h, w] of the output when `conds` is None.
+        strength, init: SDEdit start (see `_start`).
 
     Returns:
-        [N, C, h, w] the generated frames.
+        [N, C, h, w] the generated samples (on the CPU).
     """
     sched = _scheduler(model.cfg, steps)
     shape = tuple(conds.shape) if conds is not None else tuple(shape)
-    x = torch.randn(shape, generator=generator) * sched.init_noise_sigma
-    for t in sched.timesteps:
-        tt = torch.full((shape[0],), int(t), dtype=torch.long)
-        x = sched.step(model(x, tt, conds), t, x, eta=0.0).prev_sample
-    return x
+    x, timesteps = _start(sched, shape, generator, strength, init)
+    dev = device_of(model)
+    x = x.to(dev)
+    c = conds.to(dev) if conds is not None else None
+    for t in timesteps:
+        tt = torch.full((shape[0],), int(t), dtype=torch.long, device=dev)
+        x = sched.step(model(x, tt, c).float(), t, x, eta=0.0).prev_sample
+    return x.cpu()
 
 
 @torch.no_grad()
 def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, seed: int,
-                  batch: int = 16) -> torch.Tensor:
+                  batch: int = 16, strength: float = 1.0) -> torch.Tensor:
     """ACM alone: every frame independently. conds [N, C, h, w] -> [N, C, h, w]."""
     g = torch.Generator().manual_seed(int(seed))
-    out = [ddim(model, conds[i:i + batch], steps=steps, generator=g) for i in range(0, len(conds), batch)]
+    out = [ddim(model, conds[i:i + batch], steps=steps, generator=g, strength=strength)
+           for i in range(0, len(conds), batch)]
     return torch.cat(out)
 
 
 @torch.no_grad()
 def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tensor, *, steps: int,
-                    seed: int, clip: int = 12, progress=None) -> torch.Tensor:
+                    seed: int, clip: int = 12, strength: float = 1.0, progress=None) -> torch.Tensor:
     """Skyeyes inference (Sec. 3.3 and supplement Sec. 2.2): frame 1 from the ACM alone, then
     clips of `clip` frames whose first frame is the last frame generated so far.
 
@@ -63,12 +87,12 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
     """
     g = torch.Generator().manual_seed(int(seed))
     n = len(conds)
-    out = [ddim(acm, conds[:1], steps=steps, generator=g)[0]]
+    out = [ddim(acm, conds[:1], steps=steps, generator=g, strength=strength)[0]]
     i = 1
     while i < n:
         m = min(clip - 1, n - i)
         c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
-        new = ddim_clip(vcm, c, out[-1], steps=steps, generator=g)
+        new = ddim_clip(vcm, c, out[-1], steps=steps, generator=g, strength=strength)
         out.extend(new)
         i += m
         if progress is not None:
@@ -78,18 +102,20 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
 
 @torch.no_grad()
 def ddim_clip(model: ControlledUNet, conds: torch.Tensor, first: torch.Tensor, *, steps: int,
-              generator: torch.Generator) -> torch.Tensor:
+              generator: torch.Generator, strength: float = 1.0) -> torch.Tensor:
     """One clip: conds [F, C, h, w] (the first is the given frame's), first [C, h, w] clean ->
     the F - 1 new frames [F - 1, C, h, w]."""
     sched = _scheduler(model.cfg, steps)
     f = len(conds)
-    x = torch.randn((f - 1, *first.shape), generator=generator) * sched.init_noise_sigma
+    x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None)
+    dev = device_of(model)
+    x, first, c = x.to(dev), first.to(dev), conds.to(dev)
     with clip_frames(model, f):
-        for t in sched.timesteps:
+        for t in timesteps:
             # 1. the clean first frame enters at timestep 0, the others at t; 2. predict the
             # clip's noise; 3. step only the frames being generated.
-            tt = torch.full((f,), int(t), dtype=torch.long)
+            tt = torch.full((f,), int(t), dtype=torch.long, device=dev)
             tt[0] = 0
-            eps = model(torch.cat([first[None], x]), tt, conds)[1:]
+            eps = model(torch.cat([first[None], x]), tt, c)[1:].float()
             x = sched.step(eps, t, x, eta=0.0).prev_sample
-    return x
+    return x.cpu()

@@ -16,7 +16,7 @@ import torch
 
 from skyeyes_bench import fileio
 
-from .core import ControlledUNet
+from .core import ControlledUNet, device_of
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -35,37 +35,79 @@ def target(scheduler, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) ->
     raise ValueError(f"prediction type {kind!r}: expected 'epsilon' or 'v_prediction'")
 
 
-def denoise_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
-                 g: torch.Generator) -> torch.Tensor:
-    """Single-frame DDPM loss: E ||target - f_theta(x_t, t, c)||^2 (target: `target`).
+def loss_weight(scheduler, t: torch.Tensor, snr_gamma: float | None) -> torch.Tensor:
+    """Per-sample loss weights [B]: 1, or min-SNR-gamma (Hang et al. 2023, "Efficient Diffusion
+    Training via Min-SNR Weighting Strategy"): min(SNR_t, gamma) / SNR_t for an epsilon target and
+    min(SNR_t, gamma) / (SNR_t + 1) for a v target, SNR_t = ab_t / (1 - ab_t)."""
+    if not snr_gamma:
+        return torch.ones(t.shape, dtype=torch.float32)
+    ab = scheduler.alphas_cumprod.to(torch.float64)[t]
+    snr = ab / (1.0 - ab)
+    clipped = torch.clamp(snr, max=snr_gamma)
+    w = clipped / (snr + 1.0) if scheduler.config.prediction_type == "v_prediction" else clipped / snr
+    return w.float()
 
-    x0 [B, C, h, w] clean model-space images; cond [B, C, h, w] or None.
+
+def _part(n: int, part: tuple[int, int]) -> slice:
+    """Rows of a global batch of n that process `rank` of `world` takes (contiguous, equal)."""
+    rank, world = part
+    if n % world:
+        raise ValueError(f"batch {n} does not split over {world} processes")
+    k = n // world
+    return slice(rank * k, (rank + 1) * k)
+
+
+def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
+                 g: torch.Generator, *, part: tuple[int, int] = (0, 1),
+                 snr_gamma: float | None = None) -> torch.Tensor:
+    """Single-frame DDPM loss: E w_t ||target - f_theta(x_t, t, c)||^2 (target: `target`,
+    w_t: `loss_weight`).
+
+    x0 [B, C, h, w] clean model-space images (the *global* batch); cond [B, C, h, w] or None.
+    Timesteps and noise are drawn for the whole batch from `g` on the CPU (so every device and
+    every process draws the same numbers); process `rank` of `world` (`part`) then takes its
+    equal share, so data-parallel processes average to the one-process loss at the whole batch.
     """
     b = x0.shape[0]
     t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=g)
     noise = torch.randn(x0.shape, generator=g)
+    s = _part(b, part)
+    x0, noise, t = x0[s], noise[s], t[s]
+    cond = cond[s] if cond is not None else None
     x_t = scheduler.add_noise(x0, noise, t)
-    return torch.mean((model(x_t, t, cond) - target(scheduler, x0, noise, t)) ** 2)
+    want = target(scheduler, x0, noise, t)
+    w = loss_weight(scheduler, t, snr_gamma)
+    dev = device_of(model)
+    pred = model(x_t.to(dev), t.to(dev), cond.to(dev) if cond is not None else None)
+    err = ((pred.float() - want.to(dev)) ** 2).flatten(1).mean(1)  # [b]
+    return (err * w.to(dev)).mean()
 
 
-def clip_denoise_loss(model: ControlledUNet, scheduler, x0: torch.Tensor, cond: torch.Tensor,
-                      g: torch.Generator) -> torch.Tensor:
+def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
+                      g: torch.Generator, *, part: tuple[int, int] = (0, 1),
+                      snr_gamma: float | None = None) -> torch.Tensor:
     """First-frame-conditioned clip loss (Skyeyes Eq. L_VCM).
 
-    x0, cond [B, F, C, h, w]. Frame 1 of each clip enters clean (timestep 0); frames 2..F are
-    noised at one timestep per clip; the loss covers frames 2..F only. The model must have VCM
-    installed (`vcm.install_vcm`); the caller sets `clip_frames(model, F)`.
+    x0, cond [B, F, C, h, w] (the global batch, split like `denoise_loss`). Frame 1 of each clip
+    enters clean (timestep 0); frames 2..F are noised at one timestep per clip; the loss covers
+    frames 2..F only. The model must have VCM installed (`vcm.install_vcm`); the caller sets
+    `clip_frames(model, F)`.
     """
     b, f = x0.shape[:2]
     t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=g)
     noise = torch.randn(x0.shape, generator=g)
+    s = _part(b, part)
+    x0, noise, t, cond = x0[s], noise[s], t[s], cond[s]
+    b = x0.shape[0]
     tt = t[:, None].expand(b, f).clone()  # [B, F]
     tt[:, 0] = 0
     x_t = scheduler.add_noise(x0.flatten(0, 1), noise.flatten(0, 1), tt.flatten()).view_as(x0)
     x_t[:, 0] = x0[:, 0]  # the first frame's clean latent is given, not noised
-    pred = model(x_t.flatten(0, 1), tt.flatten(), cond.flatten(0, 1)).view_as(x0)
     want = target(scheduler, x0.flatten(0, 1), noise.flatten(0, 1), tt.flatten()).view_as(x0)
-    return torch.mean((pred[:, 1:] - want[:, 1:]) ** 2)
+    dev = device_of(model)
+    pred = model(x_t.flatten(0, 1).to(dev), tt.flatten().to(dev), cond.flatten(0, 1).to(dev)).view_as(x0.to(dev))
+    err = ((pred[:, 1:].float() - want[:, 1:].to(dev)) ** 2).flatten(2).mean(2)  # [b, F - 1]
+    return (err * loss_weight(scheduler, t, snr_gamma).to(dev)[:, None]).mean()
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
@@ -78,16 +120,56 @@ def load_checkpoint(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
+def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = "auto"):
+    """The Hugging Face `Accelerator` the diffusion stages run under.
+
+    Launched with `accelerate launch` (several processes, one per GPU or CPU process group) it
+    takes its device and process group from the launcher and the stages run data-parallel;
+    otherwise it is one process on `device`. `mixed_precision`: "auto" is bf16 on a CUDA device
+    that supports it (fp16 otherwise), "no" on the CPU; or "no" / "fp16" / "bf16".
+    """
+    import os
+
+    from accelerate import Accelerator
+
+    device = torch.device(device)
+    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # set by `accelerate launch`
+    cuda = torch.cuda.is_available()
+    on = "cuda" if distributed and cuda else device
+    mixed_precision = precision_for(on, mixed_precision, cuda=cuda, bf16=cuda and torch.cuda.is_bf16_supported())
+    if device.type == "cuda" and device.index is not None and not distributed:
+        torch.cuda.set_device(device)  # a single process on cuda:N
+    return Accelerator(cpu=device.type == "cpu", mixed_precision=mixed_precision)
+
+
+def precision_for(device: torch.device | str, requested: str, *, cuda: bool, bf16: bool) -> str:
+    """accelerate's mixed_precision for `requested` ("auto" | "no" | "fp16" | "bf16") on `device`."""
+    if requested not in ("auto", "no", "fp16", "bf16"):
+        raise ValueError(f"mixed precision {requested!r}: expected auto, no, fp16 or bf16")
+    if requested != "auto":
+        return requested
+    if torch.device(device).type == "cuda" and cuda:
+        return "bf16" if bf16 else "fp16"
+    return "no"
+
+
 def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
-               loss_fn: Callable[[torch.Generator], torch.Tensor], *, steps: int, lr: float,
+               loss_fn: Callable[..., torch.Tensor], *, steps: int, lr: float,
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
+               ema_decay: float = 0.0, accelerator=None,
                stop_after: int | None = None, progress: bool = True, desc: str = "train") -> dict:
     """Run `steps` optimisation steps of `loss_fn` over `params`, resuming from `ckpt`.
 
     Args:
-        loss_fn: step generator -> scalar loss (draws its batch and noise from the generator).
+        loss_fn: (net, step generator, part) -> scalar loss. `net` is the model to call (wrapped
+            for data-parallel training when launched so), `part` = (rank, world) says which
+            share of the global batch this process takes (see `denoise_loss`).
         ckpt: checkpoint file; if it exists, training resumes from it. Written every
-            `ckpt_every` steps and at the end.
+            `ckpt_every` steps and at the end (by the main process).
+        ema_decay: if > 0, an exponential moving average of `params` (diffusers' `EMAModel`) is
+            kept, checkpointed, and copied into the model when training ends.
+        accelerator: from `make_accelerator` (default: one CPU process). The model is moved to
+            its device.
         stop_after: stop after this many steps *of this call* (simulates a killed run).
 
     Returns:
@@ -97,42 +179,66 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     """
     from tqdm import tqdm
 
+    acc = accelerator or make_accelerator("cpu")
     ckpt = Path(ckpt)
+    model.to(acc.device)
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.0)
+    ema = None
+    if ema_decay > 0:
+        from diffusers.training_utils import EMAModel
+
+        ema = EMAModel(params, decay=ema_decay)
     start, losses, seconds, cpu = 0, [], 0.0, 0.0
     if ckpt.is_file():
         state = load_checkpoint(ckpt)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        if ema is not None:
+            ema.load_state_dict(state["ema"])
         start, losses, seconds = state["step"], list(state["losses"]), float(state["seconds"])
         cpu = float(state.get("cpu_seconds", 0.0))
+    net, opt = acc.prepare(model, opt)
+    part = (acc.process_index, acc.num_processes)
     t0, c0 = time.perf_counter(), time.process_time()
 
     def save(step: int) -> None:
-        save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                               "losses": losses, "seconds": seconds + time.perf_counter() - t0,
-                               "cpu_seconds": cpu + time.process_time() - c0})
+        state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                 "losses": losses, "seconds": seconds + time.perf_counter() - t0,
+                 "cpu_seconds": cpu + time.process_time() - c0}
+        if ema is not None:
+            state["ema"] = ema.state_dict()
+        if acc.is_main_process:
+            save_checkpoint(ckpt, state)
+        acc.wait_for_everyone()
 
     model.train()
-    bar = tqdm(range(start, steps), desc=desc, disable=None if progress else True, leave=False, initial=start, total=steps)
+    bar = tqdm(range(start, steps), desc=desc, disable=None if (progress and acc.is_main_process) else True,
+               leave=False, initial=start, total=steps)
     done_now = start
     for step in bar:
-        # 1. batch + noise from the step's own generator; 2. loss; 3. clipped AdamW update.
-        loss = loss_fn(step_generator(seed, step))
+        # 1. batch + noise from the step's own generator; 2. loss (this process's share);
+        # 3. gradients averaged over processes, clipped, AdamW update; 4. EMA.
+        loss = loss_fn(net, step_generator(seed, step), part)
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        acc.backward(loss)
         if grad_clip:
-            torch.nn.utils.clip_grad_norm_(params, grad_clip)
+            acc.clip_grad_norm_(params, grad_clip)
         opt.step()
-        losses.append(float(loss.detach()))
+        if ema is not None:
+            ema.step(params)
+        losses.append(float(acc.reduce(loss.detach(), reduction="mean")))
         bar.set_postfix(loss=f"{losses[-1]:.4f}")
         done_now = step + 1
         if done_now % ckpt_every == 0 or done_now == steps:
             save(done_now)
         if stop_after is not None and done_now - start >= stop_after:
             break
+    wall, proc = time.perf_counter() - t0, time.process_time() - c0
     model.eval()
+    if ema is not None and done_now >= steps:
+        ema.copy_to(params)  # the finished model is the average
+    acc.free_memory()  # drops the references `prepare` kept (optimizer state)
     # CPU seconds (all threads of this process) are reported beside wall time: on a shared
     # machine they say what the run would take alone.
-    return {"steps": done_now, "losses": losses, "seconds": seconds + time.perf_counter() - t0,
-            "cpu_seconds": cpu + time.process_time() - c0, "resumed_seconds": seconds, "done": done_now >= steps}
+    return {"steps": done_now, "losses": losses, "seconds": seconds + wall,
+            "cpu_seconds": cpu + proc, "resumed_seconds": seconds, "done": done_now >= steps}

@@ -8,8 +8,11 @@ and values of *all* F frames, with the layer's own (shared) projections:
 
 Since every frame's queries see the same key set, this is one attention of the clip's F*L
 tokens over the same F*L tokens; the batch is laid out clip-major ([B*F, ...], frames of a
-clip adjacent). VCM adds no parameters: it changes the wiring, and training fine-tunes the
-attention projections of a copy of the frozen appearance control module.
+clip adjacent). VCM adds no new kind of parameter: it changes the wiring of the self-attention
+layers of the UNet's down and up blocks (`VCM_BLOCKS`), and training tunes *its own copy* of
+those layers' projections, initialised from the appearance control module's. The ACM itself
+stays frozen (the paper: "we freeze the appearance control module and train the view
+consistency module") and generates each sequence's first frame.
 """
 
 from __future__ import annotations
@@ -65,16 +68,25 @@ class ClipSelfAttnProcessor:
         return out / attn.rescale_output_factor
 
 
-def self_attention_layers(model: nn.Module) -> dict[str, nn.Module]:
-    """name -> Attention module of every `attn1` (self-attention) in `model`."""
-    return {n: m for n, m in model.named_modules() if n.endswith("attn1")}
+#: Where VCM goes. NOTE: Skyeyes Sec. 3.3: "VCM is integrated to the up-sampling and
+#: down-sampling blocks of LDM": the self-attention of the denoising UNet's down and up blocks;
+#: not its middle block and not the ControlNet branch (the frozen ACM).
+VCM_BLOCKS = ("unet.down_blocks.", "unet.up_blocks.")
+
+
+def self_attention_layers(model: nn.Module, prefixes: tuple[str, ...] | None = None) -> dict[str, nn.Module]:
+    """name -> Attention module of every `attn1` (self-attention) in `model` whose name starts
+    with one of `prefixes` (all when None)."""
+    return {n: m for n, m in model.named_modules()
+            if n.endswith("attn1") and (prefixes is None or n.startswith(prefixes))}
 
 
 def install_vcm(model: nn.Module, ctx: ClipContext | None = None) -> ClipContext:
-    """Replace the processor of every `attn1` in `model` (UNet and ControlNet). Returns the context."""
+    """Replace the processor of every `attn1` of the UNet's down and up blocks (`VCM_BLOCKS`).
+    Returns the context."""
     ctx = ctx or ClipContext()
-    layers = self_attention_layers(model)
-    assert layers, "model has no self-attention layers"
+    layers = self_attention_layers(model, VCM_BLOCKS)
+    assert layers, "model has no self-attention layers in its down or up blocks"
     proc = ClipSelfAttnProcessor(ctx)
     for m in layers.values():
         m.set_processor(proc)
@@ -83,8 +95,8 @@ def install_vcm(model: nn.Module, ctx: ClipContext | None = None) -> ClipContext
 
 
 def vcm_parameter_names(model: nn.Module) -> list[str]:
-    """Prefixes of the parameters VCM fine-tunes: the projections of every `attn1`."""
-    return [f"{n}." for n in self_attention_layers(model)]
+    """Prefixes of the parameters VCM trains: the projections of the `attn1` layers it rewires."""
+    return [f"{n}." for n in self_attention_layers(model, VCM_BLOCKS)]
 
 
 @contextlib.contextmanager

@@ -23,6 +23,7 @@ import hashlib
 import inspect
 import json
 import logging
+import os
 import resource
 import shutil
 import sys
@@ -139,6 +140,11 @@ def _difference(theirs: dict, mine: dict) -> str | None:
     return f"cache key {theirs.get('cache_key')!r} there, {mine['cache_key']!r} here"
 
 
+def _main_process() -> bool:
+    """False in the non-main processes of an `accelerate launch` (torch.distributed's RANK)."""
+    return int(os.environ.get("RANK", "0")) == 0
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
@@ -157,7 +163,8 @@ def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]
 
 
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
-        force: bool = False, progress: bool = True, device: str | None = None) -> dict:
+        force: bool = False, progress: bool = True, device: str | None = None,
+        pretrained: str | None = None) -> dict:
     """The whole pipeline; returns the results dict (see module docstring for the files)."""
     from reference.methods import get_method_class
     from skyeyes_bench.data.layout import open_dataset
@@ -174,6 +181,14 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             overrides = [*(overrides or []), f"device={device}"]
         elif device != "cpu":
             raise UserError(f"--device {device}: method {method!r} runs on the CPU only (its config has no device)")
+    if pretrained is not None:
+        if not any(f.name == "pretrained" for f in dataclasses.fields(config)):
+            raise UserError(f"--pretrained: method {method!r} takes no pretrained model (only the diffusion methods do)")
+        root = Path(pretrained).expanduser().resolve()
+        if not (root / "unet" / "config.json").is_file():
+            raise UserError(f"--pretrained {pretrained}: not a diffusers Stable Diffusion folder (expected unet/config.json)")
+        config = dataclasses.replace(config, pretrained=str(root))
+        overrides = [*(overrides or []), f"pretrained={root}"]
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
     config_d = dataclasses.asdict(config)
     ident = {"method": method, "method_version": cls.version, "seed": seed, "config": config_d}
@@ -209,6 +224,11 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         t0 = time.perf_counter()
         m.fit_train(ds)
         fit_train_s = time.perf_counter() - t0
+        if not _main_process():
+            # `accelerate launch`: every process trains its share of the batches; the main
+            # process alone renders, writes the submission and scores it.
+            log.info("process %s: training done; the main process renders and scores", os.environ.get("RANK"))
+            return {}
         scenes = ds.split("test")
         fit_s = fit_train_s
         resumed_fits_s = 0.0  # scene fits resumed from their checkpoints: their first run's time
@@ -291,5 +311,6 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
 
 def main(args) -> int:
     run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
-        force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device)
+        force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
+        pretrained=args.pretrained)
     return 0

@@ -211,3 +211,54 @@ def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
             priors += float(z["_seconds"])
     assert priors > 0
     assert m2.cached_seconds() == pytest.approx(stages + priors, abs=0.01 * len(m2.training))
+
+
+def test_cpu_formulation_end_to_end(tiny, tmp_path):
+    """The CPU presets' formulation (issue 13): concat conditioning, residual diffusion, training
+    crops, an SDEdit start, EMA and min-SNR weights, through fit and render (VCM included)."""
+    core_cfg = dataclasses.replace(TINY.core, conditioning="concat", residual=True, residual_scale=2.0)
+    m, _, out = _run(Skyeyes, tiny, tmp_path / "run", core=core_cfg, train_crop=8, sample_strength=0.5,
+                     ema_decay=0.9, snr_gamma=5.0)
+    assert set(m.training) == {"acm", "vcm"}  # no base stage: the concat UNet is trained whole
+    assert m.acm.controlnet is None and m.acm.unet.conv_in.in_channels == 6
+    for seq_frames in out.values():
+        assert np.isfinite(seq_frames).all() and seq_frames.min() >= 0 and seq_frames.max() <= 1
+    with pytest.raises(ValueError, match="needs core.residual"):
+        Skyeyes(dataclasses.replace(TINY, sample_strength=0.5), tmp_path / "x")
+    # the ControlNet baseline's condition is a view from elsewhere: no residual from it
+    b = ControlNetBaseline(dataclasses.replace(TINY, core=core_cfg, condition="aerial", sample_strength=0.5),
+                           tmp_path / "y")
+    assert not b.config.core.residual and b.config.sample_strength == 1.0
+
+
+def test_training_crops_share_one_window_per_row():
+    import torch
+
+    from reference.methods.skyeyes import _crops
+
+    a = torch.arange(2 * 3 * 1 * 6 * 6, dtype=torch.float32).view(2, 3, 1, 6, 6)  # [B, F, C, h, w]
+    b = -a
+    ca, cb = _crops(torch.Generator().manual_seed(0), 4, a, b)
+    assert ca.shape == (2, 3, 1, 4, 4) and torch.equal(cb, -ca)
+    for i in range(2):  # every frame of a row cut at the same window, found in the original
+        hits = [(y, x) for y in range(3) for x in range(3) if torch.equal(a[i, :, :, y:y + 4, x:x + 4], ca[i])]
+        assert len(hits) == 1
+    assert _crops(torch.Generator(), 0, a)[0] is a
+    with pytest.raises(ValueError, match="exceeds"):
+        _crops(torch.Generator(), 7, a)
+
+
+def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
+    import torch
+
+    from reference.methods.skyeyes import make_prior_method
+
+    m = Skyeyes(dataclasses.replace(TINY, device="auto"), tmp_path / "a")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert m.device == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert m.device == "cuda"
+    assert Skyeyes(dataclasses.replace(TINY, device="cuda:1"), tmp_path / "b").device == "cuda:1"
+    prior = make_prior_method(PRESETS["small"], tmp_path / "p", 0, "cuda")
+    assert prior.name == "sugar" and prior.config.device == "cuda"
+    assert make_prior_method(PRESETS["small"], tmp_path / "q", 0, None).config.device == "cpu"

@@ -232,11 +232,13 @@ class Skyeyes(Method):
 
     def __init__(self, config: SkyeyesConfig, workdir: Path, *, seed: int = 0, prior_method: Method | None = None,
                  progress: bool = True):
-        want = dict(pretrained=config.pretrained, prediction="epsilon", conditioning="controlnet", residual=False)
-        if config.pretrained and any(getattr(config.core, k) != v for k, v in want.items()):
+        if config.pretrained:
             # SD1.5's UNet was trained on the epsilon objective and its condition enters through
-            # a ControlNet branch (the paper's ACM); its fine-tuning keeps both.
-            config = dataclasses.replace(config, core=dataclasses.replace(config.core, **want), sample_strength=1.0)
+            # a ControlNet branch (the paper's ACM); its fine-tuning keeps both. Its ControlNet
+            # takes pixels 8x the latent's size, so no training crops (they would not align).
+            core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, prediction="epsilon",
+                                           conditioning="controlnet", residual=False)
+            config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0)
         if config.sample_strength < 1.0 and not config.core.residual:
             raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
         if config.condition == "aerial" and config.core.residual:

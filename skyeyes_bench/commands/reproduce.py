@@ -21,7 +21,14 @@ def register(sub) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config field of the preset (repeatable), e.g. --set iterations=200")
     p.add_argument("--device", default=None, metavar="DEV",
-                   help="torch device the method runs on, e.g. cpu, cuda, cuda:1 (default: the preset's, cpu)")
+                   help="torch device the method runs on, e.g. cpu, cuda, cuda:1 (default: the preset's: cpu, or for "
+                        "the diffusion methods CUDA when available). For several GPUs run the diffusion stages "
+                        "data-parallel: accelerate launch --multi_gpu --num_processes N -m skyeyes_bench.cli reproduce ...")
+    p.add_argument("--pretrained", default=None, metavar="DIR",
+                   help="diffusion methods (skyeyes, skyeyes-no-vcm, controlnet): a local Stable Diffusion 1.5 "
+                        "diffusers folder (unet/, vae/, text_encoder/, tokenizer/, optional controlnet/); its UNet, "
+                        "VAE and text encoder replace the from-scratch model, with the paper's ControlNet branch and "
+                        "epsilon objective. Nothing is downloaded.")
     p.add_argument("--force", action="store_true",
                    help="discard this run's cached stages and replace the outputs in --out, also another run's "
                         "(without it the same run resumes, another run's --out is refused)")

@@ -152,6 +152,16 @@ def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
     return images if cfg.pretrained else encode(images, cfg)
 
 
+def sample_shape(cond_shape: tuple[int, ...], cfg: CoreConfig) -> tuple[int, ...]:
+    """Shape of the diffused samples for conditions of `cond_shape` [N, C, H, W]: the same in
+    pixel space; with a pretrained ControlNet the condition is [0, 1] pixels and the sample is
+    the VAE latent, 8x smaller with 4 channels."""
+    n, _, h, w = cond_shape
+    if cfg.pretrained:
+        return (n, cfg.sample_channels, h // 8, w // 8)
+    return tuple(cond_shape)
+
+
 def decode(x: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
     """Model space [N, C, h, w] -> images [N, 3, res, res] in [0, 1] (clamped)."""
     if cfg.pretrained:
@@ -311,7 +321,10 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
     tok = CLIPTokenizer.from_pretrained(root / "tokenizer", local_files_only=True)
     enc = CLIPTextModel.from_pretrained(root / "text_encoder", local_files_only=True)
     with torch.no_grad():
-        ids = tok([PROMPT], padding="max_length", max_length=tok.model_max_length, return_tensors="pt").input_ids
+        # CLIP's context is 77 tokens (its position table); some tokenizer folders leave
+        # model_max_length unset (a huge sentinel), so the encoder's length is the one to pad to.
+        length = min(tok.model_max_length, enc.config.max_position_embeddings)
+        ids = tok([PROMPT], padding="max_length", max_length=length, truncation=True, return_tensors="pt").input_ids
         emb = enc(ids)[0]  # [1, 77, 768]
     model.prompt = nn.Parameter(emb, requires_grad=False)
     model.controlnet = None

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .core import ControlledUNet, device_of, sample_scheduler
+from .core import ControlledUNet, device_of, sample_scheduler, sample_shape
 from .vcm import clip_frames
 
 
@@ -56,7 +56,7 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
         [N, C, h, w] the generated samples (on the CPU).
     """
     sched = _scheduler(model.cfg, steps)
-    shape = tuple(conds.shape) if conds is not None else tuple(shape)
+    shape = sample_shape(tuple(conds.shape), model.cfg) if conds is not None else tuple(shape)
     x, timesteps = _start(sched, shape, generator, strength, init)
     dev = device_of(model)
     x = x.to(dev)

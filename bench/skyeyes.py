@@ -3,6 +3,7 @@ frame, and quality (FVD, KVD, LPIPS) against training time at a few ACM checkpoi
 
     .venv/bin/python bench/skyeyes.py --preset smoke --acm-steps 50,100,200
     .venv/bin/python bench/skyeyes.py --preset smoke --no-eval       # speed only
+    .venv/bin/python bench/skyeyes.py --preset smoke --methods skyeyes-no-vcm --set core.residual=false
 
 Stages are cached by content hash (`<cache>/reference/diffusion/`) and a longer ACM run
 resumes from the shorter one, so the checkpoints cost one ACM training in total. Prints a
@@ -61,7 +62,7 @@ def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: in
         from skyeyes_bench.evaluate import evaluate as run_eval
 
         res = run_eval(sub, data=root, out=workdir / "results.json", force=True, progress=progress)
-        row.update({k: _metric(res, k) for k in ("fvd", "kvd", "lpips", "psnr")})
+        row.update({k: _metric(res, k) for k in ("fid", "kid", "fvd", "kvd", "lpips", "psnr")})
     return row
 
 
@@ -71,6 +72,8 @@ def main(argv=None) -> int:
     ap.add_argument("--acm-steps", default="", help="comma-separated ACM step counts (default: the preset's)")
     ap.add_argument("--prior", default=None, help="prior method id (default: the preset's, sugar)")
     ap.add_argument("--methods", default="skyeyes,skyeyes-no-vcm", help="comma-separated method ids")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a config field (repeatable; dotted for the core: --set core.residual=false)")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     ap.add_argument("--no-eval", action="store_true", help="skip FVD/KVD/LPIPS")
     ap.add_argument("--seed", type=int, default=0)
@@ -82,6 +85,7 @@ def main(argv=None) -> int:
     import torch
 
     from reference.methods import get_method_class
+    from reference.reproduce import parse_overrides
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.data.synthtown import ensure_dataset
 
@@ -95,17 +99,20 @@ def main(argv=None) -> int:
         base = cls.presets[a.preset]
         if a.prior:
             base = dataclasses.replace(base, prior_method=a.prior)
+        base = dataclasses.replace(base, **parse_overrides(base, a.overrides))
         steps = [int(s) for s in a.acm_steps.split(",") if s] or [base.acm_steps]
         for k in sorted(steps):
             cfg = dataclasses.replace(base, acm_steps=k)
-            row = run_one(cls, cfg, ds, root, Path(a.workdir) / f"{name}-acm{k}", evaluate=not a.no_eval,
-                          seed=a.seed, progress=not a.quiet)
+            tag = "-".join(o.replace("=", "") for o in a.overrides)
+            row = run_one(cls, cfg, ds, root, Path(a.workdir) / f"{name}-acm{k}{'-' + tag if tag else ''}",
+                          evaluate=not a.no_eval, seed=a.seed, progress=not a.quiet)
+            row["overrides"] = " ".join(a.overrides)
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
 
-    keys = ["method", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "base_cpu_s_it", "acm_cpu_s_it",
+    keys = ["method", "overrides", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "base_cpu_s_it", "acm_cpu_s_it",
             "vcm_cpu_s_it", "prior_s", "s_per_frame", "cpu_s_per_frame",
-            "fvd", "kvd", "lpips", "psnr"]
+            "fid", "kid", "fvd", "kvd", "lpips", "psnr"]
     print(f"# skyeyes bench: preset {a.preset}, {torch.get_num_threads()} threads, torch {torch.__version__}")
     print(" | ".join(keys))
     for r in rows:

@@ -36,16 +36,23 @@ from skyeyes_bench.errors import UserError
 log = logging.getLogger("reference.reproduce")
 
 
-def parse_overrides(config, items: list[str]) -> dict:
-    """["iterations=200", "sfm=false"] -> typed dict, checked against the config's fields."""
+def parse_overrides(config, items: list[str], _prefix: str = "") -> dict:
+    """["iterations=200", "sfm=false", "core.residual=false"] -> typed dict, checked against the
+    config's fields; a dotted key sets a field of a nested config (the whole nested config is
+    replaced, with its other fields kept)."""
     fields = {f.name: f for f in dataclasses.fields(config)}
     out = {}
+    nested: dict[str, list[str]] = {}
     for item in items:
         key, eq, raw = item.partition("=")
         if not eq:
             raise UserError(f"--set {item!r}: expected KEY=VALUE")
+        head, dot, rest = key.partition(".")
+        if dot and head in fields and dataclasses.is_dataclass(getattr(config, head)):
+            nested.setdefault(head, []).append(f"{rest}={raw}")
+            continue
         if key not in fields:
-            raise UserError(f"--set {key}: not a field of {type(config).__name__} (fields: {', '.join(fields)})")
+            raise UserError(f"--set {_prefix}{key}: not a field of {type(config).__name__} (fields: {', '.join(fields)})")
         cur = getattr(config, key)
         try:
             if isinstance(cur, bool):
@@ -59,8 +66,14 @@ def parse_overrides(config, items: list[str]) -> dict:
             else:
                 val = type(cur)(raw) if cur is not None else raw
         except ValueError:
-            raise UserError(f"--set {key}={raw}: expected a {type(cur).__name__}") from None
+            raise UserError(f"--set {_prefix}{key}={raw}: expected a {type(cur).__name__}") from None
         out[key] = val
+    for head, sub_items in nested.items():
+        sub = out.get(head, getattr(config, head))
+        try:
+            out[head] = dataclasses.replace(sub, **parse_overrides(sub, sub_items, f"{_prefix}{head}."))
+        except ValueError as e:  # the nested config's own validation
+            raise UserError(f"--set {head}.*: {e}") from None
     return out
 
 

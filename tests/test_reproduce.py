@@ -41,6 +41,30 @@ def test_bool_overrides_accept_the_usual_spellings_only():
         parse_overrides(C(), ["flag=maybe"])
 
 
+def test_dotted_overrides_set_a_nested_config():
+    import dataclasses
+
+    @dataclasses.dataclass(frozen=True)
+    class Inner:
+        a: int = 1
+        b: float = 2.0
+
+    @dataclasses.dataclass(frozen=True)
+    class Outer:
+        inner: Inner = Inner()
+        n: int = 0
+
+    got = parse_overrides(Outer(), ["inner.a=5", "n=3", "inner.b=0.5"])
+    assert got == {"inner": Inner(a=5, b=0.5), "n": 3}
+    assert parse_overrides(Outer(), ["inner.b=7"])["inner"] == Inner(a=1, b=7.0)  # the rest kept
+    with pytest.raises(UserError, match=r"--set inner\.c: not a field of Inner"):
+        parse_overrides(Outer(), ["inner.c=1"])
+    with pytest.raises(UserError, match=r"--set inner\.a=x: expected a int"):
+        parse_overrides(Outer(), ["inner.a=x"])
+    with pytest.raises(UserError, match=r"--set n\.a: not a field"):  # n is not a nested config
+        parse_overrides(Outer(), ["n.a=1"])
+
+
 def test_cache_key_depends_on_every_input():
     base = dict(method="sugar", version="0.1", config={"a": 1}, seed=0, data_sha="d", code="c")
     k0 = cache_key(**base)

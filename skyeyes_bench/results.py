@@ -1,0 +1,373 @@
+"""Results files: a complete set of per-frame values and features -> results (`finalize`),
+shards -> results (`merge`), and reading / writing the JSON and its features sidecar.
+
+A results file is JSON (schema `skyeyes-bench/results@1`, docs/evaluate.md) with a sidecar
+`<stem>.features.npz` holding the per-sequence features (submission and ground truth) of every
+set-metric extractor, so intervals of FID/KID/FVD/KVD and paired comparisons can be recomputed
+by resampling sequences. Partial (shard) files, `skyeyes-bench/partial@1`, have the same two
+parts. `skyeyes_bench.evaluate` computes what goes in and re-exports the names here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import fields, fileio, stats
+from .errors import UserError, ValidationError
+
+RESULTS_FORMAT = "skyeyes-bench/results@1"
+PARTIAL_FORMAT = "skyeyes-bench/partial@1"
+#: Metric -> feature kind of its extractor.
+_IMAGE_SET = ("fid", "kid")
+_CLIP_SET = ("fvd", "kvd")
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def _tqdm(progress: bool, **kw):
+    """A progress bar on stderr, drawn only when stderr is a terminal (disable=None: tqdm's TTY test)."""
+    from tqdm import tqdm
+
+    return tqdm(disable=None if progress else True, file=sys.stderr, leave=False, **kw)
+
+
+@contextlib.contextmanager
+def _stage(timing: dict, name: str):
+    t0 = time.perf_counter()
+    yield
+    timing[name] = round(timing.get(name, 0.0) + time.perf_counter() - t0, 4)
+
+
+def _digest(lines: list[str]) -> str:
+    return hashlib.sha256("".join(sorted(lines)).encode()).hexdigest()
+
+
+def features_path(results_path: Path) -> Path:
+    """`results.json` -> `results.features.npz` (the sidecar beside it)."""
+    p = Path(results_path)
+    stem = p.name[: -len(".json")] if p.name.endswith(".json") else p.name
+    return p.with_name(stem + ".features.npz")
+
+
+def default_out(submission_dir, shard: tuple[int, int] | None = None) -> Path:
+    """`sub/` -> `sub.results.json` beside the folder (never inside it: that would be an extra file)."""
+    sub = Path(submission_dir).resolve()
+    tail = f".shard-{shard[0]}-of-{shard[1]}" if shard else ""
+    return sub.with_name(f"{sub.name}{tail}.results.json")
+
+
+# --------------------------------------------------------------------------- summary
+
+
+def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress: bool = False) -> dict:
+    """Turn a complete (all sequences) partial into results: per-sequence values, summaries with
+    clustered-bootstrap intervals, set metrics. Pure given its inputs (deterministic seeds)."""
+    from .metrics import FeatureStats, frechet_distance, kernel_mmd
+    from .protocol import load_protocol
+
+    timing = {} if timing is None else timing
+    protocol = load_protocol(doc["protocol"]["ref"])
+    if protocol.sha256 != doc["protocol"]["sha256"]:
+        raise UserError(f"protocol {protocol.ref} changed since these values were computed (sha256 "
+                        f"{doc['protocol']['sha256'][:12]}... then, {protocol.sha256[:12]}... now)")
+    st = protocol.statistics
+    seq_ids = doc["dataset"]["sequences"]
+    k = len(seq_ids)
+    frames = sorted(doc["frames"], key=lambda r: (r["sequence"], r["index"]))
+    clusters = np.array([r["sequence"] for r in frames], dtype=np.int64)
+    counts = stats.resample_counts(stats.resample_indices(k, st.bootstrap_resamples, st.seed), k)
+    res = dict(doc)
+    res["format"] = RESULTS_FORMAT
+    res["frames"] = frames
+    res["sha256"] = {
+        "submission_frames": _digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for r in frames]),
+        "ground_truth": _digest([f"{r['scene']}/{r['file']} {r['gt_sha256']}\n" for r in frames]),
+    }
+    res["statistics"] = {"method": "clustered bootstrap over sequences (paired submission/ground truth)",
+                         "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
+                         "interval": "percentile"}
+    metrics: dict[str, dict] = {}
+    per_seq: dict[str, dict] = {sid: {"frames": int((clusters == i).sum())} for i, sid in enumerate(seq_ids)}
+    with _stage(timing, "bootstrap_s"):
+        for name in stats.FRAME_METRICS:
+            if not protocol.metric(name):
+                continue
+            if name in doc["unavailable"]:
+                metrics[name] = {"status": "unavailable", **doc["unavailable"][name]}
+                continue
+            v = np.array([r[name] for r in frames], dtype=np.float64)
+            samples = stats.frame_metric_samples(v, clusters, counts)
+            lo, hi = stats.percentile_interval(samples, st.interval)
+            value = float(np.mean(v)) if not np.isposinf(v).any() else math.inf
+            metrics[name] = {"status": "ok", "kind": "frame", "value": value, "interval": [lo, hi],
+                             "level": st.interval, "higher_is_better": stats.higher_is_better(name),
+                             "n": int(len(v))}
+            if name == "psnr":
+                metrics[name]["infinite_frames"] = int(np.isposinf(v).sum())
+                seqv = stats.sequence_psnr(v, clusters, k)
+            else:
+                seqv = np.bincount(clusters, weights=v, minlength=k) / np.bincount(clusters, minlength=k)
+            for i, sid in enumerate(seq_ids):
+                per_seq[sid][name] = float(seqv[i])
+    timing.setdefault("set_metrics_s", 0.0)
+    for m in protocol.metrics:
+        if m.name not in _IMAGE_SET + _CLIP_SET:
+            continue
+        if m.name in doc["unavailable"]:
+            metrics[m.name] = {"status": "unavailable", **doc["unavailable"][m.name]}
+            continue
+        f = features[m.extractor]
+        xs, xg, seq = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64), f["seq"]
+        if len(xs) < 2:
+            what = "clips" if m.name in _CLIP_SET else "frames"
+            metrics[m.name] = {"status": "unavailable",
+                               "reason": f"{len(xs)} {what} of {m.clip_length or 1} frames; need at least 2",
+                               "fix": "sequences must hold at least clip_length frames"}
+            continue
+        with _stage(timing, "set_metrics_s"):
+            if m.name in ("fid", "fvd"):
+                a, b = FeatureStats(xs.shape[1]), FeatureStats(xs.shape[1])
+                a.update(xs)
+                b.update(xg)
+                value = frechet_distance(a.mean(), a.cov(), b.mean(), b.cov())
+                fn = stats.FrechetBootstrap(xs, xg)
+            else:
+                value = kernel_mmd(xs, xg, subset_size=m.subset_size, num_subsets=m.num_subsets or 1, seed=st.seed)
+                fn = stats.MMDBootstrap(xs, xg, seq, seq, k)
+        with _stage(timing, "bootstrap_s"):
+            bar = _tqdm(progress, total=len(counts), desc=f"bootstrap {m.name}", unit="resample")
+            with bar:
+                samples = stats.set_metric_samples(fn, seq, seq, counts, progress=bar.update)
+            samples = samples[np.isfinite(samples)]  # resamples with < 2 rows are undefined
+            lo, hi = stats.percentile_interval(samples, st.interval) if len(samples) else (math.nan, math.nan)
+        metrics[m.name] = {"status": "ok", "kind": "set", "value": float(value), "interval": [lo, hi],
+                           "level": st.interval, "higher_is_better": False, "n": int(len(xs)),
+                           "extractor": m.extractor, "unit": "clip" if m.name in _CLIP_SET else "frame",
+                           "resample_mean": float(np.mean(samples)) if len(samples) else math.nan}
+        if not lo <= value <= hi:
+            metrics[m.name]["note"] = (
+                "value outside its percentile interval: a resample repeats sequences, and repeated "
+                "frames bias set metrics on small sets (the interval shows the spread, not a bias-free range)")
+    res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
+    res["sequences"] = per_seq
+    res.pop("unavailable", None)
+    return res
+
+
+# --------------------------------------------------------------------------- I/O
+
+
+def write_results(out: Path, doc: dict, features: dict) -> None:
+    """Write the features sidecar, then the JSON that names it (both atomically)."""
+    fpath = features_path(out)
+    arrays: dict[str, np.ndarray] = {}
+    for ex_id, f in features.items():
+        for part in ("sub", "gt", "seq"):
+            arrays[f"{ex_id}|{part}"] = np.asarray(f[part])
+    with fileio.atomic_path(fpath, suffix=".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_file(fpath)}
+    fileio.write_json(out, doc)
+
+
+_RESULTS_SHAPE = {
+    "format": str,
+    "protocol": {"ref": str, "sha256": str},
+    "dataset": {"name": str, "sequences": [str]},
+    "submission": {"method": fields.Optional(str)},
+    "extractors": {str: {"kind": str, "dim": int}},
+    "frames": [{"scene": str, "file": str, "sequence": int, "index": int, "sha256": str, "gt_sha256": str}],
+}
+_FINAL_SHAPE = {
+    "metrics": {str: {"status": str}},
+    "sequences": {str: {str: fields.Optional(fields.Number)}},
+    "sha256": {"ground_truth": str, "submission_frames": str},
+}
+_PARTIAL_SHAPE = {"shard": fields.Optional({"index": int, "count": int}), "unavailable": {str: dict}}
+
+
+def _results_problem(doc: dict, path: Path, partial: bool) -> None:
+    """Raise a one-line UserError at the first field of a results (or partial) file that this
+    version cannot use: wrong type, missing, or an index outside what the file itself holds."""
+    fields.conform(str(path), doc, {**_RESULTS_SHAPE, **(_PARTIAL_SHAPE if partial else _FINAL_SHAPE)})
+    n_seq = len(doc["dataset"]["sequences"])
+    for i, r in enumerate(doc["frames"]):
+        fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
+        for name in stats.FRAME_METRICS:
+            if name in r:
+                fields.conform(str(path), r[name], fields.Number, f"frames[{i}].{name}")
+    shard = doc.get("shard")
+    if partial and shard is not None:  # a shard holds at least one sequence: N <= sequences
+        fields.integer(f"{path}: field 'shard.count'", shard["count"], "the number of shards", 1, max(n_seq, 1))
+        fields.integer(f"{path}: field 'shard.index'", shard["index"], "the shard's number", 0, shard["count"] - 1)
+    if not partial:
+        for name, m in doc["metrics"].items():
+            if m["status"] == "ok":
+                fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
+                if m["kind"] not in ("frame", "set"):
+                    fields.fail(f"{path}: field 'metrics.{name}.kind'",
+                                f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
+                if m["kind"] == "frame":  # compared per sequence: every sequence holds a value
+                    for sid in doc["dataset"]["sequences"]:
+                        fields.conform(str(path), doc["sequences"].get(sid), {name: fields.Number},
+                                       f"sequences.{sid}")
+                if m["kind"] == "set":
+                    fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
+
+
+def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The features sidecar, checked against the results file before any array is trusted: only
+    stored (uncompressed) .npy members, so no member can inflate past the file's own size."""
+    import zipfile
+
+    try:
+        with fileio.open_regular(fpath) as fh, zipfile.ZipFile(fh) as zf:
+            for info in zf.infolist():
+                if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                    raise UserError(f"{fpath}: member {info.filename!r} is not a stored .npy array (expected "
+                                    f"the sidecar `evaluate` writes)")
+        out: dict[str, dict[str, np.ndarray]] = {}
+        with np.load(fpath, allow_pickle=False) as z:
+            for key in z.files:
+                ex_id, _, part = key.rpartition("|")
+                out.setdefault(ex_id, {})[part] = z[key]
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, MemoryError) as e:
+        raise UserError(f"{fpath}: not a features sidecar ({fileio._one_line(e)})") from None
+    n_seq = len(doc["dataset"]["sequences"])
+    for ex_id, f in out.items():
+        info = doc["extractors"].get(ex_id)
+        where = f"{fpath}: array '{ex_id}"
+        if info is None:
+            raise UserError(f"{where}|...': extractor not listed in {path.name}'s field 'extractors'")
+        sub, gt, seq = f.get("sub"), f.get("gt"), f.get("seq")
+        if any(a is None for a in (sub, gt, seq)):
+            raise UserError(f"{where}|sub|gt|seq': one of the three arrays is missing")
+        for part, a in (("sub", sub), ("gt", gt)):
+            if a.dtype.kind != "f" or a.ndim != 2 or a.shape[1] != info["dim"] or len(a) != len(seq):
+                raise UserError(f"{where}|{part}': expected float [{len(seq)}, {info['dim']}], got {a.dtype} "
+                                f"{list(a.shape)}")
+        if seq.dtype.kind not in "iu" or seq.ndim != 1 or (len(seq) and not (0 <= seq.min() and seq.max() < n_seq)):
+            raise UserError(f"{where}|seq': expected sequence numbers in 0..{n_seq - 1}")
+    return out
+
+
+def read_results(path, *, features: bool = False, partial: bool = False) -> tuple[dict, dict | None]:
+    """Read a results (or partial) JSON and optionally its features sidecar (sha256-checked).
+    Every field used later is checked here; a bad one is a one-line UserError naming it."""
+    path = Path(path)
+    doc = fileio.read_json(path, allow_nan=True)  # a perfect frame's PSNR is Infinity
+    want = PARTIAL_FORMAT if partial else RESULTS_FORMAT
+    if not isinstance(doc, dict) or doc.get("format") != want:
+        got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise UserError(f"{path}: field 'format' is {fields._short(got)}, expected {want!r}")
+    _results_problem(doc, path, partial)
+    if not features:
+        return doc, None
+    info = doc.get("features") or {}
+    if not isinstance(info, dict):
+        raise UserError(f"{path}: field 'features' must be an object")
+    name = info.get("file", features_path(path).name)
+    fields.name(f"{path}: field 'features.file'", name, "the sidecar's file name beside it")
+    fpath = path.with_name(name)
+    if not fpath.is_file():
+        raise UserError(f"{fpath}: features sidecar of {path.name} missing (needed to resample set metrics)")
+    if info.get("sha256") and fileio.sha256_file(fpath) != info["sha256"]:
+        raise UserError(f"{fpath}: sha256 differs from the one recorded in {path.name} (file changed)")
+    return doc, _read_sidecar(fpath, doc, path)
+
+
+# --------------------------------------------------------------------------- merge
+
+
+def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dict:
+    """Merge the partial results of `evaluate --shard I/N` (all N of them) into results that
+    equal an unsharded run."""
+    out = Path(out) if out is not None else None
+    if out is not None:
+        fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=parts,
+                            inputs_are="the parts being merged")
+    if not parts:
+        raise UserError("merge: no partial results given")
+    loaded = [(Path(p), *read_results(p, features=True, partial=True)) for p in parts]
+    first_path, first, _ = loaded[0]
+    problems = []
+    for key in ("protocol", "dataset", "submission", "extractors"):
+        for p, d, _ in loaded[1:]:
+            a, b = first.get(key), d.get(key)
+            if key == "submission":  # the folder may sit at a different path on each machine
+                a, b = ({k: v for k, v in (x or {}).items() if k != "path"} for x in (a, b))
+            if key == "dataset":
+                a, b = ({k: v for k, v in (x or {}).items() if k != "root"} for x in (a, b))
+            if key == "submission" and a.get("frames_sha256") != b.get("frames_sha256"):
+                problems.append(f"{p}: field 'submission.frames_sha256' differs from {first_path.name}'s: the "
+                                f"parts scored different frames (not the same submission)")
+            elif a != b:
+                problems.append(f"{p}: field '{key}' differs from {first_path.name}'s")
+    n = (first.get("shard") or {}).get("count")
+    seen: dict[int, Path] = {}
+    for p, d, _ in loaded:
+        s = d.get("shard")
+        if not s or s.get("count") != n:
+            problems.append(f"{p}: shard {s} is not one of {n} shards")
+            continue
+        if s["index"] in seen:
+            problems.append(f"{p}: shard {s['index']}/{n} given twice (also {seen[s['index']]})")
+        seen[s["index"]] = p
+    if n is not None and len(seen) == len(loaded):
+        missing = sorted(set(range(n)) - set(seen))
+        if missing:
+            problems.append(f"merge: shards {', '.join(f'{i}/{n}' for i in missing)} missing")
+    if problems:
+        raise ValidationError("merge", problems)
+    doc = dict(first)
+    doc["frames"] = [r for _, d, _ in loaded for r in d["frames"]]
+    doc["unavailable"] = {k: v for _, d, _ in loaded for k, v in d["unavailable"].items()}
+    features: dict[str, dict[str, np.ndarray]] = {}
+    for ex_id in first["extractors"]:
+        got = [f[ex_id] for _, _, f in loaded if ex_id in f]
+        if not got:
+            continue
+        seq = np.concatenate([g["seq"] for g in got])
+        order = np.argsort(seq, kind="stable")  # canonical order: by sequence, clips in order
+        features[ex_id] = {part: np.concatenate([g[part] for g in got])[order] for part in ("sub", "gt")}
+        features[ex_id]["seq"] = seq[order]
+    timing = {"merged_shards_s": {str(d["shard"]["index"]): d.get("timing_s", {}) for _, d, _ in loaded}}
+    doc["shard"] = None
+    res = finalize(doc, features, timing=timing, progress=progress)
+    res["timing_s"] = timing
+    if out is not None:
+        write_results(out, res, features)
+    return res
+
+
+# --------------------------------------------------------------------------- terminal
+
+
+def format_summary(res: dict) -> str:
+    """Human-readable lines for the terminal."""
+    lines = [f"{res['submission'].get('method')} {res['submission'].get('method_version') or ''} on "
+             f"{res['protocol']['ref']} ({res['dataset']['name']}, {len(res['frames'])} frames, "
+             f"{len(res['dataset']['sequences'])} sequences)"]
+    for name, m in res["metrics"].items():
+        if m["status"] != "ok":
+            lines.append(f"  {name:<6} unavailable: {m['reason']} (fix: {m['fix']})")
+            continue
+        lo, hi = m["interval"]
+        arrow = "higher is better" if m["higher_is_better"] else "lower is better"
+        extra = f"  ({m['infinite_frames']} exact frames)" if m.get("infinite_frames") else ""
+        if m.get("note"):
+            extra += f"  [note: {m['note']}]"
+        lines.append(f"  {name:<6} {m['value']:.4g}  [{lo:.4g}, {hi:.4g}] {int(m['level'] * 100)}%  "
+                     f"({arrow}){extra}")
+    t = res.get("timing_s", {})
+    lines.append("  evaluator time: " + ", ".join(f"{k} {v:.2f}" for k, v in t.items() if isinstance(v, float)))
+    return "\n".join(lines)

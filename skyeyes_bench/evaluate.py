@@ -7,7 +7,8 @@ part = evaluate("sub/", out="part-0.json", shard=(0, 4))          # sequences 0,
 results = merge(["part-0.json", ...], out="results.json")          # == the unsharded numbers
 ```
 
-The results file format (and `merge`, `read_results`, ...) is in `results`, re-exported here.
+Which metrics exist and which function computes each comes from `metricspec`; the results file
+format (and `merge`, `read_results`, ...) from `results`, re-exported here.
 """
 
 from __future__ import annotations
@@ -18,11 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, fileio, paths, stats
+from . import __version__, fileio, paths
 from .errors import UserError, ValidationError
+from .metricspec import FRAME_METRICS, metric_def
+from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
-    _CLIP_SET, _IMAGE_SET, PARTIAL_FORMAT, RESULTS_FORMAT, _digest, _stage, _tqdm, default_out, features_path,
-    finalize, format_summary, merge, read_results, write_results)
+    PARTIAL_FORMAT, RESULTS_FORMAT, _digest, _stage, _tqdm, default_out, features_path, finalize, format_summary,
+    merge, read_results, write_results)
 from .submission import expected_frames, frame_relpath, read_submission, validate_submission
 
 _FRAME_BATCH = 16
@@ -39,10 +42,7 @@ def builtin_protocol_ids() -> set[str]:
     """Ids of the protocols shipped with skyeyes-bench (official: no test-only extractors)."""
     from .protocol import available
 
-    builtin = Path(__file__).parent / "_protocols"
-    if not builtin.is_dir():
-        builtin = Path(__file__).resolve().parent.parent / "protocols"
-    return set(available(builtin)) if builtin.is_dir() else set()
+    return set(available(paths.builtin_protocols_dir()))
 
 
 def parse_shard(text: str | tuple | None) -> tuple[int, int] | None:
@@ -185,11 +185,13 @@ def _check_extractors(protocol) -> None:
 
 
 def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, str], timing, progress):
-    """Per-frame PSNR / SSIM / LPIPS (those the protocol asks for) and file hashes (the
-    submission's from `sub_sha`, relative path -> sha256, hashed once by the caller)."""
-    from .metrics import MetricUnavailable, lpips, psnr, ssim
+    """Per-frame metrics the protocol asks for (PSNR, SSIM, LPIPS: each by the function its
+    `metricspec` entry names) and file hashes (the submission's from `sub_sha`, relative path ->
+    sha256, hashed once by the caller)."""
+    from .metrics import MetricUnavailable
 
-    names = [m for m in stats.FRAME_METRICS if protocol.metric(m)]
+    specs = [protocol.metric(name) for name in FRAME_METRICS if protocol.metric(name)]
+    functions = {m.name: load_entry_point(metric_def(m.name).per_frame) for m in specs}
     unavailable: dict[str, dict] = {}
     records = []
     bar = _tqdm(progress, total=len(frames), desc="per-frame metrics", unit="frame")
@@ -197,19 +199,14 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
         for batch in _frame_batches(frames, _FRAME_BATCH):
             preds = np.stack([fileio.read_image(sub / frame_relpath(s, f)) for s, f in batch])  # [B, H, W, 3]
             gts = np.stack([f.image() for _, f in batch])  # [B, H, W, 3]
-            values: dict[str, np.ndarray] = {}
-            if "psnr" in names:
-                values["psnr"] = psnr(preds, gts)
-            if "ssim" in names:
-                spec = protocol.metric("ssim")
-                kw = {k: getattr(spec, k) for k in ("window", "sigma", "k1", "k2") if getattr(spec, k) is not None}
-                values["ssim"] = ssim(preds, gts, **kw)
-            if "lpips" in names and "lpips" not in unavailable:
-                net = _lpips_net(protocol.metric("lpips").extractor)
+            values: dict[str, np.ndarray] = {}  # name -> [B]
+            for m in specs:
+                if m.name in unavailable:  # missing weights: reported once, not retried per batch
+                    continue
                 try:
-                    values["lpips"] = lpips(preds, gts, net=net)
+                    values[m.name] = functions[m.name](preds, gts, m)
                 except MetricUnavailable as e:
-                    unavailable["lpips"] = {"reason": e.reason, "fix": e.fix}
+                    unavailable[m.name] = {"reason": e.reason, "fix": e.fix}
             for i, (scene, f) in enumerate(batch):
                 rec = {"scene": scene, "file": f.file, "sequence": seq_index[f"{scene}/{f.sequence}"],
                        "index": int(f.index),
@@ -222,10 +219,6 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
     return records, unavailable
 
 
-def _lpips_net(extractor: str | None) -> str:
-    return {"lpips-alex-v0.1": "alex", "lpips-vgg-v0.1": "vgg"}.get(extractor or "lpips-alex-v0.1", "alex")
-
-
 def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progress):
     """Features of the submission and ground truth for every set-metric extractor.
 
@@ -234,13 +227,16 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
     from .metrics.cache import extract_clip_features, extract_image_features
     from .metrics.extractors import get_extractor
 
-    wanted: dict[str, list] = {}  # extractor -> metric specs
+    wanted: dict[str, list] = {}  # extractor -> set-metric specs
     for m in protocol.metrics:
-        if m.name in _IMAGE_SET + _CLIP_SET:
+        if metric_def(m.name).kind == "set":
             wanted.setdefault(m.extractor, []).append(m)
-    for m in protocol.metrics:  # LPIPS weights are named too, though extracted inside lpips()
-        if m.name == "lpips" and m.extractor:
+    # A frame metric's network (LPIPS) runs inside its per-frame function; its weights are named too.
+    frame_users: dict[str, list[str]] = {}
+    for m in protocol.metrics:
+        if metric_def(m.name).kind == "frame" and m.extractor:
             wanted.setdefault(m.extractor, [])
+            frame_users.setdefault(m.extractor, []).append(m.name)
     features: dict[str, dict[str, np.ndarray]] = {}
     extractors: dict[str, dict] = {}
     with _stage(timing, "features_s"):
@@ -253,8 +249,9 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                 for m in specs:
                     unavailable[m.name] = {"reason": e.reason, "fix": e.fix}
                 continue
-            if not specs:  # LPIPS: its network runs inside lpips(); record the weights it used
-                extractors[ex_id]["status"] = "unavailable" if "lpips" in unavailable else "ok"
+            if not specs:  # a frame metric's network: record the weights it used
+                gone = any(name in unavailable for name in frame_users[ex_id])
+                extractors[ex_id]["status"] = "unavailable" if gone else "ok"
                 continue
             try:
                 if ex.kind == "image":

@@ -29,10 +29,12 @@ import numpy as np
 
 from . import fileio, stats
 from .errors import UserError
+from .metricspec import METRICS
 
-METRIC_ORDER = ("psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd")
-LABEL = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "fid": "FID", "kid": "KID", "fvd": "FVD", "kvd": "KVD"}
-_DIGITS = {"psnr": 2, "ssim": 3, "lpips": 3, "fid": 2, "kid": 4, "fvd": 2, "kvd": 2}
+#: Column order, headings and printed decimals: the metric table's (`metricspec`).
+METRIC_ORDER = tuple(METRICS)
+LABEL = {name: m.label for name, m in METRICS.items()}
+_DIGITS = {name: m.decimals for name, m in METRICS.items()}
 DAGGER = "†"
 
 
@@ -71,7 +73,7 @@ class Table:
 
 
 def _measured_tables(root: Path) -> list[Table]:
-    from .evaluate import read_results
+    from .results import read_results
 
     groups: dict[tuple, list[tuple[dict, str]]] = {}
     for p in sorted((root / "results").glob("*.json")):
@@ -153,16 +155,14 @@ def _mark_best(t: Table) -> None:
         if t.reported or len(order) < 2 or len(t.best[m]) > 1:
             continue
         a, b = t.rows[order[0][0]], t.rows[order[1][0]]
-        if m in stats.FRAME_METRICS:
+        if METRICS[m].kind == "frame":
             st = st or load_protocol(t.protocol).statistics
             seqs = sorted(a.sequences)
             va = np.array([a.sequences[s][m] for s in seqs])
             vb = np.array([b.sequences[s].get(m, math.nan) for s in seqs])
             d = stats.advantage(va, vb, m)
-            k = len(d)
-            counts = stats.resample_counts(stats.resample_indices(k, st.bootstrap_resamples, st.seed), k)
-            samples = stats.frame_metric_samples(d, np.arange(k), counts)
-            credible = (not np.isnan(samples).any()) and stats.percentile_interval(samples, st.interval)[0] > 0
+            interval = stats.advantage_interval(d, resamples=st.bootstrap_resamples, level=st.interval, seed=st.seed)
+            credible = interval is not None and interval[0] > 0
         else:
             (alo, ahi), (blo, bhi) = a.intervals[m], b.intervals[m]
             credible = ahi < blo if not stats.higher_is_better(m) else alo > bhi

@@ -26,10 +26,16 @@ def features_dir() -> Path:
 
 
 def protocols_dir() -> Path:
-    """`$SKYEYES_PROTOCOLS`, else the copy inside an installed wheel, else the repository's."""
+    """`$SKYEYES_PROTOCOLS`, else the shipped protocols (`builtin_protocols_dir`)."""
     env = os.environ.get("SKYEYES_PROTOCOLS")
     if env:
         return Path(env)
+    return builtin_protocols_dir()
+
+
+def builtin_protocols_dir() -> Path:
+    """The protocols shipped with skyeyes-bench, whatever `$SKYEYES_PROTOCOLS` says: the copy
+    inside an installed wheel, else the repository's (may not exist)."""
     packaged = Path(__file__).parent / "_protocols"
     if packaged.is_dir():
         return packaged

@@ -17,21 +17,14 @@ from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+from .metricspec import METRICS
 from .paths import protocols_dir
 
 _VERSION_FILE = re.compile(r"^v([1-9]\d*)\.toml$")  # v1.toml, v2.toml ... (no v01)
 _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 
-#: Metric names a protocol may ask for, and the settings each one accepts.
-METRIC_KEYS: dict[str, set[str]] = {
-    "psnr": {"aggregate"},
-    "ssim": {"aggregate", "window", "sigma", "k1", "k2"},
-    "lpips": {"aggregate", "extractor"},
-    "fid": {"extractor", "resize"},
-    "kid": {"extractor", "resize", "subset_size", "num_subsets"},
-    "fvd": {"extractor", "resize", "clip_length", "clip_stride"},
-    "kvd": {"extractor", "resize", "clip_length", "clip_stride", "subset_size", "num_subsets"},
-}
+#: Metric names a protocol may ask for, and the settings each one accepts (from `metricspec`).
+METRIC_KEYS: dict[str, frozenset[str]] = {name: m.keys for name, m in METRICS.items()}
 
 
 @dataclass(frozen=True)
@@ -203,9 +196,9 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
                     raise UserError(f"{file}: unknown key 'metrics.{name}.{key}' (known: {allowed})")
         metrics.append(_build(MetricSpec, table, f"metrics.{name}", file, extra={"name": name}))
     for m in metrics:
-        if m.name in ("fvd", "kvd") and (m.clip_length or 0) < 2:
+        if METRICS[m.name].features == "clip" and (m.clip_length or 0) < 2:
             raise UserError(f"{file}: key 'metrics.{m.name}.clip_length' must be >= 2")
-        if m.name in ("fid", "kid", "fvd", "kvd", "lpips") and not m.extractor:
+        if METRICS[m.name].extractor and not m.extractor:
             raise UserError(f"{file}: missing key 'metrics.{m.name}.extractor'")
     stats = sections["statistics"]
     if not 0 < stats.interval < 1:

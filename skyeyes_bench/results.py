@@ -21,12 +21,11 @@ import numpy as np
 
 from . import fields, fileio, stats
 from .errors import UserError, ValidationError
+from .metricspec import FRAME_METRICS, metric_def
+from .registry import load_entry_point
 
 RESULTS_FORMAT = "skyeyes-bench/results@1"
 PARTIAL_FORMAT = "skyeyes-bench/partial@1"
-#: Metric -> feature kind of its extractor.
-_IMAGE_SET = ("fid", "kid")
-_CLIP_SET = ("fvd", "kvd")
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -70,7 +69,6 @@ def default_out(submission_dir, shard: tuple[int, int] | None = None) -> Path:
 def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress: bool = False) -> dict:
     """Turn a complete (all sequences) partial into results: per-sequence values, summaries with
     clustered-bootstrap intervals, set metrics. Pure given its inputs (deterministic seeds)."""
-    from .metrics import FeatureStats, frechet_distance, kernel_mmd
     from .protocol import load_protocol
 
     timing = {} if timing is None else timing
@@ -97,7 +95,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
     metrics: dict[str, dict] = {}
     per_seq: dict[str, dict] = {sid: {"frames": int((clusters == i).sum())} for i, sid in enumerate(seq_ids)}
     with _stage(timing, "bootstrap_s"):
-        for name in stats.FRAME_METRICS:
+        for name in FRAME_METRICS:
             if not protocol.metric(name):
                 continue
             if name in doc["unavailable"]:
@@ -119,7 +117,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                 per_seq[sid][name] = float(seqv[i])
     timing.setdefault("set_metrics_s", 0.0)
     for m in protocol.metrics:
-        if m.name not in _IMAGE_SET + _CLIP_SET:
+        spec = metric_def(m.name)
+        if spec.kind != "set":
             continue
         if m.name in doc["unavailable"]:
             metrics[m.name] = {"status": "unavailable", **doc["unavailable"][m.name]}
@@ -127,21 +126,14 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         f = features[m.extractor]
         xs, xg, seq = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64), f["seq"]
         if len(xs) < 2:
-            what = "clips" if m.name in _CLIP_SET else "frames"
+            what = "clips" if spec.features == "clip" else "frames"
             metrics[m.name] = {"status": "unavailable",
                                "reason": f"{len(xs)} {what} of {m.clip_length or 1} frames; need at least 2",
                                "fix": "sequences must hold at least clip_length frames"}
             continue
         with _stage(timing, "set_metrics_s"):
-            if m.name in ("fid", "fvd"):
-                a, b = FeatureStats(xs.shape[1]), FeatureStats(xs.shape[1])
-                a.update(xs)
-                b.update(xg)
-                value = frechet_distance(a.mean(), a.cov(), b.mean(), b.cov())
-                fn = stats.FrechetBootstrap(xs, xg)
-            else:
-                value = kernel_mmd(xs, xg, subset_size=m.subset_size, num_subsets=m.num_subsets or 1, seed=st.seed)
-                fn = stats.MMDBootstrap(xs, xg, seq, seq, k)
+            value = load_entry_point(spec.estimator)(xs, xg, m, st.seed)
+            fn = stats.set_metric_bootstrap(m.name, xs, xg, seq, k)
         with _stage(timing, "bootstrap_s"):
             bar = _tqdm(progress, total=len(counts), desc=f"bootstrap {m.name}", unit="resample")
             with bar:
@@ -149,8 +141,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
             samples = samples[np.isfinite(samples)]  # resamples with < 2 rows are undefined
             lo, hi = stats.percentile_interval(samples, st.interval) if len(samples) else (math.nan, math.nan)
         metrics[m.name] = {"status": "ok", "kind": "set", "value": float(value), "interval": [lo, hi],
-                           "level": st.interval, "higher_is_better": False, "n": int(len(xs)),
-                           "extractor": m.extractor, "unit": "clip" if m.name in _CLIP_SET else "frame",
+                           "level": st.interval, "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
+                           "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
                            "resample_mean": float(np.mean(samples)) if len(samples) else math.nan}
         if not lo <= value <= hi:
             metrics[m.name]["note"] = (
@@ -202,7 +194,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
     n_seq = len(doc["dataset"]["sequences"])
     for i, r in enumerate(doc["frames"]):
         fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
-        for name in stats.FRAME_METRICS:
+        for name in FRAME_METRICS:
             if name in r:
                 fields.conform(str(path), r[name], fields.Number, f"frames[{i}].{name}")
     shard = doc.get("shard")

@@ -8,7 +8,8 @@ from the K test sequences; a per-frame metric is the mean over all frames of the
 drawn sequences. The same drawn ids are used for the submission side and the ground-truth side
 (paired), and, in `compare`, for both methods.
 
-Pure functions on arrays; no file I/O here. The Student-t model is in `bayes`.
+Pure functions on arrays; no file I/O here. The Student-t model is in `bayes`; which metric is
+better higher or lower, and which bootstrap a set metric uses, comes from `metricspec`.
 """
 
 from __future__ import annotations
@@ -18,12 +19,10 @@ import math
 import numpy as np
 
 from .bayes import StudentTPosterior, hdi, student_t_posterior  # noqa: F401  (re-exported)
+from .metricspec import FRAME_METRICS, METRICS, SET_METRICS, metric_def  # noqa: F401  (re-exported)
 
 #: Metrics for which a lower value is better (everything else: higher is better).
-LOWER_IS_BETTER = frozenset({"lpips", "fid", "kid", "fvd", "kvd"})
-#: Metrics with one value per frame; the others are set metrics over all frames / clips.
-FRAME_METRICS = ("psnr", "ssim", "lpips")
-SET_METRICS = ("fid", "kid", "fvd", "kvd")
+LOWER_IS_BETTER = frozenset(n for n, m in METRICS.items() if not m.higher_is_better)
 
 
 def higher_is_better(metric: str) -> bool:
@@ -123,6 +122,11 @@ class FrechetBootstrap:
             self.g22 = self.x2 @ self.x2.T  # [N2, N2]
             self.g12 = self.x1 @ self.x2.T  # [N1, N2]
 
+    @classmethod
+    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int) -> FrechetBootstrap:
+        """The metric table's bootstrap factory (`set_metric_bootstrap`); rows are weighted one by one."""
+        return cls(sub, gt)
+
     def __call__(self, w1: np.ndarray, w2: np.ndarray) -> float:
         """FID for row weights w1 [N1], w2 [N2] (resample multiplicities; zero rows dropped)."""
         w1 = np.asarray(w1, dtype=np.float64)
@@ -206,6 +210,11 @@ class MMDBootstrap:
         self.syy, self.dyy = self._block_sums(y, y, clusters_y, clusters_y, k, kw)
         self.sxy, _ = self._block_sums(x, y, clusters_x, clusters_y, k, kw, diag=False)
 
+    @classmethod
+    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int) -> MMDBootstrap:
+        """The metric table's bootstrap factory: sub [N, D] and gt [N, D] rows of sequences seq [N]."""
+        return cls(sub, gt, seq, seq, n_clusters)
+
     def _block_sums(self, a, b, ca, cb, k, kw, diag=True):
         onehot_b = np.zeros((len(b), k))
         onehot_b[np.arange(len(b)), cb] = 1.0
@@ -229,6 +238,23 @@ class MMDBootstrap:
         syy = c2 @ self.syy @ c2 - c2 @ self.dyy
         sxy = c1 @ self.sxy @ c2
         return float(sxx / (n * (n - 1)) + syy / (m * (m - 1)) - 2 * sxy / (n * m))
+
+
+def set_metric_bootstrap(metric: str, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int):
+    """The resampled version of a set metric, as its `metricspec` entry names it.
+
+    Args:
+        metric: a set metric's name ("fid", "kid", ...).
+        sub: [N, D] submission features; gt: [N, D] ground-truth features of the same frames / clips.
+        seq: [N] sequence id (0..n_clusters-1) of each row.
+    Returns:
+        A callable for `set_metric_samples` (FrechetBootstrap, MMDBootstrap, ...).
+    """
+    from .registry import load_entry_point
+
+    spec = metric_def(metric)
+    assert spec.kind == "set" and spec.bootstrap, metric
+    return load_entry_point(spec.bootstrap)(sub, gt, seq, n_clusters)
 
 
 def set_metric_samples(fn, clusters1: np.ndarray, clusters2: np.ndarray, counts: np.ndarray,
@@ -269,6 +295,15 @@ def advantage(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
     return np.where(both, 0.0, d)
 
 
+def advantage_interval(d: np.ndarray, *, resamples: int, level: float, seed: int) -> tuple[float, float] | None:
+    """Paired clustered bootstrap: percentile interval of the mean of per-sequence advantages
+    d [K] (each sequence its own cluster); None when d holds NaN (no interval exists)."""
+    k = len(d)
+    counts = resample_counts(resample_indices(k, resamples, seed), k)
+    samples = frame_metric_samples(d, np.arange(k), counts)
+    return None if np.isnan(samples).any() else percentile_interval(samples, level)
+
+
 def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples: int, level: float,
                          seed: int, walkers: int, steps: int, burn: int) -> dict:
     """Paired comparison of per-sequence values a [K], b [K] of one metric (same sequence order).
@@ -281,9 +316,8 @@ def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples
     k = len(d)
     out: dict = {"metric": metric, "higher_is_better": higher_is_better(metric), "sequences": k,
                  "advantage_mean": float(np.mean(d)) if not np.isnan(d).any() else math.nan}
-    counts = resample_counts(resample_indices(k, resamples, seed), k)
-    samples = frame_metric_samples(d, np.arange(k), counts)
-    out["bootstrap_interval"] = list(percentile_interval(samples, level)) if not np.isnan(samples).any() else None
+    interval = advantage_interval(d, resamples=resamples, level=level, seed=seed)
+    out["bootstrap_interval"] = list(interval) if interval is not None else None
     out["level"] = level
     bayes: dict = {"fitted": False}
     n_inf = int(np.isinf(d).sum())
@@ -385,19 +419,16 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             continue
         fa, fb = feats_a[ex], feats_b[ex]
         counts = resample_counts(resample_indices(k, st.bootstrap_resamples, st.seed), k)
-        if name in ("fid", "fvd"):
-            fna, fnb = FrechetBootstrap(fa["sub"], fa["gt"]), FrechetBootstrap(fb["sub"], fb["gt"])
-        else:
-            fna = MMDBootstrap(fa["sub"], fa["gt"], fa["seq"], fa["seq"], k)
-            fnb = MMDBootstrap(fb["sub"], fb["gt"], fb["seq"], fb["seq"], k)
+        fna = set_metric_bootstrap(name, fa["sub"], fa["gt"], fa["seq"], k)
+        fnb = set_metric_bootstrap(name, fb["sub"], fb["gt"], fb["seq"], k)
         sa = set_metric_samples(fna, fa["seq"], fa["seq"], counts)
         sb = set_metric_samples(fnb, fb["seq"], fb["seq"], counts)
         d = advantage(sa, sb, name)
         d = d[np.isfinite(d)]
         lo, hi = percentile_interval(d, st.interval) if len(d) else (math.nan, math.nan)
-        out["metrics"][name] = {"status": "ok", "metric": name, "higher_is_better": False, "a": ma["value"],
-                                "b": mb["value"], "advantage_mean": float(advantage(np.array([ma["value"]]),
-                                                                                    np.array([mb["value"]]), name)[0]),
+        mean = advantage(np.array([ma["value"]]), np.array([mb["value"]]), name)[0]
+        out["metrics"][name] = {"status": "ok", "metric": name, "higher_is_better": higher_is_better(name),
+                                "a": ma["value"], "b": mb["value"], "advantage_mean": float(mean),
                                 "bootstrap_interval": [lo, hi], "level": st.interval,
                                 "p_a_better_bootstrap": float(np.mean(d > 0)) if len(d) else None,
                                 "bayes": {"fitted": False, "note": "set metric: no per-sequence values; paired "

@@ -1,0 +1,69 @@
+"""The one table of metrics: what each metric is, as plain data.
+
+Every module that needs to know about a metric reads it here: `protocol` (which names and
+settings a protocol may use), `evaluate` / `results` (how a value is computed), `stats` (which
+direction is better, which bootstrap resamples a set metric) and `leaderboard` (column order,
+label, decimals). Adding a metric is one entry below plus the function it names.
+
+Code is named by lazy `"module:attr"` entry points (`registry.load_entry_point`), so importing
+this module imports nothing beyond the standard library (no numpy: `skyeyes-bench --help` and
+protocol validation stay instant; a test checks it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class MetricDef:
+    """What a metric is. (`protocol.MetricSpec` holds the settings one protocol gives it.)"""
+
+    name: str
+    kind: str  # "frame": one value per frame | "set": one value over all frames / clips
+    higher_is_better: bool
+    keys: frozenset[str]  # settings a protocol may give under [metrics.<name>]
+    label: str  # column heading
+    decimals: int  # digits shown on the leaderboard
+    extractor: bool = False  # the protocol must name the extractor (network weights) it uses
+    features: str | None = None  # set metrics: "image" (a row per frame) or "clip" (a row per clip)
+    # kind "frame": f(preds [B, H, W, 3], gts [B, H, W, 3], settings: protocol.MetricSpec) -> [B];
+    #   may raise metrics.MetricUnavailable (the metric is then reported unavailable).
+    per_frame: str | None = None
+    # kind "set": the point estimate f(xs [N, D], xg [N, D], settings, seed: int) -> float ...
+    estimator: str | None = None
+    # ... and its bootstrap: f(xs [N, D], xg [N, D], seq [N], n_sequences) -> fn(w1, w2) -> float,
+    #   the same quantity recomputed under resampling weights (see stats.set_metric_bootstrap).
+    bootstrap: str | None = None
+
+
+_KID_KEYS = frozenset({"extractor", "resize", "subset_size", "num_subsets"})
+_CLIP_KEYS = frozenset({"extractor", "resize", "clip_length", "clip_stride"})
+_FRECHET = dict(estimator="skyeyes_bench.estimators:frechet",
+                bootstrap="skyeyes_bench.stats:FrechetBootstrap.from_features")
+_MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.stats:MMDBootstrap.from_features")
+
+#: Every metric, in display order (leaderboard columns, results files follow the protocol's order).
+METRICS: dict[str, MetricDef] = {m.name: m for m in (
+    MetricDef("psnr", "frame", True, frozenset({"aggregate"}), "PSNR", 2,
+              per_frame="skyeyes_bench.estimators:psnr"),
+    MetricDef("ssim", "frame", True, frozenset({"aggregate", "window", "sigma", "k1", "k2"}), "SSIM", 3,
+              per_frame="skyeyes_bench.estimators:ssim"),
+    MetricDef("lpips", "frame", False, frozenset({"aggregate", "extractor"}), "LPIPS", 3, extractor=True,
+              per_frame="skyeyes_bench.estimators:lpips"),
+    MetricDef("fid", "set", False, frozenset({"extractor", "resize"}), "FID", 2, extractor=True,
+              features="image", **_FRECHET),
+    MetricDef("kid", "set", False, _KID_KEYS, "KID", 4, extractor=True, features="image", **_MMD),
+    MetricDef("fvd", "set", False, _CLIP_KEYS, "FVD", 2, extractor=True, features="clip", **_FRECHET),
+    MetricDef("kvd", "set", False, _CLIP_KEYS | _KID_KEYS, "KVD", 2, extractor=True, features="clip", **_MMD),
+)}
+
+FRAME_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "frame")
+SET_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "set")
+
+
+def metric_def(name: str) -> MetricDef:
+    """The table entry of `name`, or a one-line UserError listing the known metrics."""
+    from .registry import lookup
+
+    return lookup(METRICS, name, "metric")

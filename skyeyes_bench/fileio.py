@@ -73,6 +73,41 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+class AtomicFolderWriter:
+    """Base of the writers that fill a folder all at once (datasets, submissions).
+
+    Inside `with`, `self.root` is a temporary sibling of `final`. On a clean exit after
+    `finish()` (which a subclass defines and which must set `self._finished = True`), and once
+    `_before_commit()` has raised nothing, the folder is moved to `final`; on an exception, a
+    missing `finish()` or a failed check, it is deleted and nothing appears at `final`.
+    """
+
+    def __init__(self, final: str | os.PathLike, *, overwrite: bool = False):
+        self.final = Path(final)
+        self.overwrite = overwrite
+        self._ctx: contextlib.AbstractContextManager[Path] | None = None
+        self._finished = False
+
+    def __enter__(self):
+        self._ctx = atomic_dir(self.final, overwrite=self.overwrite)
+        self.root = self._ctx.__enter__()
+        return self
+
+    def _before_commit(self) -> None:
+        """Last check of the complete temporary folder; raise to keep it from `final`."""
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            try:
+                if not self._finished:
+                    raise RuntimeError(f"{type(self).__name__} closed without finish(): nothing was written")
+                self._before_commit()
+            except BaseException as err:
+                self._ctx.__exit__(type(err), err, None)  # deletes the temporary folder
+                raise
+        return self._ctx.__exit__(exc_type, exc, tb)
+
+
 def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=(), inputs=(),
                  inputs_are: str = "the inputs") -> Path:
     """Refuse, before any work, an output file that could not be written or must not be:

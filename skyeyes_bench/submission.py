@@ -103,7 +103,7 @@ def make_manifest(ds, *, method: str, method_version: str, config: dict | None, 
     }
 
 
-class SubmissionWriter:
+class SubmissionWriter(fileio.AtomicFolderWriter):
     """Write a submission atomically.
 
     ```
@@ -119,19 +119,11 @@ class SubmissionWriter:
     def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
                  overwrite: bool = False):
         fields.name("method name", method, "the method's name")
-        self.final = Path(out_dir)
+        super().__init__(out_dir, overwrite=overwrite)
         self.ds = dataset
         self.method, self.method_version, self.config = method, str(method_version), dict(config or {})
-        self.overwrite = overwrite
         self._expected = {(s, f.file): f for s, f in expected_frames(dataset)}
         self._written: set[tuple[str, str]] = set()
-        self._ctx = None
-        self._finished = False
-
-    def __enter__(self) -> "SubmissionWriter":
-        self._ctx = fileio.atomic_dir(self.final, overwrite=self.overwrite)
-        self.root = self._ctx.__enter__()
-        return self
 
     def add(self, scene_name: str, frame, image: np.ndarray) -> Path:
         """Write the image for ground `frame` of `scene_name`. image: float [H, W, 3] in [0,1] or uint8."""
@@ -176,13 +168,6 @@ class SubmissionWriter:
             raise ValidationError(f"submission {self.final}", problems)
         fileio.write_json(self.root / SUBMISSION_FILE, manifest)
         self._finished = True
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None and not self._finished:
-            err = RuntimeError("SubmissionWriter closed without finish(): nothing was written")
-            self._ctx.__exit__(RuntimeError, err, tb)
-            raise err
-        return self._ctx.__exit__(exc_type, exc, tb)
 
 
 # --------------------------------------------------------------------------- reading

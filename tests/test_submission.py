@@ -55,6 +55,10 @@ def test_writer_is_atomic_and_checks(tiny, proto, tmp_path):
     with pytest.raises(UserError, match="image is 16x16, the camera is 32x32"):
         with SubmissionWriter(out, dataset=ds, method="m") as w:
             w.add(scene, f, np.zeros((16, 16, 3)))
+    with pytest.raises(RuntimeError, match="SubmissionWriter closed without finish"):
+        with SubmissionWriter(out, dataset=ds, method="m"):
+            pass
+    assert not out.exists() and not list(tmp_path.glob(".sub*"))
     train = ds.scenes["train-0-lane00"].ground[0]
     with pytest.raises(UserError, match="not a ground frame of a test scene"):
         with SubmissionWriter(out, dataset=ds, method="m") as w:

@@ -10,7 +10,8 @@ from conftest import run_cli
 
 from skyeyes_bench import fileio
 from skyeyes_bench.cameras import Camera
-from skyeyes_bench.data.layout import DatasetWriter, open_dataset, validate_dataset
+from skyeyes_bench.data.layout import open_dataset, validate_dataset
+from skyeyes_bench.data.writer import DatasetWriter
 from skyeyes_bench.errors import UserError, ValidationError
 
 W, H = 16, 12

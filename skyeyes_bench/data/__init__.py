@@ -1,7 +1,7 @@
 """The canonical dataset layout (see DESIGN.md) and the tools that write it.
 
-Names load lazily: `skyeyes_bench.commands.data` imports submodules of this package while
-building the CLI parser, which must not pull in numpy or OpenImageIO.
+Names load lazily: importing a submodule (e.g. `skyeyes_bench.data.synthtown.presets`) must not
+pull in numpy or OpenImageIO.
 """
 
 from __future__ import annotations
@@ -13,5 +13,6 @@ __all__ = ["Dataset", "DatasetWriter", "Frame", "Scene", "Sequence", "open_datas
 
 def __getattr__(name: str):
     if name in __all__:
-        return getattr(importlib.import_module("skyeyes_bench.data.layout"), name)
+        module = "writer" if name == "DatasetWriter" else "layout"
+        return getattr(importlib.import_module(f"skyeyes_bench.data.{module}"), name)
     raise AttributeError(f"module 'skyeyes_bench.data' has no attribute {name!r}")

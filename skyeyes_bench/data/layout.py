@@ -14,6 +14,8 @@
 
 A scene is one lane; a sequence is the ordered ground frames of one lane at one yaw offset.
 A frame may carry its own "intrinsics" (same keys) overriding its group's.
+
+This module reads and validates; `skyeyes_bench.data.writer` writes (`DatasetWriter`).
 """
 
 from __future__ import annotations
@@ -420,118 +422,12 @@ def open_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pix
     return ds
 
 
-# --------------------------------------------------------------------------- writing
+def __getattr__(name: str):
+    # The writer lives in writer.py (it imports this module to validate what it wrote), so it
+    # cannot be imported here at the top; `from skyeyes_bench.data.layout import DatasetWriter`
+    # keeps working through this lazy lookup.
+    if name in ("DatasetWriter", "SceneWriter"):
+        from . import writer
 
-
-def _c2w_list(c2w: np.ndarray) -> list[list[float]]:
-    m = np.asarray(c2w, dtype=np.float64)
-    assert m.shape == (4, 4), m.shape
-    return [[float(v) for v in row] for row in m]
-
-
-class SceneWriter:
-    """Adds frames to one scene folder; `DatasetWriter.scene()` makes it."""
-
-    def __init__(self, root: Path, name: str, intrinsics: dict[str, dict], meta: dict | None):
-        self.root = root / name
-        self.name = name
-        self.intrinsics = {k: dict(v) for k, v in intrinsics.items()}
-        self.meta = dict(meta or {})
-        self.entries: dict[str, list[dict]] = {k: [] for k in KINDS}
-        self.closed = False
-        self.root.mkdir(parents=True, exist_ok=False)
-
-    def _add(self, kind: str, image, c2w, depth, semantics, extra: dict, file: str | None) -> str:
-        file = file or f"{kind}/{len(self.entries[kind]):06d}.png"
-        (self.root / kind).mkdir(exist_ok=True)
-        if isinstance(image, (str, os.PathLike)):
-            _copy(Path(image), self.root / file)
-        else:
-            fileio.write_image(self.root / file, image)
-        if depth is not None:
-            fileio.write_depth(self.root / layer_file(file, "depth"), depth)
-        if semantics is not None:
-            fileio.write_labels(self.root / layer_file(file, "semantics"), semantics)
-        self.entries[kind].append({"file": file, "c2w": _c2w_list(c2w), **extra})
-        return file
-
-    def add_aerial(self, image, c2w, *, depth=None, semantics=None, file: str | None = None, **extra) -> str:
-        """image: float [H, W, 3] in [0,1], uint8, or a path to an 8-bit PNG to copy."""
-        return self._add("aerial", image, c2w, depth, semantics, extra, file)
-
-    def add_ground(self, image, c2w, *, sequence: str, index: int, depth=None, semantics=None,
-                   file: str | None = None, **extra) -> str:
-        return self._add("ground", image, c2w, depth, semantics, {"sequence": sequence, "index": int(index), **extra}, file)
-
-    def close(self) -> None:
-        """Write scene.json (`DatasetWriter.finish` does it for scenes not closed yet)."""
-        fileio.write_json(self.root / SCENE_FILE, {"intrinsics": self.intrinsics, **self.entries, "meta": self.meta})
-        self.closed = True
-
-
-def _copy(src: Path, dst: Path) -> None:
-    import shutil
-
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(src, dst)
-
-
-class DatasetWriter:
-    """Writes a dataset into a temporary folder and moves it into place only when complete.
-
-    ```
-    with DatasetWriter(out, name="synthtown-small", protocol="synthtown@1") as w:
-        s = w.scene("train-0-lane00", {"ground": {...}, "aerial": {...}}, meta={...})
-        s.add_ground(img, c2w, sequence="yaw000", index=0, depth=d)
-        s.close()
-        w.finish(splits={"train": [...], "test": [...]}, meta={...})
-    ```
-    """
-
-    def __init__(self, root: str | os.PathLike, *, name: str, protocol: str, overwrite: bool = False,
-                 validate: bool = False):
-        """validate: run `validate_dataset` on the finished folder before moving it into place;
-        any problem raises ValidationError and nothing is written."""
-        self.final = Path(root)
-        self.name, self.protocol, self.overwrite, self.validate = name, protocol, overwrite, validate
-        self.scenes: list[str] = []
-        self._writers: list[SceneWriter] = []
-        self._ctx = None
-        self._finished = False
-
-    def __enter__(self) -> "DatasetWriter":
-        self._ctx = fileio.atomic_dir(self.final, overwrite=self.overwrite)
-        self.root = self._ctx.__enter__()
-        return self
-
-    def scene(self, name: str, intrinsics: dict[str, dict], meta: dict | None = None) -> SceneWriter:
-        if name in self.scenes:
-            raise ValueError(f"scene {name!r} written twice")
-        self.scenes.append(name)
-        writer = SceneWriter(self.root, name, intrinsics, meta)
-        self._writers.append(writer)
-        return writer
-
-    def finish(self, splits: dict[str, list[str]], meta: dict | None = None) -> None:
-        for writer in self._writers:
-            if not writer.closed:
-                writer.close()
-        fileio.write_json(self.root / DATASET_FILE, {
-            "name": self.name, "protocol": self.protocol, "splits": splits,
-            "scenes": self.scenes, "meta": dict(meta or {}),
-        })
-        self._finished = True
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None and not self._finished:
-            exc_type = RuntimeError
-            exc = RuntimeError("DatasetWriter closed without finish(): nothing was written")
-            self._ctx.__exit__(exc_type, exc, tb)
-            raise exc
-        if exc_type is None and self.validate:
-            _, problems = validate_dataset(self.root, check_pixels=False)
-            if problems:
-                exc = ValidationError(f"dataset {self.final} (not written)", problems)
-                self._ctx.__exit__(type(exc), exc, None)
-                raise exc
-        return self._ctx.__exit__(exc_type, exc, tb)
+        return getattr(writer, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,7 +20,7 @@ import numpy as np
 from ... import paths
 from ...cameras import Camera
 from ...errors import UserError
-from ..layout import DatasetWriter
+from ..writer import DatasetWriter
 from . import town as tw
 from .presets import PRESETS, TEST_TOWNS, TRAIN_TOWNS, Preset
 from .render import LABELS, PALETTE, Scene, render_batch

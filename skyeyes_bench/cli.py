@@ -1,6 +1,7 @@
-"""`skyeyes-bench` command line. A thin argparse front: each subcommand group lives in
-`skyeyes_bench.commands.<name>` (argparse only at import time) and names its handler as a lazy
-`"module:function"` string, so `--help` never imports torch.
+"""`skyeyes-bench` command line. A thin argparse front over one module per subcommand,
+`skyeyes_bench.commands.<name>`, with `register(subparsers)` (argparse only) and `run(args)`
+(which imports numpy, torch and the implementation modules when the command runs), so
+`--help` never imports torch. A group's actions (`data check`, ...) live in its module.
 
 Exit codes: 0 success, 2 invalid input or usage (one line on stderr), 1 internal error.
 """
@@ -13,7 +14,7 @@ import sys
 
 from . import __version__
 
-#: Subcommand groups, in the order `--help` lists them.
+#: Subcommands (modules of `skyeyes_bench.commands`), in the order `--help` lists them.
 COMMANDS = [
     "protocols",
     "data",
@@ -41,21 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"skyeyes-bench {__version__}")
     sub = parser.add_subparsers(title="subcommands", dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"skyeyes_bench.commands.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"skyeyes_bench.commands.{name}":
-                continue  # group not built yet
-            raise
-        module.register(sub)
+        importlib.import_module(f"skyeyes_bench.commands.{name}").register(sub)
     return parser
-
-
-def _run(handler: str, args: argparse.Namespace) -> int:
-    module, _, attr = handler.partition(":")
-    fn = getattr(importlib.import_module(module), attr)
-    rc = fn(args)
-    return 0 if rc is None else int(rc)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,13 +51,15 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    handler = getattr(args, "handler", None)
-    if handler is None:
-        # A group without its sub-subcommand: show that group's help.
-        (getattr(args, "group_parser", None) or parser).print_help()
-        return 2 if args.command else 0
+    if args.command is None:
+        parser.print_help()
+        return 0
+    if getattr(args, "action", "") is None:  # a group without its action: show that group's help
+        args.group_parser.print_help()
+        return 2
     try:
-        return _run(handler, args)
+        rc = args.run(args)
+        return 0 if rc is None else int(rc)
     except UserError as e:
         print(f"skyeyes-bench: error: {e}", file=sys.stderr)
         return e.exit_code

@@ -3,6 +3,7 @@
 import subprocess
 import sys
 
+import pytest
 from conftest import ROOT, run_cli
 
 from skyeyes_bench import cli
@@ -10,15 +11,32 @@ from skyeyes_bench import cli
 
 def test_help_lists_subcommands():
     _, out, _ = run_cli("--help")
-    import importlib.util
-
     for name in cli.COMMANDS:
-        if importlib.util.find_spec(f"skyeyes_bench.commands.{name}") is not None:
-            assert f"\n    {name}" in out, name
-    assert "protocols" in out and "data" in out
+        assert f"\n    {name}" in out, name
     _, out, _ = run_cli("data", "--help")
     for action in ("check", "import-carla", "import-matrixcity"):
         assert action in out
+
+
+def test_one_module_per_command_with_register_and_run():
+    import argparse
+    import importlib
+
+    parser = cli.build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert list(commands) == cli.COMMANDS
+    for name in cli.COMMANDS:
+        module = importlib.import_module(f"skyeyes_bench.commands.{name}")
+        assert callable(module.register) and commands[name].get_default("run") is module.run, name
+        groups = [a for a in commands[name]._actions if isinstance(a, argparse._SubParsersAction)]
+        if groups:  # a group: every action it registers has its function, and no other
+            assert set(groups[0].choices) == set(module.ACTIONS), name
+
+
+def test_a_command_module_that_fails_to_import_is_an_error(monkeypatch):
+    monkeypatch.setattr(cli, "COMMANDS", [*cli.COMMANDS, "no-such-command"])
+    with pytest.raises(ModuleNotFoundError, match="no-such-command"):
+        cli.build_parser()
 
 
 def test_parser_builds_without_heavy_imports():

@@ -1,13 +1,22 @@
-"""`skyeyes-bench data ...`: check datasets, generate SynthTown, import CARLA / MatrixCity."""
+"""`skyeyes-bench data check|synthtown|gallery|import-carla|import-matrixcity`: check datasets,
+generate SynthTown, import CARLA / MatrixCity captures (all in the canonical layout)."""
 
 from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+#: SynthTown size presets (`skyeyes_bench.data.synthtown.presets.PRESETS`, not imported here so
+#: that building the parser stays light).
+_PRESETS = ("smoke", "small", "paper")
 
 
 def register(sub) -> None:
     p = sub.add_parser("data", help="check, generate and import datasets (canonical layout)",
                        description="Datasets in the canonical layout of DESIGN.md.")
-    p.set_defaults(group_parser=p)
-    ds = p.add_subparsers(title="actions", metavar="ACTION")
+    p.set_defaults(run=run, group_parser=p)
+    ds = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
 
     q = ds.add_parser("check", help="validate a dataset folder and print a summary",
                       description="Validate a dataset (files, poses, intrinsics, sequences, splits); "
@@ -16,17 +25,162 @@ def register(sub) -> None:
     q.add_argument("--json", action="store_true", help="print the summary as JSON")
     q.add_argument("--quick", action="store_true",
                    help="read image headers only (default: decode every image, finding truncated files)")
-    q.set_defaults(handler="skyeyes_bench.commands._data_impl:check_cmd")
 
-    # Further actions register themselves from their own modules (kept apart so that each
-    # capability is one file): synthtown, gallery, import-carla, import-matrixcity.
-    import importlib
+    q = ds.add_parser(
+        "synthtown", help="generate the built-in SynthTown dataset (protocol synthtown@1)",
+        description="Render SynthTown, the procedural aerial/ground dataset, in the canonical layout: "
+        "train towns train-0, train-1 and the held-out test town test-0; per lane 8 ground sequences "
+        "(yaw offsets k*45 deg, every 2 m, 2 m high, pitch 0) and aerial views at 52 m, pitch -45 deg; "
+        "RGB, depth (EXR, metres) and semantics. Presets: smoke (tests, seconds), small (the protocol's "
+        "official 128x128, minutes on a CPU), paper (512x512, hours on a CPU).")
+    q.add_argument("--out", metavar="DIR", help="dataset folder to create (default: the data cache, "
+                   "<cache>/data/synthtown-<preset>[-seed<N>], where evaluate and reproduce look)")
+    q.add_argument("--preset", choices=_PRESETS, default="small", help="size preset (default: small)")
+    q.add_argument("--seed", type=int, default=0, help="dataset seed: other towns and lanes (default: 0)")
+    q.add_argument("--force", action="store_true", help="replace an existing dataset folder")
+    q.add_argument("--workers", type=int, default=None, help="render processes (default: 1 for smoke, else 2)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    for mod in ("skyeyes_bench.data.synthtown.cli", "skyeyes_bench.data.importers_cli"):
-        try:
-            m = importlib.import_module(mod)
-        except ModuleNotFoundError as e:
-            if e.name is not None and mod.startswith(e.name):
-                continue
-            raise
-        m.register(ds)
+    q = ds.add_parser(
+        "gallery", help="write a gallery PNG: aerial/ground pairs with depth and semantics",
+        description="Compose one PNG with, per row, an aerial view and a ground view of the same lane, "
+        "each with its depth and semantic labels. From a dataset folder (--dataset), or rendered on the "
+        "fly from SynthTown (--preset/--seed, nothing else is written).")
+    q.add_argument("--out", metavar="PNG", required=True, help="image to write")
+    q.add_argument("--dataset", metavar="DIR", help="a dataset in the canonical layout with depth and semantics")
+    q.add_argument("--preset", choices=_PRESETS, default="small", help="SynthTown preset to render from")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--rows", type=int, default=3, help="lanes shown (default: 3)")
+    q.add_argument("--size", type=int, default=160, help="tile size in pixels when rendering (default: 160)")
+
+    q = ds.add_parser("import-carla", help="convert a CARLA capture folder into the canonical layout",
+                      description="Convert a CARLA capture folder (RGB PNGs, depth-camera PNGs, capture.json with "
+                      "sensor transforms; see docs/formats.md) into the canonical layout. Poses go to the "
+                      "right-handed world (CARLA y negated); depth is decoded to float32 EXR metres.")
+    _import_arguments(q, "carla-town04")
+
+    q = ds.add_parser("import-matrixcity", help="convert MatrixCity / CitySample captures into the canonical layout",
+                      description="Convert MatrixCity / CitySample captures (aerial and street blocks; raw "
+                      "transforms.json or paper-split transforms_*.json; EXR depth in cm) into the canonical "
+                      "layout. Street tracks are cut into lanes, each horizontal cube-map face direction "
+                      "becomes a sequence, resampled to the protocol's step where possible; what differs "
+                      "from the protocol is recorded in dataset.json 'meta'. See docs/formats.md.")
+    _import_arguments(q, "citysample-region5")
+    q.add_argument("--town", default="matrixcity",
+                   help="town / region name of the scenes, '<town>-laneNN' (default: matrixcity)")
+    q.add_argument("--pose-format", default="auto", choices=("auto", "raw", "paper"),
+                   help="raw transforms.json (rotation x0.01, metres) or paper-split transforms_*.json "
+                   "(100 m units); auto: raw if present")
+    q.add_argument("--convention", default="opengl", choices=("opengl", "opencv"),
+                   help="camera axes of the stored poses (MatrixCity: opengl)")
+    q.add_argument("--depth-root", metavar="DIR",
+                   help="folder mirroring SRC with the depth EXRs (default: beside the images, or '<folder>_depth/')")
+    q.add_argument("--aerial-radius", type=float, default=60.0, metavar="M",
+                   help="attach aerial frames whose view centre on the ground lies within M metres of a lane point")
+
+
+def _import_arguments(q, default_protocol: str) -> None:
+    """The arguments both importers take."""
+    q.add_argument("src", metavar="SRC", help="source capture folder")
+    q.add_argument("out", metavar="OUT", help="output dataset folder (canonical layout); must not exist")
+    q.add_argument("--protocol", default=default_protocol, metavar="ID[@N]",
+                   help=f"protocol the dataset is for; its train/test towns give the splits (default: {default_protocol})")
+    q.add_argument("--split", choices=("train", "test"),
+                   help="split for towns the protocol does not list (default: refuse them)")
+    q.add_argument("--force", action="store_true", help="replace OUT if it exists (only once the new one is complete)")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    return ACTIONS[args.action](args)
+
+
+def _check(args) -> int:
+    from ..data.layout import open_dataset
+
+    ds = open_dataset(args.root, check_pixels=not args.quick, progress=not args.quick and sys.stderr.isatty())
+    s = ds.summary()
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    print(f"dataset {s['name']!r}  protocol {s['protocol']}  ({s['root']})")
+    for split, c in s["splits"].items():
+        print(f"  {split:<6} {c['scenes']:>4} scenes {c['sequences']:>5} sequences "
+              f"{c['ground_frames']:>7} ground frames {c['aerial_frames']:>6} aerial frames")
+    print("  resolution: " + ", ".join(f"{k} {v}" for k, v in s["resolution"].items()))
+    if s["sequence_length"]:
+        print(f"  sequence length: {s['sequence_length']['min']}..{s['sequence_length']['max']} frames")
+    layers = [k for k, v in s["layers"].items() if v]
+    print("  optional layers: " + (", ".join(layers) if layers else "none"))
+    print("OK")
+    return 0
+
+
+def _synthtown(args) -> int:
+    from .. import paths
+    from ..data.synthtown.generate import dataset_name, ensure_dataset, generate_dataset
+    from ..errors import UserError
+
+    if args.seed < 0:
+        raise UserError(f"--seed {args.seed}: expected an integer >= 0")
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers {args.workers}: expected an integer >= 1")
+    if args.out is None and not args.force and args.workers is None:
+        root = paths.data_dir() / dataset_name(args.preset, args.seed)
+        existed = (root / "dataset.json").is_file()
+        root = ensure_dataset(args.preset, args.seed, progress=not args.quiet)
+        print(f"{'exists' if existed else 'wrote'} {root}")
+        return 0
+    out = Path(args.out) if args.out else paths.data_dir() / dataset_name(args.preset, args.seed)
+    generate_dataset(out, args.preset, args.seed, overwrite=args.force, progress=not args.quiet, workers=args.workers)
+    print(f"wrote {out}")
+    return 0
+
+
+def _gallery(args) -> int:
+    from ..data.synthtown.gallery import tiles_from_dataset, tiles_rendered, write_gallery
+    from ..errors import UserError
+
+    if args.rows < 1 or args.size < 16:
+        raise UserError("gallery: --rows must be >= 1 and --size >= 16")
+    if args.dataset:
+        tiles = tiles_from_dataset(Path(args.dataset), args.rows)
+    else:
+        tiles = tiles_rendered(args.preset, args.seed, args.rows, args.size)
+    out = write_gallery(tiles, Path(args.out))
+    print(f"wrote {out}")
+    return 0
+
+
+def _import_carla(args) -> int:
+    from ..data.importers import import_carla
+
+    out, scenes = import_carla(args.src, args.out, protocol=args.protocol, split=args.split, force=args.force,
+                               progress=not args.no_progress)
+    print(_imported(out, scenes))
+    return 0
+
+
+def _import_matrixcity(args) -> int:
+    from ..data.importers import import_matrixcity
+
+    out, scenes, meta = import_matrixcity(
+        args.src, args.out, protocol=args.protocol, town=args.town, split=args.split, pose_format=args.pose_format,
+        convention=args.convention, depth_root=args.depth_root, aerial_radius_m=args.aerial_radius,
+        force=args.force, progress=not args.no_progress)
+    print(_imported(out, scenes))
+    for d in meta["protocol_differences"]:
+        print(f"  differs from the protocol: {d}")
+    return 0
+
+
+def _imported(out: Path, scenes) -> str:
+    """One line: what an importer wrote."""
+    nseq = sum(len({f.sequence for f in s.ground}) for s in scenes)
+    return (f"wrote {out}: {len(scenes)} scenes, {nseq} sequences, {sum(len(s.ground) for s in scenes)} ground "
+            f"frames, {sum(len(s.aerial) for s in scenes)} aerial frames")
+
+
+#: Action name -> function (`register` adds a parser for each).
+ACTIONS = {"check": _check, "synthtown": _synthtown, "gallery": _gallery, "import-carla": _import_carla,
+           "import-matrixcity": _import_matrixcity}

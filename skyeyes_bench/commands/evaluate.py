@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 
 def register(sub) -> None:
     p = sub.add_parser("evaluate", help="score a submission (validate, metrics, intervals -> results.json)",
@@ -18,4 +20,22 @@ def register(sub) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary")
-    p.set_defaults(handler="skyeyes_bench.commands._evaluate_impl:evaluate_cmd")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from ..evaluate import default_out, evaluate, format_summary, parse_shard
+
+    shard = parse_shard(args.shard)
+    out = args.out or default_out(args.submission, shard)
+    res = evaluate(args.submission, data=args.data, out=out, shard=shard, force=args.force,
+                   progress=not args.quiet)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    elif shard:
+        print(f"shard {shard[0]}/{shard[1]}: {len(res['frames'])} frames -> {out} "
+              f"(merge all {shard[1]} with `skyeyes-bench merge PARTS... --out results.json`)")
+    else:
+        print(format_summary(res))
+        print(f"wrote {out}")
+    return 0

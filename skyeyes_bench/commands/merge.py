@@ -11,4 +11,13 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="results file to write")
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(handler="skyeyes_bench.commands._merge_impl:merge_cmd")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from ..evaluate import format_summary, merge
+
+    res = merge(args.parts, out=args.out, force=args.force, progress=not args.quiet)
+    print(format_summary(res))
+    print(f"wrote {args.out}")
+    return 0

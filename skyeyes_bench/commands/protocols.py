@@ -2,16 +2,67 @@
 
 from __future__ import annotations
 
+import json
+
 
 def register(sub) -> None:
     p = sub.add_parser("protocols", help="list and show the versioned evaluation protocols",
                        description="Versioned evaluation protocols (protocols/<id>/v<N>.toml).")
-    p.set_defaults(group_parser=p)
-    ps = p.add_subparsers(title="actions", metavar="ACTION")
-    q = ps.add_parser("list", help="one 'id@N<TAB>title' line per protocol version")
-    q.set_defaults(handler="skyeyes_bench.commands._protocols_impl:list_cmd")
+    p.set_defaults(run=run, group_parser=p)
+    ps = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
+    ps.add_parser("list", help="one 'id@N<TAB>title' line per protocol version")
     q = ps.add_parser("show", help="print a resolved protocol with its sha256",
                       description="Print the resolved protocol (TOML-like) with its canonical sha256.")
     q.add_argument("ref", metavar="ID[@N]", help="protocol id, optionally with @version (default: latest)")
     q.add_argument("--json", action="store_true", help="print JSON instead")
-    q.set_defaults(handler="skyeyes_bench.commands._protocols_impl:show_cmd")
+
+
+def run(args) -> int:
+    return ACTIONS[args.action](args)
+
+
+def _list(args) -> int:
+    from ..protocol import list_protocols
+
+    for p in list_protocols():
+        print(f"{p.ref}\t{p.title}")
+    return 0
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def _show(args) -> int:
+    from ..protocol import load_protocol
+
+    p = load_protocol(args.ref)
+    d = p.to_dict()
+    if args.json:
+        print(json.dumps({"ref": p.ref, "sha256": p.sha256, "file": p.path, **d}, indent=2))
+        return 0
+    print(f"# {p.ref}  sha256 {p.sha256}\n# file: {p.path}")
+    for k in ("id", "version", "title", "description", "reference"):
+        print(f"{k} = {_toml_value(d[k])}")
+    for section in ("data", "capture"):
+        print(f"\n[{section}]")
+        for k, v in d[section].items():
+            print(f"{k} = {_toml_value(v)}")
+    for name, m in d["metrics"].items():
+        print(f"\n[metrics.{name}]")
+        for k, v in m.items():
+            print(f"{k} = {_toml_value(v)}")
+    print("\n[statistics]")
+    for k, v in d["statistics"].items():
+        print(f"{k} = {_toml_value(v)}")
+    return 0
+
+
+#: Action name -> function (`register` adds a parser for each).
+ACTIONS = {"list": _list, "show": _show}

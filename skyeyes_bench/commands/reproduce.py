@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -33,4 +35,14 @@ def register(sub) -> None:
                    help="discard this run's cached stages and replace the outputs in --out, also another run's "
                         "(without it the same run resumes, another run's --out is refused)")
     p.add_argument("--quiet", action="store_true", help="no progress bars (they are drawn only on a terminal anyway)")
-    p.set_defaults(handler="reference.reproduce:main")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    # The one place skyeyes_bench imports `reference` (the methods), and only when the command runs.
+    from reference import reproduce
+
+    reproduce.run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
+                  force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
+                  pretrained=args.pretrained)
+    return 0

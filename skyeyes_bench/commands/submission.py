@@ -7,8 +7,8 @@ def register(sub) -> None:
     p = sub.add_parser("submission", help="write a submission skeleton (the format by example)",
                        description="Submissions: submission.json plus one 8-bit RGB PNG per ground camera "
                        "of every test scene at <SUB>/<scene>/<frame file> (see docs/evaluate.md).")
-    p.set_defaults(group_parser=p)
-    ps = p.add_subparsers(title="actions", metavar="ACTION")
+    p.set_defaults(run=run, group_parser=p)
+    ps = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
     q = ps.add_parser("template", help="write submission.json and the list of expected frames",
                       description="Write a valid skeleton: submission.json and EXPECTED_FRAMES.txt (path, "
                       "size, sequence, index of every frame to render); with --from-ground-truth a complete "
@@ -17,4 +17,26 @@ def register(sub) -> None:
     q.add_argument("--out", required=True, metavar="SUB", help="submission folder to create")
     q.add_argument("--from-ground-truth", action="store_true", help="copy the ground-truth frames in")
     q.add_argument("--force", action="store_true", help="replace an existing SUB")
-    q.set_defaults(handler="skyeyes_bench.commands._submission_impl:template_cmd")
+
+
+def run(args) -> int:
+    return ACTIONS[args.action](args)
+
+
+def _template(args) -> int:
+    from ..data.layout import open_dataset
+    from ..submission import EXPECTED_FILE, expected_frames, write_template
+
+    ds = open_dataset(args.data)
+    out = write_template(ds, args.out, from_ground_truth=args.from_ground_truth, overwrite=args.force)
+    n = len(expected_frames(ds))
+    if args.from_ground_truth:
+        print(f"{out}: complete submission of the {n} ground-truth frames (evaluate it: "
+              f"`skyeyes-bench evaluate {out} --data {args.data}`)")
+    else:
+        print(f"{out}: submission.json and {EXPECTED_FILE} ({n} frames to render)")
+    return 0
+
+
+#: Action name -> function (`register` adds a parser for each).
+ACTIONS = {"template": _template}

@@ -1,0 +1,153 @@
+"""What the importers share: the plan they build (`PlannedScene`, `PlannedFrame`), the checks
+of input fields and files, and `write_plan`, which writes a plan through `DatasetWriter`.
+
+Every importer works in two phases. *Plan*: read and check every input field and file header,
+convert the poses, group frames into lanes (scenes) and sequences; any bad input raises a
+one-line `UserError` naming the file, the field and what was expected, before anything is
+written. *Write*: `DatasetWriter` (validate=True) fills a temporary folder and moves it into
+place only when complete and valid. The source formats are documented in docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ... import fields, fileio
+from ...errors import UserError
+from ..writer import DatasetWriter
+
+_fail = fields.fail
+
+
+@dataclass
+class PlannedFrame:
+    """One frame to write: where its pixels come from and its pose in our world."""
+
+    kind: str  # "ground" | "aerial"
+    image: Path
+    c2w: np.ndarray  # [4, 4] OpenCV camera-to-world, metres, right-handed z-up world
+    intrinsics: dict  # width, height, fx, fy, cx, cy
+    depth: Callable[[], np.ndarray] | None = None  # lazily decoded [H, W] metres, inf = sky
+    sequence: str | None = None
+    index: int | None = None
+
+
+@dataclass
+class PlannedScene:
+    name: str
+    ground: list[PlannedFrame] = field(default_factory=list)
+    aerial: list[PlannedFrame] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+
+def yaw_sequence_name(offset_deg: float) -> str:
+    """`yaw045` for a yaw offset of 45 deg (wrapped to [0, 360), rounded to whole degrees)."""
+    return f"yaw{int(round(offset_deg)) % 360:03d}"
+
+
+# --------------------------------------------------------------------------- field checks
+
+
+def rel_file(base: Path, where: str, value: Any, what: str, root: Path | None = None) -> Path:
+    """A file named relative to `base` that stays inside `root` (default `base`) once '..' and
+    symlinks are resolved, and is a regular file."""
+    root = base if root is None else root
+    if not isinstance(value, str) or not value or "\x00" in value:
+        _fail(where, f"expected {what} (a path relative to {base}), got {value!r}")
+    p = Path(os.path.normpath(base / value))
+    if not fileio.inside(p, root):
+        _fail(where, f"{what} {value!r} leaves {root} (through '..', an absolute path or a symlink)")
+    if not p.is_file():
+        _fail(where, f"{what} {p} not found" + (" (not a regular file)" if p.exists() else ""))
+    return fileio.check_regular(p)
+
+
+def check_size(path: Path, where: str, width: int, height: int) -> int:
+    """Check an image's size from its header; returns its channel count."""
+    w, h, c, _ = fileio.image_header(path)
+    if (w, h) != (width, height):
+        _fail(where, f"{path} is {w}x{h}, expected {width}x{height} (fields 'width', 'height')")
+    return c
+
+
+def town_split(town: str, protocol, split: str | None, flag: str = "--split") -> str:
+    """The split of `town`: the protocol's, else `split` (the `flag` option), else an error."""
+    if town in protocol.data.test:
+        return "test"
+    if town in protocol.data.train:
+        return "train"
+    if split:
+        return split
+    raise UserError(
+        f"town {town!r} is in neither the train ({', '.join(protocol.data.train)}) nor the test "
+        f"({', '.join(protocol.data.test)}) towns of protocol {protocol.ref}; pass {flag} train|test")
+
+
+def _group_intrinsics(frames: list[PlannedFrame]) -> dict | None:
+    """The most common intrinsics of a group; frames that differ carry their own."""
+    if not frames:
+        return None
+    keys = [tuple(sorted(f.intrinsics.items())) for f in frames]
+    best = max(set(keys), key=keys.count)
+    return dict(best)
+
+
+def check_sequences(scene: PlannedScene, where: str) -> None:
+    """Every sequence of the scene is numbered 0..n-1."""
+    seqs: dict[str, list[int]] = {}
+    for f in scene.ground:
+        seqs.setdefault(f.sequence, []).append(f.index)
+    for name, idx in sorted(seqs.items()):
+        if sorted(idx) != list(range(len(idx))):
+            dup = sorted({i for i in idx if idx.count(i) > 1})
+            gaps = fields.gaps(idx)
+            what = f"duplicate index {dup[0]}" if dup else f"missing index {gaps[0]}"
+            _fail(where, f"scene {scene.name!r} sequence {name!r} has {what} (field 'index' must run 0..n-1)")
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_plan(out: Path, scenes: list[PlannedScene], *, name: str, protocol: str, splits: dict[str, list[str]],
+               meta: dict, force: bool, progress: bool) -> Path:
+    """Write planned scenes atomically; validates the result before moving it into place."""
+    from tqdm import tqdm
+
+    total = sum(len(s.ground) + len(s.aerial) for s in scenes)
+    with DatasetWriter(out, name=name, protocol=protocol, overwrite=force, validate=True) as w, \
+            tqdm(total=total, desc=f"import {name}", unit="frame", file=sys.stderr,
+                 disable=None if progress else True) as bar:
+        for s in scenes:
+            ground = sorted(s.ground, key=lambda f: (f.sequence, f.index))
+            groups = {"ground": _group_intrinsics(ground), "aerial": _group_intrinsics(s.aerial)}
+            groups = {k: v or groups["ground"] for k, v in groups.items()}
+            sw = w.scene(s.name, groups, meta=s.meta)
+            for f in [*s.aerial, *ground]:
+                px = fileio.read_image_uint8(f.image)
+                if px.shape[2] not in (3, 4):
+                    raise UserError(f"{f.image}: expected an RGB image, got {px.shape[2]} channel(s)")
+                extra = {} if f.intrinsics == groups[f.kind] else {"intrinsics": f.intrinsics}
+                depth = f.depth() if f.depth is not None else None
+                if f.kind == "ground":
+                    sw.add_ground(px[..., :3], f.c2w, sequence=f.sequence, index=f.index, depth=depth, **extra)
+                else:
+                    sw.add_aerial(px[..., :3], f.c2w, depth=depth, **extra)
+                bar.update(1)
+            sw.close()
+        w.finish(splits=splits, meta=meta)
+    return out
+
+
+def ordered_splits(scenes: list[PlannedScene], split_of: dict[str, str]) -> dict[str, list[str]]:
+    """{"train": [...], "test": [...]} in the order of `scenes`."""
+    out: dict[str, list[str]] = {"train": [], "test": []}
+    for s in scenes:
+        out.setdefault(split_of[s.name], []).append(s.name)
+    return out
+

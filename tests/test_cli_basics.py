@@ -67,3 +67,10 @@ def test_usage_errors_exit_2():
     rc, out, _ = run_cli("protocols", check=2)  # group without an action: its help
     assert "list" in out and "show" in out
     run_cli("--version", check=0)
+
+
+def test_data_presets_are_synthtowns():
+    from skyeyes_bench.commands import data
+    from skyeyes_bench.data.synthtown import PRESETS
+
+    assert set(data._PRESETS) == set(PRESETS)  # listed by hand so that --help stays light

@@ -30,7 +30,6 @@ _fail, _number, _int, _name = fields.fail, fields.number, fields.integer, fields
 #    rotation orthonormal, translation in units of 100 m.
 #  - depth: EXR, same relative path with .exr, channel 0 in centimetres (float16; 65504 invalid).
 
-
 #: MatrixCity depth EXRs are float16 centimetres; the float16 maximum marks sky / invalid.
 #: NOTE: MatrixCity scripts/rgbd2pc.py reads channel 0 and divides by 1e4 (cm -> 100 m units).
 MATRIXCITY_DEPTH_INVALID = 65504.0

@@ -63,12 +63,19 @@ class CoreConfig:
     # untrained model's x0 estimate is then the condition itself, not a grey frame.
     residual: bool = False
     residual_scale: float = 1.0
+    # Two pixel-coordinate channels (x, y in [-1, 1] over the whole frame) appended to the
+    # concatenated condition, so a model trained on crops knows where in the frame each crop
+    # lies (Patch Diffusion, Wang et al., NeurIPS 2023). Measured on SynthTown small: without
+    # them a crop-trained model samples whole frames as a collage (docs/skyeyes.md).
+    coords: bool = False
 
     def __post_init__(self):
         if self.conditioning not in ("controlnet", "concat"):
             raise ValueError(f"conditioning {self.conditioning!r}: expected 'controlnet' or 'concat'")
         if self.residual and self.conditioning != "concat":
             raise ValueError("residual diffusion needs conditioning='concat'")
+        if self.coords and self.conditioning != "concat":
+            raise ValueError("coordinate channels need conditioning='concat'")
 
     @property
     def sample_channels(self) -> int:
@@ -76,9 +83,14 @@ class CoreConfig:
         return 4 if self.pretrained else 3 * self.patch**2
 
     @property
+    def cond_channels(self) -> int:
+        """Channels of the condition in model space: the sample's, plus 2 with `coords`."""
+        return self.sample_channels + (2 if self.coords else 0)
+
+    @property
     def in_channels(self) -> int:
         """Channels of the UNet's input (the sample, plus the condition when concatenated)."""
-        return self.sample_channels * (2 if self.conditioning == "concat" else 1)
+        return self.sample_channels + (self.cond_channels if self.conditioning == "concat" else 0)
 
     @property
     def heads_per_level(self) -> tuple[int, ...]:
@@ -148,8 +160,18 @@ def encode(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
 
 def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
     """Control images [N, 3, res, res] in [0, 1] -> what the ControlNet branch takes: the same
-    unshuffled pixels as the sample, or raw [0, 1] pixels for a pretrained ControlNet."""
-    return images if cfg.pretrained else encode(images, cfg)
+    unshuffled pixels as the sample (plus the x, y coordinate channels with `cfg.coords`), or raw
+    [0, 1] pixels for a pretrained ControlNet."""
+    if cfg.pretrained:
+        return images
+    c = encode(images, cfg)
+    if not cfg.coords:
+        return c
+    n, _, h, w = c.shape
+    ys = torch.linspace(-1.0, 1.0, h, dtype=c.dtype)
+    xs = torch.linspace(-1.0, 1.0, w, dtype=c.dtype)
+    grid = torch.stack([xs[None, :].expand(h, w), ys[:, None].expand(h, w)])  # [2, h, w]: x, y
+    return torch.cat([c, grid.expand(n, 2, h, w)], dim=1)
 
 
 def sample_shape(cond_shape: tuple[int, ...], cfg: CoreConfig) -> tuple[int, ...]:
@@ -159,7 +181,7 @@ def sample_shape(cond_shape: tuple[int, ...], cfg: CoreConfig) -> tuple[int, ...
     n, _, h, w = cond_shape
     if cfg.pretrained:
         return (n, cfg.sample_channels, h // 8, w // 8)
-    return tuple(cond_shape)
+    return (n, cfg.sample_channels, h, w)
 
 
 def decode(x: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
@@ -261,7 +283,8 @@ class ControlledUNet(nn.Module):
         assert t.shape == (b,), (t.shape, b)
         emb = self.prompt.expand(b, -1, -1)
         if self.cfg.conditioning == "concat":
-            assert cond is not None and cond.shape == x_t.shape, "a concat-conditioned model needs a condition"
+            assert cond is not None and cond.shape == (b, self.cfg.cond_channels, *x_t.shape[2:]), \
+                "a concat-conditioned model needs a condition of cfg.cond_channels"
             return self.unet(torch.cat([x_t, cond], dim=1), t, encoder_hidden_states=emb, return_dict=False)[0]
         down = mid = None
         if self.controlnet is not None:
@@ -275,12 +298,17 @@ class ControlledUNet(nn.Module):
 def to_diffused(x0: torch.Tensor, cond: torch.Tensor | None, cfg: CoreConfig) -> torch.Tensor:
     """Model-space images -> the variable the model diffuses: x0 itself, or with `cfg.residual`
     the scaled residual (x0 - cond) * residual_scale."""
-    return (x0 - cond) * cfg.residual_scale if cfg.residual else x0
+    return (x0 - _prior(cond, cfg)) * cfg.residual_scale if cfg.residual else x0
 
 
 def from_diffused(z: torch.Tensor, cond: torch.Tensor | None, cfg: CoreConfig) -> torch.Tensor:
     """Inverse of `to_diffused`."""
-    return cond + z / cfg.residual_scale if cfg.residual else z
+    return _prior(cond, cfg) + z / cfg.residual_scale if cfg.residual else z
+
+
+def _prior(cond: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+    """The condition's image channels [..., C, h, w] (without the coordinate channels)."""
+    return cond.narrow(-3, 0, cfg.sample_channels)
 
 
 def build_model(cfg: CoreConfig, *, control: bool, seed: int = 0) -> ControlledUNet:

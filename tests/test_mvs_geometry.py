@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from reference.common.geometry import cloud as C
 from reference.common.geometry import mvs as M
+from reference.common.geometry import sweep as S
 from reference.common.geometry import splat
 from reference.common.gaussians.project import quat_to_rotmat
 from skyeyes_bench.cameras import Camera
@@ -114,7 +116,7 @@ def test_aggregate_sources_matches_a_slow_reference():
     c[rng.random(c.shape) < 0.3] = np.nan
     c[:, 0, 0, 0] = np.nan  # no source at all
     for k in (1, 2, 5):
-        got = M.aggregate_sources(torch.from_numpy(c), k).numpy()
+        got = S.aggregate_sources(torch.from_numpy(c), k).numpy()
         want = np.full(c.shape[1:], np.nan, np.float32)
         for idx in np.ndindex(*c.shape[1:]):
             v = np.sort(c[(slice(None),) + idx][np.isfinite(c[(slice(None),) + idx])])[:k]
@@ -127,25 +129,25 @@ def test_winner_refines_to_the_vertex_of_a_sampled_parabola():
     inv = torch.linspace(0.01, 0.1, 19)
     true_inv = 0.0537
     cost = ((inv - true_inv) ** 2 * 1e3)[:, None, None].repeat(1, 2, 2)
-    depth, idx = M.winner(cost, inv)
+    depth, idx = S.winner(cost, inv)
     np.testing.assert_allclose(depth.numpy(), 1 / true_inv, rtol=1e-4)
     # At the edge of the range no refinement (the vertex is not bracketed).
     cost_edge = ((inv - 0.2) ** 2)[:, None, None]
-    d_edge, i_edge = M.winner(cost_edge, inv)
+    d_edge, i_edge = S.winner(cost_edge, inv)
     assert int(i_edge) == 18 and float(d_edge) == pytest.approx(1 / 0.1)
 
 
 def test_sgm_identity_without_paths_and_constant_volume_stays_constant():
     c = torch.rand(8, 5, 7)
-    assert torch.equal(M.sgm(c, 0.1, 0.5, 0), c)
+    assert torch.equal(S.sgm(c, 0.1, 0.5, 0), c)
     const = torch.full((8, 5, 7), 0.3)
-    torch.testing.assert_close(M.sgm(const, 0.1, 0.5, 4), const)
+    torch.testing.assert_close(S.sgm(const, 0.1, 0.5, 4), const)
     # A single clear minimum per pixel survives aggregation where all pixels agree.
     v = torch.ones(8, 5, 7)
     v[3] = 0.0
-    assert (M.sgm(v, 0.05, 0.4, 4).argmin(0) == 3).all()
+    assert (S.sgm(v, 0.05, 0.4, 4).argmin(0) == 3).all()
     with pytest.raises(ValueError):
-        M.sgm(c, 0.1, 0.5, 8)
+        S.sgm(c, 0.1, 0.5, 8)
 
 
 # --------------------------------------------------------------------------- stiff cases
@@ -203,7 +205,7 @@ def test_a_lane_that_sees_only_roofs_renders_nothing_below_the_horizon(one_torch
 
 
 def test_an_empty_cloud_renders_exactly_the_background():
-    empty = M.PointCloud.empty()
+    empty = C.PointCloud.empty()
     assert len(splat.voxel_downsample(empty, 0.5)) == 0
     params = splat.surfels(empty)
     cam = Camera.from_ypr([0.0, 0, 2], 0.0, 0.0, fov_deg=90, width=16, height=12)
@@ -212,8 +214,8 @@ def test_an_empty_cloud_renders_exactly_the_background():
     assert (alpha == 0).all() and np.isfinite(colour).all()
     bg = np.random.default_rng(1).random((12, 16, 3)).astype(np.float32)
     np.testing.assert_array_equal(splat.over(colour, alpha, bg), bg)
-    assert M.ground_height(empty) is None and splat.ground_colour(empty) is None
-    assert len(M.snap_to_plane(empty, (np.array([0, 0, 1.0]), 0.0), 2.0)) == 0
+    assert C.ground_height(empty) is None and splat.ground_colour(empty) is None
+    assert len(C.snap_to_plane(empty, (np.array([0, 0, 1.0]), 0.0), 2.0)) == 0
 
 
 # --------------------------------------------------------------------------- discs and rendering
@@ -237,7 +239,7 @@ def test_voxel_downsample_matches_a_dict_reference():
     xyz = rng.uniform(-2, 2, (n, 3)).astype(np.float32)
     nrm = rng.normal(size=(n, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    cloud = M.PointCloud(xyz, rng.random((n, 3)).astype(np.float32), nrm, rng.uniform(0.1, 2, n).astype(np.float32))
+    cloud = C.PointCloud(xyz, rng.random((n, 3)).astype(np.float32), nrm, rng.uniform(0.1, 2, n).astype(np.float32))
     voxel = 0.7
     got = splat.voxel_downsample(cloud, voxel)
     groups: dict = {}
@@ -287,7 +289,7 @@ def test_render_cloud_is_a_z_buffer_of_the_discs(one_torch_thread):
     discs = [(np.array([10.0, 0.5, 2.0]), np.array([-1.0, 0, 0]), 1.5, np.array([0.9, 0.1, 0.1])),
              (np.array([14.0, -1.0, 2.5]), np.array([-1.0, 0, 0]), 2.5, np.array([0.1, 0.8, 0.2])),
              (np.array([12.0, 8.0, 1.0]), np.array([-1.0, 0, 0]), 2.0, np.array([0.2, 0.2, 0.9]))]
-    cloud = M.PointCloud(np.array([c for c, *_ in discs], np.float32), np.array([x[3] for x in discs], np.float32),
+    cloud = C.PointCloud(np.array([c for c, *_ in discs], np.float32), np.array([x[3] for x in discs], np.float32),
                          np.array([x[1] for x in discs], np.float32), np.array([2 * x[2] for x in discs], np.float32))
     colour, alpha = splat.render_cloud(splat.surfels(cloud, size=1.0), cam, opacity=0.98)
     # Gaussian discs of scale s = r (q = dist^2 / s^2): alpha = 0.98 exp(-q/2) is 0.65 at 0.9 s,
@@ -315,11 +317,11 @@ def test_street_height_and_snap_against_closed_forms():
     below = np.array([[5.0, 5.0, -4.0]])
     xyz = np.concatenate([street, roofs, walls, below]).astype(np.float32)
     n = len(xyz)
-    cloud = M.PointCloud(xyz, np.zeros((n, 3), np.float32), np.tile([1.0, 0, 0], (n, 1)).astype(np.float32),
+    cloud = C.PointCloud(xyz, np.zeros((n, 3), np.float32), np.tile([1.0, 0, 0], (n, 1)).astype(np.float32),
                          np.ones(n, np.float32))
-    z0 = M.ground_height(cloud)
+    z0 = C.ground_height(cloud)
     assert abs(z0 - 0.3) < 0.15
-    snapped = M.snap_to_plane(cloud, (np.array([0, 0, 1.0]), z0), 2.0)
+    snapped = C.snap_to_plane(cloud, (np.array([0, 0, 1.0]), z0), 2.0)
     assert len(snapped) == n - 1  # only the point 4 m under the street is dropped
     kept = np.abs(xyz[:, 2] - z0) <= 2.0
     keep_mask = xyz[:, 2] - z0 >= -2.0

@@ -17,7 +17,9 @@ Unstructured Multi-View Stereo", COLMAP), written as a plane sweep that runs on 
    agree with it (forward-backward reprojection error and relative depth error), COLMAP's
    geometric-consistency fusion test.
 5. `fuse`: surviving pixels lifted to world points with colour, normal (from the depth map) and
-   footprint (the pixel's size on the surface, m), cropped to the region box.
+   footprint (the pixel's size on the surface, m), cropped to the region box (`cloud.PointCloud`).
+
+The cost volume of steps 2 and 3 is computed in `sweep`; this module runs the pipeline.
 
 All tensors are float32 on `device`; the same code runs on CUDA.
 """
@@ -31,6 +33,9 @@ import torch
 import torch.nn.functional as F
 
 from skyeyes_bench.cameras import Camera
+
+from .cloud import PointCloud, ground_height, snap_to_plane  # noqa: F401  (re-exported until the methods import cloud)
+from .sweep import aggregate_sources, ncc_costs, sgm, winner
 
 
 @dataclass
@@ -138,132 +143,6 @@ def depth_range(cam: Camera, box: np.ndarray, *, min_depth: float = 1.0, samples
 
 
 # --------------------------------------------------------------------------- plane sweep
-
-
-def _box_mean(x: torch.Tensor, w: int) -> torch.Tensor:
-    """Mean over a w x w window of x [..., H, W] (edges: the window's part inside the image)."""
-    shape = x.shape
-    y = F.avg_pool2d(x.reshape(-1, 1, *shape[-2:]), w, stride=1, padding=w // 2, count_include_pad=False)
-    return y.reshape(shape)
-
-
-def _rel_transform(ref: Camera, src: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(A [3, 3], b [3]) with source-camera point = d * A @ [u, v, 1] + b for a reference pixel
-    (u, v) at planar depth d, then projected with the source K."""
-    Rr, tr = ref.c2w[:3, :3], ref.c2w[:3, 3]
-    Rs, ts = src.c2w[:3, :3], src.c2w[:3, 3]
-    A = src.K @ Rs.T @ Rr @ np.linalg.inv(ref.K)
-    b = src.K @ Rs.T @ (tr - ts)
-    return torch.tensor(A, dtype=torch.float32, device=device), torch.tensor(b, dtype=torch.float32, device=device)
-
-
-def ncc_costs(ref_img: torch.Tensor, src_img: torch.Tensor, ref: Camera, src: Camera, depths: torch.Tensor,
-              cfg: MVSConfig) -> torch.Tensor:
-    """Cost volume [D, H, W] = 1 - NCC of the reference and the source warped at each depth.
-
-    ref_img, src_img: [3, H, W] in [0, 1]. depths: [D] planar depths of the reference (m).
-    Entries where the warped window leaves the source image or lies behind it are NaN.
-    """
-    _, h, w = ref_img.shape
-    device = ref_img.device
-    A, b = _rel_transform(ref, src, device)
-    v, u = torch.meshgrid(torch.arange(h, device=device, dtype=torch.float32) + 0.5,
-                          torch.arange(w, device=device, dtype=torch.float32) + 0.5, indexing="ij")
-    pix = torch.stack([u, v, torch.ones_like(u)], 0).reshape(3, -1)  # [3, HW]
-    a = A @ pix  # [3, HW]
-    p = depths[:, None, None] * a[None] + b[None, :, None]  # [D, 3, HW]
-    z = p[:, 2]
-    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
-    us, vs = p[:, 0] / zs, p[:, 1] / zs
-    sw, sh = src.width, src.height
-    inside = (z > 1e-6) & (us >= 0) & (us <= sw) & (vs >= 0) & (vs <= sh)
-    grid = torch.stack([us / sw * 2 - 1, vs / sh * 2 - 1], -1).reshape(1, -1, w, 2)  # [1, D*H, W, 2]
-    warped = F.grid_sample(src_img[None], grid, mode="bilinear", padding_mode="border", align_corners=False)
-    warped = warped.reshape(3, len(depths), h, w).permute(1, 0, 2, 3)  # [D, 3, H, W]
-    win = cfg.window
-    mr = _box_mean(ref_img, win)
-    vr = (_box_mean(ref_img * ref_img, win) - mr * mr).clamp_min(0)
-    mj = _box_mean(warped, win)
-    vj = (_box_mean(warped * warped, win) - mj * mj).clamp_min(0)
-    cov = _box_mean(warped * ref_img[None], win) - mj * mr[None]
-    # Colour NCC: covariances and variances summed over channels, then normalised.
-    ncc = cov.sum(1) / torch.sqrt(vr.sum(0)[None] * vj.sum(1)).clamp_min(1e-12)
-    cost = 1.0 - ncc.clamp(-1, 1)
-    textured = (vr.sum(0) / 3) > cfg.min_texture ** 2
-    valid = inside.reshape(len(depths), h, w) & textured[None] & ((vj.sum(1) / 3) > (cfg.min_texture / 2) ** 2)
-    return torch.where(valid, cost, torch.full_like(cost, float("nan")))
-
-
-def aggregate_sources(costs: torch.Tensor, best_k: int) -> torch.Tensor:
-    """[S, D, H, W] -> [D, H, W]: mean of the best `best_k` finite costs per entry (NaN if none)."""
-    filled = torch.where(torch.isnan(costs), torch.full_like(costs, float("inf")), costs)
-    k = min(best_k, costs.shape[0])
-    best = torch.topk(filled, k, dim=0, largest=False).values  # [k, D, H, W]
-    finite = torch.isfinite(best)
-    n = finite.sum(0)
-    s = torch.where(finite, best, torch.zeros_like(best)).sum(0)
-    return torch.where(n > 0, s / n.clamp_min(1), torch.full_like(s, float("nan")))
-
-
-def _sgm_path(cost: torch.Tensor, p1: float, p2: float, dim: int, reverse: bool) -> torch.Tensor:
-    """One SGM scan [D, H, W] along image axis `dim` (1 = down the rows, 2 = along the columns)."""
-    c = cost.movedim(dim, 0)  # [L, D, X]
-    if reverse:
-        c = c.flip(0)
-    out = torch.empty_like(c)
-    prev = c[0]
-    out[0] = prev
-    for i in range(1, c.shape[0]):
-        pmin = prev.min(0, keepdim=True).values
-        up = F.pad(prev[1:], (0, 0, 0, 1), value=float("inf"))
-        down = F.pad(prev[:-1], (0, 0, 1, 0), value=float("inf"))
-        best = torch.minimum(torch.minimum(prev, torch.minimum(up, down) + p1), pmin + p2)
-        prev = c[i] + best - pmin
-        out[i] = prev
-    if reverse:
-        out = out.flip(0)
-    return out.movedim(0, dim)
-
-
-def sgm(cost: torch.Tensor, p1: float, p2: float, paths: int) -> torch.Tensor:
-    """Semi-global aggregation [D, H, W] -> [D, H, W] over 4 (rows and columns, both ways) paths.
-
-    NaN costs (no source saw the pixel at that depth) enter as the pixel's mean finite cost, so
-    they neither attract nor repel the path.
-    """
-    if paths == 0:
-        return cost
-    if paths not in (4,):
-        raise ValueError(f"sgm paths {paths}: expected 0 or 4")
-    nanmask = torch.isnan(cost)
-    fill = torch.nanmean(cost, dim=0, keepdim=True).nan_to_num(1.0)
-    c = torch.where(nanmask, fill.expand_as(cost), cost)
-    total = torch.zeros_like(c)
-    for dim in (1, 2):
-        for rev in (False, True):
-            total += _sgm_path(c, p1, p2, dim, rev)
-    return total / 4
-
-
-def winner(cost: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Winner-take-all with parabolic sub-plane refinement in inverse depth.
-
-    cost: [D, H, W]; inv_depths: [D] (uniformly spaced). Returns depth [H, W] (m) and the
-    winning index [H, W].
-    """
-    d = cost.shape[0]
-    idx = cost.argmin(0)  # [H, W]
-    i0 = (idx - 1).clamp(0, d - 1)
-    i2 = (idx + 1).clamp(0, d - 1)
-    c0 = cost.gather(0, i0[None])[0]
-    c1 = cost.gather(0, idx[None])[0]
-    c2 = cost.gather(0, i2[None])[0]
-    denom = c0 - 2 * c1 + c2
-    interior = (idx > 0) & (idx < d - 1) & (denom > 1e-9)
-    off = torch.where(interior, 0.5 * (c0 - c2) / denom.clamp_min(1e-9), torch.zeros_like(c1)).clamp(-0.5, 0.5)
-    step = inv_depths[1] - inv_depths[0] if d > 1 else inv_depths.new_zeros(())
-    inv = inv_depths[idx] + off * step
-    return 1.0 / inv, idx
 
 
 def plane_sweep(images: list[torch.Tensor], cams: list[Camera], ref: int, sources: list[int], box: np.ndarray,
@@ -377,38 +256,6 @@ def depth_normals(cam: Camera, depth: torch.Tensor) -> torch.Tensor:
     return torch.where(flip, -n, n)
 
 
-@dataclass
-class PointCloud:
-    """A fused, coloured point cloud. Arrays are numpy (saved with the method's checkpoint).
-
-    xyz [N, 3] world (m); rgb [N, 3] in [0, 1]; normals [N, 3] unit (zero where unknown);
-    footprint [N] the side of the source pixel on the surface (m).
-    """
-
-    xyz: np.ndarray
-    rgb: np.ndarray
-    normals: np.ndarray
-    footprint: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.xyz)
-
-    def subset(self, keep: np.ndarray) -> "PointCloud":
-        return PointCloud(self.xyz[keep], self.rgb[keep], self.normals[keep], self.footprint[keep])
-
-    @staticmethod
-    def empty() -> "PointCloud":
-        z = np.zeros((0, 3), np.float32)
-        return PointCloud(z, z.copy(), z.copy(), np.zeros(0, np.float32))
-
-    @staticmethod
-    def concat(parts: list["PointCloud"]) -> "PointCloud":
-        parts = [p for p in parts if len(p)]
-        if not parts:
-            return PointCloud.empty()
-        return PointCloud(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("xyz", "rgb", "normals", "footprint")))
-
-
 def fuse(depths: list[torch.Tensor], images: list[torch.Tensor], cams: list[Camera], box: np.ndarray, *,
          max_stretch: float = 4.0) -> PointCloud:
     """Lift every finite depth pixel to a world point inside `box` [2, 3] (PointCloud)."""
@@ -460,44 +307,3 @@ def run_mvs(images: list[np.ndarray], cams: list[Camera], box: np.ndarray, cfg: 
         "points": len(cloud),
     }
     return cloud, [d.cpu().numpy() for d in filt], stats
-
-
-
-# --------------------------------------------------------------------------- street prior
-
-
-def ground_height(cloud: PointCloud, *, bin_m: float = 0.1, smooth_m: float = 0.5) -> float | None:
-    """Height (world z, m) of the street: the mode of the heights of the lower half of the
-    cloud (histogram of `bin_m` bins smoothed over `smooth_m`). Assumes a level street within the
-    lane's region, true of SynthTown and of most city blocks; None for an empty cloud.
-
-    The street is the one surface every lane's views share and the most common height among the
-    lower half of the points (roofs are many heights, facades spread over all of them)."""
-    if len(cloud) == 0:
-        return None
-    z = np.sort(cloud.xyz[:, 2].astype(np.float64))
-    low = z[: max(1, len(z) // 2)]
-    lo = low[0]
-    edges = np.arange(lo, max(low[-1], lo) + 2 * bin_m, bin_m)
-    hist, edges = np.histogram(low, bins=edges)
-    k = max(1, int(round(smooth_m / bin_m)))
-    smooth = np.convolve(hist, np.ones(k) / k, mode="same")
-    i = int(np.argmax(smooth))
-    return float(edges[i] + bin_m / 2)
-
-
-def snap_to_plane(cloud: PointCloud, plane: tuple[np.ndarray, float], band: float) -> PointCloud:
-    """Points within `band` m of the plane (either side) moved onto it along its normal, with
-    the plane's normal; points more than `band` below it dropped (no surface lies under the
-    street); the rest unchanged. Stereo puts the street, seen through 70 m of air at 45 degrees,
-    up to a metre off its height, and from a ground camera 2 m above it that smears the road up
-    towards the horizon; this is MVS's planar prior for the one plane every lane has."""
-    if len(cloud) == 0 or band <= 0:
-        return cloud
-    n, d = plane
-    h = cloud.xyz.astype(np.float64) @ n - d
-    keep = h >= -band
-    near = np.abs(h) <= band
-    xyz = np.where(near[:, None], cloud.xyz - h[:, None] * n, cloud.xyz).astype(np.float32)
-    normals = np.where(near[:, None], n.astype(np.float32), cloud.normals)
-    return PointCloud(xyz, cloud.rgb, normals, cloud.footprint).subset(keep)

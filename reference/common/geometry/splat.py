@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from reference.common.geometry.mvs import PointCloud
+from reference.common.geometry.cloud import PointCloud
 from skyeyes_bench.cameras import Camera
 
 

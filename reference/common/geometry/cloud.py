@@ -1,0 +1,79 @@
+"""A fused, coloured point cloud (what `mvs` fuses and `splat` draws) and the street prior on it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class PointCloud:
+    """A fused, coloured point cloud. Arrays are numpy (saved with the method's checkpoint).
+
+    xyz [N, 3] world (m); rgb [N, 3] in [0, 1]; normals [N, 3] unit (zero where unknown);
+    footprint [N] the side of the source pixel on the surface (m).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normals: np.ndarray
+    footprint: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def subset(self, keep: np.ndarray) -> "PointCloud":
+        return PointCloud(self.xyz[keep], self.rgb[keep], self.normals[keep], self.footprint[keep])
+
+    @staticmethod
+    def empty() -> "PointCloud":
+        z = np.zeros((0, 3), np.float32)
+        return PointCloud(z, z.copy(), z.copy(), np.zeros(0, np.float32))
+
+    @staticmethod
+    def concat(parts: list["PointCloud"]) -> "PointCloud":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return PointCloud.empty()
+        return PointCloud(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("xyz", "rgb", "normals", "footprint")))
+
+
+# --------------------------------------------------------------------------- street prior
+
+
+def ground_height(cloud: PointCloud, *, bin_m: float = 0.1, smooth_m: float = 0.5) -> float | None:
+    """Height (world z, m) of the street: the mode of the heights of the lower half of the
+    cloud (histogram of `bin_m` bins smoothed over `smooth_m`). Assumes a level street within the
+    lane's region, true of SynthTown and of most city blocks; None for an empty cloud.
+
+    The street is the one surface every lane's views share and the most common height among the
+    lower half of the points (roofs are many heights, facades spread over all of them)."""
+    if len(cloud) == 0:
+        return None
+    z = np.sort(cloud.xyz[:, 2].astype(np.float64))
+    low = z[: max(1, len(z) // 2)]
+    lo = low[0]
+    edges = np.arange(lo, max(low[-1], lo) + 2 * bin_m, bin_m)
+    hist, edges = np.histogram(low, bins=edges)
+    k = max(1, int(round(smooth_m / bin_m)))
+    smooth = np.convolve(hist, np.ones(k) / k, mode="same")
+    i = int(np.argmax(smooth))
+    return float(edges[i] + bin_m / 2)
+
+
+def snap_to_plane(cloud: PointCloud, plane: tuple[np.ndarray, float], band: float) -> PointCloud:
+    """Points within `band` m of the plane (either side) moved onto it along its normal, with
+    the plane's normal; points more than `band` below it dropped (no surface lies under the
+    street); the rest unchanged. Stereo puts the street, seen through 70 m of air at 45 degrees,
+    up to a metre off its height, and from a ground camera 2 m above it that smears the road up
+    towards the horizon; this is MVS's planar prior for the one plane every lane has."""
+    if len(cloud) == 0 or band <= 0:
+        return cloud
+    n, d = plane
+    h = cloud.xyz.astype(np.float64) @ n - d
+    keep = h >= -band
+    near = np.abs(h) <= band
+    xyz = np.where(near[:, None], cloud.xyz - h[:, None] * n, cloud.xyz).astype(np.float32)
+    normals = np.where(near[:, None], n.astype(np.float32), cloud.normals)
+    return PointCloud(xyz, cloud.rgb, normals, cloud.footprint).subset(keep)

@@ -139,15 +139,58 @@ def cmd_split(args) -> None:
             print(json.dumps(split_case(n, size, args.reps, args.threads)), flush=True)
 
 
-def cmd_fit(args) -> None:
-    from reference.methods.gaussians3d import fit_curve
+def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = None, seconds: float | None = None,
+              workdir: str | None = None, overrides: list[str] | tuple = ()) -> list[dict]:
+    """Held-out aerial PSNR and ground-view PSNR against training seconds, for the first test
+    scene of a SynthTown preset. Prints one line per training checkpoint. `overrides`: `--set`
+    strings on top of the preset (every 8th aerial view is held out)."""
+    import tempfile
+    from pathlib import Path
 
-    from reference.reproduce import parse_overrides
+    import numpy as np
+    import torch
+
+    from reference.common.gaussians.train import psnr
     from reference.methods import get_method_class
+    from skyeyes_bench.data.layout import open_dataset
 
-    base = get_method_class(args.method).presets[args.preset]
-    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds,
-              overrides=parse_overrides(base, args.overrides))
+    if data is None:
+        from skyeyes_bench.data.synthtown import ensure_dataset
+
+        data = ensure_dataset(preset if preset in ("smoke", "small", "paper") else "small")
+    ds = open_dataset(data)
+    scene = ds.split("test")[0]
+    cls = get_method_class(method)
+    config, _ = cls.configure(preset, ["holdout_every=8", *overrides])
+    m = cls(config, Path(workdir or tempfile.mkdtemp(prefix="gs-curve-")), progress=False)
+    m.fit_train(ds)  # the learned colour map and backgrounds, as reproduce does
+    aerial = list(scene.aerial)
+    held = [f for i, f in enumerate(aerial) if i % 8 == 7]
+    ground = [f for s in scene.sequences.values() for f in s.frames[::4]]
+    rows: list[dict] = []
+    print(f"scene {scene.name}: {len(aerial) - len(held)} train / {len(held)} held-out aerial views, "
+          f"{len(ground)} ground frames scored; method {method}, preset {preset}")
+    print(f"{'iter':>6} {'train s':>8} {'gaussians':>9} {'aerial PSNR':>11} {'ground PSNR':>11}")
+
+    def cb(it, secs, model):
+        if seconds is not None and secs > seconds:
+            return
+
+        def score(frames, ground_view):
+            return np.mean([psnr(torch.from_numpy(m.render_frame(scene, f, ground=ground_view, model=model)),
+                                 torch.from_numpy(f.image())) for f in frames])
+
+        pa, pg = score(held, False), score(ground, True)
+        rows.append({"iteration": it, "train_s": secs, "gaussians": len(model), "aerial_psnr": pa, "ground_psnr": pg})
+        print(f"{it:>6} {secs:>8.1f} {len(model):>9} {pa:>11.2f} {pg:>11.2f}", flush=True)
+
+    m.use_threads()  # as fit_scene would; the model is not checkpointed: a curve, not a fit to keep
+    m.fit_scene_model(scene, progress=False, callback=cb)
+    return rows
+
+
+def cmd_fit(args) -> None:
+    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds, overrides=args.overrides)
 
 
 def main() -> None:

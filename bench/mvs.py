@@ -138,8 +138,7 @@ def main() -> None:
 
     import torch
 
-    from reference.methods.mvs import PRESETS
-    from reference.reproduce import parse_overrides
+    from reference.methods.mvs import MVS
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.data.synthtown import ensure_dataset
 
@@ -149,8 +148,7 @@ def main() -> None:
     print("| preset | lane | seconds | abs rel mean | abs rel median | within 0.5 m | within 2% | completeness | points |")
     print("|---|---|---|---|---|---|---|---|---|")
     for preset in args.presets:
-        base = PRESETS[preset]
-        cfg = dataclasses.replace(base, **parse_overrides(base, args.overrides))
+        cfg, _ = MVS.configure(preset, args.overrides)
         ds = open_dataset(ensure_dataset(preset, progress=False))
         lanes = ds.split("test")[: args.lanes or None]
         for scene in lanes:

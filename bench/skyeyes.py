@@ -85,7 +85,6 @@ def main(argv=None) -> int:
     import torch
 
     from reference.methods import get_method_class
-    from reference.reproduce import parse_overrides
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.data.synthtown import ensure_dataset
 
@@ -96,10 +95,7 @@ def main(argv=None) -> int:
     rows = []
     for name in a.methods.split(","):
         cls = get_method_class(name)
-        base = cls.presets[a.preset]
-        if a.prior:
-            base = dataclasses.replace(base, prior_method=a.prior)
-        base = dataclasses.replace(base, **parse_overrides(base, a.overrides))
+        base, _ = cls.configure(a.preset, [*([f"prior_method={a.prior}"] if a.prior else []), *a.overrides])
         steps = [int(s) for s in a.acm_steps.split(",") if s] or [base.acm_steps]
         for k in sorted(steps):
             cfg = dataclasses.replace(base, acm_steps=k)

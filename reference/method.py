@@ -1,29 +1,125 @@
-"""The interface every reference method implements, so `reproduce` can drive any of them.
+"""The one life cycle of a reference method, driven by `reference.reproduce` (and by the bench
+scripts, and by a method run inside another, as Skyeyes runs its prior).
 
-Life cycle (driven by `reference.reproduce`):
-
-1. `fit_train(dataset)`: learn what carries across scenes from the *train* split (a diffusion
-   model, say). Optional; methods that only reconstruct a scene leave it empty.
-2. `fit_scene(scene)`: per test scene (a lane). Only the scene's aerial images and poses may be
-   used, plus the *poses and intrinsics* of its ground cameras (never their pixels).
-3. `render_sequence(scene, sequence)`: yield one float32 [H, W, 3] image in [0, 1] per ground
+1. Config: `Method.configure(preset, sets)` is the preset's config dataclass with `--set
+   KEY=VALUE` overrides (typed and checked against its fields; a dotted key sets a field of a
+   nested config), plus the device and a pretrained model when asked for. `from_preset` builds
+   a method from it. Configs are saved with every run so a run can be repeated from its output.
+2. `fit_train(dataset)`: learn what carries across scenes from the *train* split (a diffusion
+   model, a colour map). Optional; methods that only reconstruct a scene leave it empty.
+3. `fit_scene(scene)`: per test scene (a lane). Only the scene's aerial images and poses may be
+   used, plus the *poses and intrinsics* of its ground cameras (never their pixels). The base
+   class resumes the scene from its checkpoint or calls `fit_scene_model` and saves what it
+   returns; a method with nothing to keep per scene overrides `fit_scene` itself.
+4. `render_sequence(scene, sequence)`: yield one float32 [H, W, 3] image in [0, 1] per ground
    frame of the sequence, in order.
 
-Configs are dataclasses; presets are named configs (`smoke`, `small`, `paper`) saved with
-every run so a run can be repeated from its own output folder.
+Around these, the same for every method:
+
+- the cache key of a run (`cache_key`: method, version, config, seed, dataset, `code_sha`);
+- checkpoints (`checkpointed`): one resume rule, writes through a temporary file renamed into
+  place (a killed run never leaves half a checkpoint), statistics beside each in a JSON file;
+- timing: `cached_s`, the original seconds of the work an instance took from caches (resumed
+  checkpoints, cached stages and priors), so a run reports what producing its result cost;
+- per-scene statistics (`scene_stats`, each scene's fit.json) and the device (`device`).
 """
 
 from __future__ import annotations
 
 import abc
 import dataclasses
+import hashlib
+import inspect
+import json
 import logging
+import time
 from pathlib import Path
-from typing import Any, ClassVar, Iterator
+from typing import Any, Callable, ClassVar, Iterator, TypeVar
 
 import numpy as np
 
+from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
+from skyeyes_bench.errors import UserError
+
+T = TypeVar("T")
+
+# --------------------------------------------------------------------------- config
+
+
+def parse_overrides(config, items: list[str], _prefix: str = "") -> dict:
+    """["iterations=200", "sfm=false", "core.residual=false"] -> typed dict, checked against the
+    config's fields; a dotted key sets a field of a nested config (the whole nested config is
+    replaced, with its other fields kept)."""
+    fields = {f.name: f for f in dataclasses.fields(config)}
+    out = {}
+    nested: dict[str, list[str]] = {}
+    for item in items:
+        key, eq, raw = item.partition("=")
+        if not eq:
+            raise UserError(f"--set {item!r}: expected KEY=VALUE")
+        head, dot, rest = key.partition(".")
+        if dot and head in fields and dataclasses.is_dataclass(getattr(config, head)):
+            nested.setdefault(head, []).append(f"{rest}={raw}")
+            continue
+        if key not in fields:
+            raise UserError(f"--set {_prefix}{key}: not a field of {type(config).__name__} (fields: {', '.join(fields)})")
+        cur = getattr(config, key)
+        try:
+            if isinstance(cur, bool):
+                if raw.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                val = raw.lower() in ("true", "1", "yes")
+            elif isinstance(cur, int):
+                val = int(raw)
+            elif isinstance(cur, float):
+                val = float(raw)
+            else:
+                val = type(cur)(raw) if cur is not None else raw
+        except ValueError:
+            raise UserError(f"--set {_prefix}{key}={raw}: expected a {type(cur).__name__}") from None
+        out[key] = val
+    for head, sub_items in nested.items():
+        sub = out.get(head, getattr(config, head))
+        try:
+            out[head] = dataclasses.replace(sub, **parse_overrides(sub, sub_items, f"{_prefix}{head}."))
+        except ValueError as e:  # the nested config's own validation
+            raise UserError(f"--set {head}.*: {e}") from None
+    return out
+
+
+def has_field(config: Any, name: str) -> bool:
+    """Whether the config dataclass `config` has a field `name`."""
+    return dataclasses.is_dataclass(config) and any(f.name == name for f in dataclasses.fields(config))
+
+
+# --------------------------------------------------------------------------- cache keys
+
+
+def json_sha(obj: Any) -> str:
+    """sha256 (hex) of `obj` as canonical JSON (sorted keys; what JSON cannot hold as its str)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def code_sha(cls) -> str:
+    """sha256 of the method's modules (its class hierarchy) and of reference/common."""
+    files = {Path(inspect.getfile(c)).resolve() for c in inspect.getmro(cls) if c.__module__.startswith("reference")}
+    common = Path(__file__).resolve().parent / "common"
+    files |= set(common.rglob("*.py"))
+    h = hashlib.sha256()
+    for f in sorted(files):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str, code: str) -> str:
+    """The key of a run's stage cache: everything its outputs depend on."""
+    return json_sha({"method": method, "version": version, "config": config, "seed": seed, "data": data_sha,
+                     "code": code})[:16]
+
+
+# --------------------------------------------------------------------------- the method
 
 
 class Method(abc.ABC):
@@ -31,54 +127,162 @@ class Method(abc.ABC):
     version: ClassVar[str] = "0.1"
     #: preset name -> config dataclass instance
     presets: ClassVar[dict[str, Any]]
+    #: File in `scene_dir(scene)` that holds a fitted scene (`save_scene_model`); methods with
+    #: nothing to keep per scene override `fit_scene` and leave it None.
+    scene_checkpoint: ClassVar[str | None] = None
 
-    def __init__(self, config: Any, workdir: Path, *, seed: int = 0):
+    def __init__(self, config: Any, workdir: Path, *, seed: int = 0, progress: bool = True):
         self.config = config
         self.workdir = Path(workdir)
         self.seed = seed
+        self.progress = progress  # progress bars of the method's own stages
+        #: Per fitted scene, what its fit reported (`fit_seconds` and the method's own numbers;
+        #: saved as the scene's fit.json).
+        self.scene_stats: dict[str, dict] = {}
+        #: Original seconds of the work this instance took from caches instead of doing it
+        #: (resumed checkpoints, cached stages and priors): a run reports its wall time plus this.
+        self.cached_s = 0.0
+        self._scene_models: dict[str, Any] = {}
         self.workdir.mkdir(parents=True, exist_ok=True)
 
+    # ---------------------------------------------------------------- config
     @classmethod
-    def from_preset(cls, preset: str, workdir: Path, *, seed: int = 0, **overrides) -> "Method":
+    def configure(cls, preset: str, sets: list[str] | tuple = (), *, values: dict | None = None,
+                  device: str | None = None, pretrained: str | None = None) -> tuple[Any, list[str]]:
+        """The config of `preset` with its overrides, and those overrides as the `KEY=VALUE`
+        strings that repeat the run.
+
+        Args:
+            sets: `--set` strings, applied in order ("iterations=200", "core.residual=false").
+            values: typed field values, for callers in code (not in the returned strings).
+            device: the torch device (a UserError for a CPU-only method, unless "cpu").
+            pretrained: a local diffusers Stable Diffusion folder (the diffusion methods).
+        """
         from skyeyes_bench.registry import lookup
 
-        config = dataclasses.replace(lookup(cls.presets, preset, f"preset of method {cls.name!r}"), **overrides)
-        return cls(config, workdir, seed=seed)
+        base = lookup(cls.presets, preset, f"preset of method {cls.name!r}")
+        applied = list(sets)
+        config = dataclasses.replace(base, **{**parse_overrides(base, applied), **(values or {})})
+        if device is not None:
+            if has_field(config, "device"):
+                config = dataclasses.replace(config, device=device)
+                applied.append(f"device={device}")
+            elif device != "cpu":
+                raise UserError(f"--device {device}: method {cls.name!r} runs on the CPU only "
+                                "(its config has no device)")
+        if pretrained is not None:
+            if not has_field(config, "pretrained"):
+                raise UserError(f"--pretrained: method {cls.name!r} takes no pretrained model "
+                                "(only the diffusion methods do)")
+            root = Path(pretrained).expanduser().resolve()
+            if not (root / "unet" / "config.json").is_file():
+                raise UserError(f"--pretrained {pretrained}: not a diffusers Stable Diffusion folder "
+                                "(expected unet/config.json)")
+            config = dataclasses.replace(config, pretrained=str(root))
+            applied.append(f"pretrained={root}")
+        return config, applied
 
-    def scene_dir(self, scene: Scene) -> Path:
-        """Where a method keeps what it fitted on `scene` (checkpoints, fit.json)."""
-        return self.workdir / "scenes" / scene.name
-
-    def cached_seconds(self) -> float:
-        """Original seconds of the work this instance took from caches instead of doing (stages,
-        priors), so a run's reported time is what producing its result cost. Default: none."""
-        return 0.0
-
-    def scene_fit_seconds(self, scene: Scene, took: float) -> float:
-        """What fitting `scene` cost: the seconds its fit recorded (`scene_stats[...]["fit_seconds"]`;
-        a fit resumed from its checkpoint records its first run's), else `took`, the wall time
-        of the call."""
-        return float(getattr(self, "scene_stats", {}).get(scene.name, {}).get("fit_seconds", took))
-
-    def resume_scene(self, scene: Scene, file: str, load) -> bool:
-        """Resume: if `scene_dir(scene)/file` (a fit's last, atomically written output) exists,
-        call `load(scene)` and return True; else False (fit it)."""
-        ckpt = self.scene_dir(scene) / file
-        if not ckpt.is_file():
-            return False
-        load(scene)
-        logging.getLogger(type(self).__module__).info("%s: reusing %s", scene.name, ckpt)
-        return True
+    @classmethod
+    def from_preset(cls, preset: str, workdir: Path, *, seed: int = 0, progress: bool = True, **values) -> "Method":
+        """The method with the config of `preset`, fields in `values` replaced."""
+        config, _ = cls.configure(preset, values=values)
+        return cls(config, workdir, seed=seed, progress=progress)
 
     def config_dict(self) -> dict:
         return dataclasses.asdict(self.config)
 
+    @property
+    def device(self) -> str:
+        """The config's torch device, "auto" resolved (CUDA when available, else the CPU);
+        "cpu" for a config without one."""
+        device = getattr(self.config, "device", "cpu")
+        if device == "auto":
+            import torch
+
+            return "cuda" if torch.cuda.is_available() else "cpu"
+        return device
+
+    def use_threads(self) -> None:
+        """The config's torch intra-op threads (`threads`; 0: every core), set before each stage
+        because a stage run inside another leaves its own setting behind. None: left as is."""
+        n = getattr(self.config, "threads", None)
+        if n is not None:
+            from skyeyes_bench.threads import set_threads
+
+            set_threads(n)
+
+    # ---------------------------------------------------------------- checkpoints
+    @property
+    def train_dir(self) -> Path:
+        """Where a method keeps what it learned on the train split."""
+        return self.workdir / "train"
+
+    def scene_dir(self, scene: Scene) -> Path:
+        """Where a method keeps what it fitted on `scene` (its checkpoint and fit.json)."""
+        return self.workdir / "scenes" / scene.name
+
+    def checkpointed(self, path: Path, compute: Callable[[], tuple[T, dict]], *, save: Callable[[T, Path], None],
+                     load: Callable[[Path], T], stats: Path, seconds: str = "seconds") -> tuple[T, dict]:
+        """Resume from the checkpoint `path`, or compute and save it: the one rule of every method.
+
+        A checkpoint exists only complete: `stats` (JSON) is written first, then `save(value,
+        tmp)` writes a temporary file beside `path` that is renamed to `path`. So when `path`
+        exists, `(load(path), the stats)` is returned, and the seconds the stats record
+        (`stats[seconds]`) are added to `cached_s`. Otherwise `compute()` returns `(value,
+        stats)`, its wall time goes into `stats[seconds]`, and both are saved.
+        """
+        path = Path(path)
+        if path.is_file():
+            value = load(path)
+            recorded = fileio.read_json(stats, allow_nan=True) if Path(stats).is_file() else {}
+            self.cached_s += float(recorded.get(seconds, 0.0))
+            logging.getLogger(type(self).__module__).info("reusing %s", path)
+            return value, recorded
+        t0 = time.perf_counter()
+        value, info = compute()
+        info[seconds] = time.perf_counter() - t0
+        fileio.write_json(stats, info)
+        with fileio.atomic_path(path) as tmp:
+            save(value, tmp)
+        return value, info
+
+    # ---------------------------------------------------------------- the life cycle
     def fit_train(self, dataset: Dataset) -> None:  # noqa: B027  (optional hook)
         """Learn from the train split. Default: nothing to learn across scenes."""
 
-    @abc.abstractmethod
-    def fit_scene(self, scene: Scene) -> None:
-        """Fit on one test scene's aerial views (and its ground camera poses, not pixels)."""
+    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+        """Fit on one test scene's aerial views (and its ground camera poses, not pixels), or
+        resume it from `scene_dir(scene)/scene_checkpoint`. progress: the fit's bars (None: the
+        method's setting)."""
+        if self.scene_checkpoint is None:
+            raise NotImplementedError(f"{self.name}: no scene_checkpoint, so fit_scene must be its own")
+        self.use_threads()
+        progress = self.progress if progress is None else progress
+        folder = self.scene_dir(scene)
+        model, stats = self.checkpointed(folder / self.scene_checkpoint,
+                                         lambda: self.fit_scene_model(scene, progress=progress),
+                                         save=self.save_scene_model, load=self.load_scene_model,
+                                         stats=folder / "fit.json", seconds="fit_seconds")
+        self._scene_models[scene.name] = model
+        self.scene_stats[scene.name] = stats
+
+    def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[Any, dict]:
+        """Fit `scene` from scratch: (what `save_scene_model` saves, the fit's statistics)."""
+        raise NotImplementedError
+
+    def save_scene_model(self, model: Any, path: Path) -> None:
+        """Write a fitted scene to `path` (a temporary file that is then renamed)."""
+        raise NotImplementedError
+
+    def load_scene_model(self, path: Path) -> Any:
+        """Read back what `save_scene_model` wrote; equal to what was saved, bit for bit."""
+        raise NotImplementedError
+
+    def scene_model(self, scene: Scene) -> Any:
+        """What `fit_scene` fitted on (or resumed for) `scene`."""
+        if scene.name not in self._scene_models:
+            raise RuntimeError(f"{self.name}: {scene.name} rendered before fit_scene")
+        return self._scene_models[scene.name]
 
     @abc.abstractmethod
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:

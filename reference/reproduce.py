@@ -6,6 +6,7 @@ Output folder (`--out`, default `outputs/<method>-<preset>/`):
 config.json            resolved config (preset + overrides), cache key, dataset and code hashes
 reproduce.log          the run's log (SfM outcome, fallbacks, timings)
 work/<key>/            stage cache, key = sha256(method, config, seed, dataset manifest, code)
+    train/             what the method learned on the train split (its checkpoint + fit.json)
     scenes/<scene>/    fitted model checkpoint (model.pt, written atomically) + fit.json
     renders/<scene>/ground/NNNNNN.png, renders/timings.json   rendered frames, reused on resume
 submission/            the submission (SubmissionWriter)
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import inspect
 import json
 import logging
 import os
@@ -30,51 +30,11 @@ import sys
 import time
 from pathlib import Path
 
+from reference.method import cache_key, code_sha
 from skyeyes_bench import fileio
 from skyeyes_bench.errors import UserError
 
 log = logging.getLogger("reference.reproduce")
-
-
-def parse_overrides(config, items: list[str], _prefix: str = "") -> dict:
-    """["iterations=200", "sfm=false", "core.residual=false"] -> typed dict, checked against the
-    config's fields; a dotted key sets a field of a nested config (the whole nested config is
-    replaced, with its other fields kept)."""
-    fields = {f.name: f for f in dataclasses.fields(config)}
-    out = {}
-    nested: dict[str, list[str]] = {}
-    for item in items:
-        key, eq, raw = item.partition("=")
-        if not eq:
-            raise UserError(f"--set {item!r}: expected KEY=VALUE")
-        head, dot, rest = key.partition(".")
-        if dot and head in fields and dataclasses.is_dataclass(getattr(config, head)):
-            nested.setdefault(head, []).append(f"{rest}={raw}")
-            continue
-        if key not in fields:
-            raise UserError(f"--set {_prefix}{key}: not a field of {type(config).__name__} (fields: {', '.join(fields)})")
-        cur = getattr(config, key)
-        try:
-            if isinstance(cur, bool):
-                if raw.lower() not in ("true", "false", "1", "0", "yes", "no"):
-                    raise ValueError
-                val = raw.lower() in ("true", "1", "yes")
-            elif isinstance(cur, int):
-                val = int(raw)
-            elif isinstance(cur, float):
-                val = float(raw)
-            else:
-                val = type(cur)(raw) if cur is not None else raw
-        except ValueError:
-            raise UserError(f"--set {_prefix}{key}={raw}: expected a {type(cur).__name__}") from None
-        out[key] = val
-    for head, sub_items in nested.items():
-        sub = out.get(head, getattr(config, head))
-        try:
-            out[head] = dataclasses.replace(sub, **parse_overrides(sub, sub_items, f"{_prefix}{head}."))
-        except ValueError as e:  # the nested config's own validation
-            raise UserError(f"--set {head}.*: {e}") from None
-    return out
 
 
 def dataset_sha(root: Path, ds) -> str:
@@ -83,24 +43,6 @@ def dataset_sha(root: Path, ds) -> str:
     for name in sorted(ds.scenes):
         h.update(fileio.sha256_file(root / name / "scene.json").encode())
     return h.hexdigest()
-
-
-def code_sha(cls) -> str:
-    """sha256 of the method's modules (its class hierarchy) and of reference/common."""
-    files = {Path(inspect.getfile(c)).resolve() for c in inspect.getmro(cls) if c.__module__.startswith("reference")}
-    common = Path(__file__).resolve().parent / "common"
-    files |= set(common.rglob("*.py"))
-    h = hashlib.sha256()
-    for f in sorted(files):
-        h.update(f.name.encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()
-
-
-def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str, code: str) -> str:
-    blob = json.dumps({"method": method, "version": version, "config": config, "seed": seed, "data": data_sha,
-                       "code": code}, sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def check_out(out: Path, mine: dict, *, force: bool) -> None:
@@ -182,26 +124,10 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     from reference.methods import get_method_class
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import evaluate, format_summary
-    from skyeyes_bench.registry import lookup
     from skyeyes_bench.submission import SubmissionWriter
 
     cls = get_method_class(method)
-    base = lookup(cls.presets, preset, f"preset of method {method!r}")
-    config = dataclasses.replace(base, **parse_overrides(base, overrides or []))
-    if device is not None:
-        if any(f.name == "device" for f in dataclasses.fields(config)):
-            config = dataclasses.replace(config, device=device)
-            overrides = [*(overrides or []), f"device={device}"]
-        elif device != "cpu":
-            raise UserError(f"--device {device}: method {method!r} runs on the CPU only (its config has no device)")
-    if pretrained is not None:
-        if not any(f.name == "pretrained" for f in dataclasses.fields(config)):
-            raise UserError(f"--pretrained: method {method!r} takes no pretrained model (only the diffusion methods do)")
-        root = Path(pretrained).expanduser().resolve()
-        if not (root / "unet" / "config.json").is_file():
-            raise UserError(f"--pretrained {pretrained}: not a diffusers Stable Diffusion folder (expected unet/config.json)")
-        config = dataclasses.replace(config, pretrained=str(root))
-        overrides = [*(overrides or []), f"pretrained={root}"]
+    config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
     config_d = dataclasses.asdict(config)
     ident = {"method": method, "method_version": cls.version, "seed": seed, "config": config_d}
@@ -216,11 +142,11 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     dsha, csha = dataset_sha(root, ds), code_sha(cls)
     key = cache_key(method, cls.version, config_d, seed, dsha, csha)
     record = {
-        "method": method, "method_version": cls.version, "preset": preset, "overrides": list(overrides or []),
+        "method": method, "method_version": cls.version, "preset": preset, "overrides": overrides,
         "seed": seed, "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
         "manifest_sha256": dsha}, "code_sha256": csha,
         "repeat": f"skyeyes-bench reproduce --method {method} --preset {preset} --seed {seed} --data {root} "
-                  + " ".join(f"--set {o}" for o in overrides or []),
+                  + " ".join(f"--set {o}" for o in overrides),
     }
     check_out(out, record, force=force)  # before anything is written to --out
     handlers = _setup_log(out, fresh=force)
@@ -230,33 +156,22 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             shutil.rmtree(work)
         fileio.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
-        # Methods whose own stages draw bars (Skyeyes: training, priors) take `progress` here.
-        takes_progress = "progress" in inspect.signature(cls.__init__).parameters
-        m = cls(config, work / "method", seed=seed, **({"progress": progress} if takes_progress else {}))
-        # 2. Fit: train split, then each test scene (checkpoints make this resumable).
+        m = cls(config, work / "method", seed=seed, progress=progress)
+        # 2. Fit: train split, then each test scene (checkpoints make this resumable). The time
+        # of a fit is its wall time plus the original time of what it took from caches.
         t0 = time.perf_counter()
         m.fit_train(ds)
-        fit_train_s = time.perf_counter() - t0
         if not _main_process():
             # `accelerate launch`: every process trains its share of the batches; the main
             # process alone renders, writes the submission and scores it.
             log.info("process %s: training done; the main process renders and scores", os.environ.get("RANK"))
             return {}
         scenes = ds.split("test")
-        fit_s = fit_train_s
-        resumed_fits_s = 0.0  # scene fits resumed from their checkpoints: their first run's time
         for scene in scenes:
-            t0 = time.perf_counter()
-            if "progress" in inspect.signature(m.fit_scene).parameters:
-                m.fit_scene(scene, progress=progress)
-            else:
-                m.fit_scene(scene)
-            took = time.perf_counter() - t0
-            stats = getattr(m, "scene_stats", {}).get(scene.name, {})
-            cost = m.scene_fit_seconds(scene, took)  # a resumed fit reports its original time
-            fit_s += cost
-            resumed_fits_s += max(0.0, cost - took)
+            m.fit_scene(scene, progress=progress)
+            stats = m.scene_stats.get(scene.name, {})
             log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
+        fit_s = time.perf_counter() - t0 + m.cached_s
         # 3. Render every test sequence; frames already in the cache are reused.
         renders = work / "renders"
         tfile = renders / "timings.json"
@@ -285,8 +200,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         # Work taken from caches (diffusion stages, priors, resumed fits, rendered frames) is
         # reported at its original cost, and how much of the total that is: a run's time is what
         # producing its result cost, not how long this invocation happened to take.
-        fit_s += m.cached_seconds()
-        cached_s = m.cached_seconds() + resumed_fits_s + cached_renders_s
+        cached_s = m.cached_s + cached_renders_s
         # 4. Submission from the render cache.
         per_frame = [timings[f"{sc.name}/{f.file}"] for sc in scenes for s in sc.sequences.values() for f in s]
         sub_dir = out / "submission"

@@ -71,8 +71,9 @@ def test_mvs_smoke_end_to_end_and_resume(synthtown_smoke, tmp_path):
     box = np.array(fit["box"])
     with np.load(clouds[0]) as z:
         assert np.all((z["xyz"] >= box[0] - 1e-4) & (z["xyz"] <= box[1] + 1e-4))
-    appearance = json.loads(next(work.rglob("appearance.json")).read_text())
-    assert len(appearance["train_lanes"]) == 1
+    appearance = next(work.rglob("appearance.json"))
+    assert {"colour_map", "backgrounds"} <= set(json.loads(appearance.read_text()))
+    assert len(json.loads((appearance.parent / "fit.json").read_text())["train_lanes"]) == 1
     # Resume: the clouds are reused, not recomputed.
     mtimes = [c.stat().st_mtime_ns for c in clouds]
     (out / "results.json").unlink()

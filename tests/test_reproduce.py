@@ -8,7 +8,7 @@ import torch
 
 from conftest import run_cli
 from reference.methods.gaussians3d import PRESETS
-from reference.reproduce import cache_key, parse_overrides
+from reference.method import cache_key, parse_overrides
 from skyeyes_bench.errors import UserError
 
 
@@ -215,7 +215,7 @@ def test_quiet_hides_the_diffusion_training_bars(method, bars, synthtown_smoke, 
 def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
     pytest.importorskip("diffusers")
     from reference.methods.mvs import MVS
-    from reference.methods.skyeyes import render_priors
+    from reference.common.priors import render_priors
     from skyeyes_bench.data.layout import open_dataset
 
     class Recording(MVS):

@@ -16,7 +16,8 @@ pytest.importorskip("diffusers")
 
 from reference.method import Method  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
-from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM, nearest_aerial, render_priors  # noqa: E402
+from reference.common.priors import nearest_aerial, render_priors  # noqa: E402
+from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM  # noqa: E402
 from reference.common.diffusion.core import CoreConfig  # noqa: E402
 from skyeyes_bench.cameras import Camera  # noqa: E402
 from skyeyes_bench.data.layout import DatasetWriter, open_dataset  # noqa: E402
@@ -59,7 +60,7 @@ class StandInPrior(Method):
     def config_dict(self) -> dict:
         return {"blur": 3, "noise": 0.1}
 
-    def fit_scene(self, scene):
+    def fit_scene(self, scene, *, progress=None):
         self.fitted.append(scene.name)
 
     def render_sequence(self, scene, sequence):
@@ -144,8 +145,9 @@ def test_nearest_aerial_is_nearest(tiny):
 def test_render_priors_keys_and_cache(tiny, tmp_path):
     ds = open_dataset(tiny)
     prior = StandInPrior(tmp_path)
-    p1 = render_priors(ds, ds.split("train"), prior, progress=False)
-    p2 = render_priors(ds, ds.split("train"), prior, progress=False)
+    p1, cached1 = render_priors(ds, ds.split("train"), prior, progress=False)
+    p2, cached2 = render_priors(ds, ds.split("train"), prior, progress=False)
+    assert cached1 == 0 and cached2 > 0  # the second call takes the first's renders, at their cost
     assert prior.fitted == ["train-0-lane00"]
     assert set(p1) == {f"train-0-lane00/{f.file}" for f in ds.scenes["train-0-lane00"].ground}
     for k in p1:
@@ -195,7 +197,7 @@ def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
     """Issue 13: a run whose stages and priors come from the cache reports what producing them
     cost (training.json's seconds), not the ~0 s of loading them."""
     m1, _, _ = _run(Skyeyes, tiny, tmp_path / "a")
-    assert m1.cached_seconds() == 0.0  # everything computed
+    assert m1.cached_s == 0.0  # everything computed
     spent = sum(s["seconds"] for s in m1.training.values())
     m2, prior, _ = _run(Skyeyes, tiny, tmp_path / "b")
     assert prior.fitted == []  # priors from the cache too
@@ -210,7 +212,7 @@ def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
         with np.load(f) as z:
             priors += float(z["_seconds"])
     assert priors > 0
-    assert m2.cached_seconds() == pytest.approx(stages + priors, abs=0.01 * len(m2.training))
+    assert m2.cached_s == pytest.approx(stages + priors, abs=0.01 * len(m2.training))
 
 
 def test_cpu_formulation_end_to_end(tiny, tmp_path):
@@ -234,18 +236,18 @@ def test_cpu_formulation_end_to_end(tiny, tmp_path):
 def test_training_crops_share_one_window_per_row():
     import torch
 
-    from reference.methods.skyeyes import _crops
+    from reference.common.diffusion.train import crops
 
     a = torch.arange(2 * 3 * 1 * 6 * 6, dtype=torch.float32).view(2, 3, 1, 6, 6)  # [B, F, C, h, w]
     b = -a
-    ca, cb = _crops(torch.Generator().manual_seed(0), 4, a, b)
+    ca, cb = crops(torch.Generator().manual_seed(0), 4, a, b)
     assert ca.shape == (2, 3, 1, 4, 4) and torch.equal(cb, -ca)
     for i in range(2):  # every frame of a row cut at the same window, found in the original
         hits = [(y, x) for y in range(3) for x in range(3) if torch.equal(a[i, :, :, y:y + 4, x:x + 4], ca[i])]
         assert len(hits) == 1
-    assert _crops(torch.Generator(), 0, a)[0] is a
+    assert crops(torch.Generator(), 0, a)[0] is a
     with pytest.raises(ValueError, match="exceeds"):
-        _crops(torch.Generator(), 7, a)
+        crops(torch.Generator(), 7, a)
 
 
 def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):

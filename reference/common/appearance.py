@@ -9,7 +9,7 @@ every render; it changes colours only, never where things are.
 - `ColourMap`: a global quadratic map of RGB, least squares with a small ridge, fitted on
   (render, ground truth) pixel pairs where the render covers the pixel.
 - `Backgrounds`: the colour of uncovered pixels above and below the horizon, the mean ground
-  truth colour there on the train lanes.
+  truth colour there on the train lanes (`sky_colour`: from a lane's aerial views, without them).
 """
 
 from __future__ import annotations
@@ -85,6 +85,22 @@ class Backgrounds:
     @classmethod
     def from_dict(cls, d: dict) -> "Backgrounds":
         return cls(np.asarray(d["sky"], np.float32), np.asarray(d["ground"], np.float32))
+
+
+def sky_colour(frames: list) -> np.ndarray:
+    """Mean colour [3] of the aerial image rows (of `frames`, dataset frames) that look above the
+    horizon: the ray through the row at the principal point's column climbs (world dz > 0.05 at
+    camera z = 1). Grey if no row does; the background of a method that learned none."""
+    acc, n = np.zeros(3), 0
+    for f in frames:
+        cam = f.camera()
+        v = np.arange(f.height) + 0.5
+        _, d = cam.rays(np.stack([np.full_like(v, cam.K[0, 2]), v], 1), normalize=False)  # [H, 3]
+        rows = d[:, 2] > 0.05
+        if rows.any():
+            acc += f.image()[rows].reshape(-1, 3).sum(0)
+            n += int(rows.sum()) * f.width
+    return (acc / n).astype(np.float32) if n else np.full(3, 0.5, np.float32)
 
 
 class AppearanceFit:

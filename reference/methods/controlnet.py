@@ -2,7 +2,7 @@
 image instead of the Gaussian prior, frame by frame (no view consistency module).
 
 Which aerial image per ground frame: the aerial view whose camera centre is nearest the ground
-camera's (`skyeyes.nearest_aerial`). The base UNet stage is shared with Skyeyes (same cache key);
+camera's (`reference.common.priors.nearest_aerial`). The base UNet stage is shared with Skyeyes (same cache key);
 only the ControlNet branch differs.
 """
 

@@ -5,8 +5,8 @@ Per scene: the start is the `mvs` method's fused cloud (dense stereo from the ae
 point a disc with its own size and orientation), as 3DGS starts from an SfM/MVS cloud; `init=sfm`
 uses pycolmap's sparse triangulation instead. Either falls back to "ground-plane rays" (with a
 warning) when it leaves fewer than `min_init_points` in the region the ground cameras see
-(+ margin). Then train, checkpoint atomically to `<workdir>/scenes/<scene>/`; a later
-`fit_scene` on the same workdir reuses the checkpoint (interrupted runs resume).
+(+ margin). Then train; the Gaussians are checkpointed to `<workdir>/scenes/<scene>/model.pt`
+(`Method.fit_scene`), which a later `fit_scene` on the same workdir reuses.
 
 What is learned on the train split (`fit_train`, shared with `mvs`): the colour map from aerial
 to ground colours and the background colours above and below the horizon, fitted on the `mvs`
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -26,16 +25,14 @@ from typing import Iterator
 import numpy as np
 import torch
 
+from reference.common.appearance import Backgrounds, ColourMap, sky_colour
 from reference.common.gaussians import rasterize
-from reference.common.appearance import Backgrounds, ColourMap
 from reference.common.geometry import region, sfm, splat
 from reference.common.gaussians.model import GaussianModel
-from reference.common.gaussians.train import TrainConfig, View, psnr, train
+from reference.common.gaussians.train import TrainConfig, View, train
 from reference.method import Method
-from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Frame, Scene, Sequence
 from skyeyes_bench.errors import UserError
-from skyeyes_bench.threads import set_threads
 
 log = logging.getLogger(__name__)
 
@@ -110,44 +107,14 @@ def frame_view(frame: Frame, *, with_image: bool = True) -> View:
                 name=frame.file)
 
 
-def rays_hit_box(frame: Frame, box: np.ndarray) -> np.ndarray:
-    """[H, W] bool: the pixel's ray crosses the box (else no Gaussian of ours can explain it)."""
-    cam = frame.camera()
-    h, w = frame.height, frame.width
-    _, d = cam.rays(normalize=False)
-    d = d.reshape(h, w, 3)
-    o = cam.c2w[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0 = (box[0] - o) / d
-        t1 = (box[1] - o) / d
-    tmin = np.nanmax(np.minimum(t0, t1), -1)
-    tmax = np.nanmin(np.maximum(t0, t1), -1)
-    return (tmax >= np.maximum(tmin, 0)) & (tmax > 0)
-
-
-def sky_colour(frames: list[Frame]) -> np.ndarray:
-    """Mean colour [3] of aerial pixels whose ray points above the horizon (grey if none)."""
-    acc, n = np.zeros(3), 0
-    for f in frames:
-        cam = f.camera()
-        v = np.arange(f.height) + 0.5
-        dz = (v - cam.K[1, 2]) / cam.K[1, 1] * cam.c2w[2, 1] + cam.c2w[2, 2]  # ray z at image centre column
-        rows = dz > 0.05
-        if rows.any():
-            acc += f.image()[rows].reshape(-1, 3).sum(0)
-            n += int(rows.sum()) * f.width
-    return (acc / n).astype(np.float32) if n else np.full(3, 0.5, np.float32)
-
-
 class Gaussians3D(Method):
     name = "gaussians3d"
     version = "0.1"
     presets = PRESETS
+    scene_checkpoint = "model.pt"
 
-    def __init__(self, config, workdir, *, seed: int = 0):
-        super().__init__(config, workdir, seed=seed)
-        self._models: dict[str, tuple[GaussianModel, torch.Tensor]] = {}
-        self.scene_stats: dict[str, dict] = {}
+    def __init__(self, config, workdir, **kw):
+        super().__init__(config, workdir, **kw)
         self.colour_map = ColourMap()
         self.learned_backgrounds: Backgrounds | None = None
 
@@ -156,13 +123,32 @@ class Gaussians3D(Method):
         """Extra training loss as `fn(model, iteration) -> scalar`, or None (vanilla 3DGS)."""
         return None
 
-    # ---------------------------------------------------------------- fitting
-    def fit_scene(self, scene: Scene, *, callback=None, progress: bool = True) -> None:
+    # ---------------------------------------------------------------- appearance (train split)
+    def fit_train(self, dataset) -> None:
+        """The colour map and backgrounds, learned as `mvs` learns them (its `fit_train`)."""
         cfg = self.config
-        set_threads(cfg.threads)
-        if self.resume_scene(scene, "model.pt", self._load):
+        if cfg.train_lanes <= 0:
             return
-        t0 = time.perf_counter()
+        from reference.methods.mvs import MVS
+
+        mvs = MVS.from_preset(cfg.mvs_preset, self.workdir / "appearance", seed=self.seed, progress=self.progress,
+                              train_lanes=cfg.train_lanes, device=self.device, margin_m=cfg.margin_m,
+                              z_min=cfg.z_min, z_max=cfg.z_max)
+        mvs.fit_train(dataset)
+        self.colour_map, self.learned_backgrounds = mvs.colour_map, mvs.backgrounds
+        self.cached_s += mvs.cached_s
+
+    def _backgrounds(self, scene: Scene) -> Backgrounds:
+        if self.learned_backgrounds is not None:
+            return self.learned_backgrounds
+        sky = sky_colour(list(scene.aerial))
+        return Backgrounds(sky, sky)
+
+    # ---------------------------------------------------------------- fitting (a scene)
+    def fit_scene_model(self, scene: Scene, *, progress: bool, callback=None) -> tuple[tuple, dict]:
+        """((Gaussians, training background [3]), stats). callback(iteration, seconds, model):
+        called at the training's checkpoints (bench/gaussians.py draws its curves with it)."""
+        cfg = self.config
         aerial = list(scene.aerial)
         held = [f for i, f in enumerate(aerial) if cfg.holdout_every and i % cfg.holdout_every == cfg.holdout_every - 1]
         train_frames = [f for f in aerial if f not in held]
@@ -170,13 +156,13 @@ class Gaussians3D(Method):
         # 1. The start: the MVS cloud (or SfM points), else the documented fallback.
         model, msg, n_init = self._initial_model(scene, train_frames, box)
         # 2. Views with loss masks (pixels whose rays miss the region cannot be explained).
-        dev = torch.device(cfg.device)
+        dev = torch.device(self.device)
         model = model.to(dev)
         views = []
         for f in train_frames:
             v = frame_view(f)
-            v.mask = torch.from_numpy(rays_hit_box(f, box))
-            views.append(View(v.image.to(dev), v.viewmat.to(dev), v.K.to(dev), v.mask.to(dev), name=v.name))
+            mask = torch.from_numpy(region.rays_hit_box(f.camera(), box))
+            views.append(View(v.image.to(dev), v.viewmat.to(dev), v.K.to(dev), mask.to(dev), name=v.name))
         bg = torch.from_numpy(self._backgrounds(scene).sky)
         centres = np.array([f.c2w[:3, 3] for f in aerial])
         extent = max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 10.0)
@@ -184,15 +170,17 @@ class Gaussians3D(Method):
         stats = train(model, views, cfg, extent=extent, box=torch.tensor(box, dtype=torch.float32), background=bg,
                       seed=self.seed, regularizer=self.regularizer(scene), callback=callback, progress=progress)
         stats.update({"init": msg, "init_points": n_init, "extent_m": extent, "box": box.tolist(),
-                      "background": bg.tolist(), "fit_seconds": time.perf_counter() - t0,
-                      "held_out": [f.file for f in held]})
-        # 4. Checkpoint atomically (a killed run leaves no half file; the next run refits).
-        self.scene_dir(scene).mkdir(parents=True, exist_ok=True)
-        with fileio.atomic_path(self.scene_dir(scene) / "model.pt") as tmp:
-            torch.save({"params": {k: v.cpu() for k, v in model.state_dict().items()}, "background": bg, "config": dataclasses.asdict(cfg)}, tmp)
-        fileio.write_json(self.scene_dir(scene) / "fit.json", stats)
-        self._models[scene.name] = (model, bg)
-        self.scene_stats[scene.name] = stats
+                      "background": bg.tolist(), "held_out": [f.file for f in held]})
+        return (model, bg), stats
+
+    def save_scene_model(self, fitted: tuple, path: Path) -> None:
+        model, bg = fitted
+        torch.save({"params": {k: v.cpu() for k, v in model.state_dict().items()}, "background": bg,
+                    "config": dataclasses.asdict(self.config)}, path)
+
+    def load_scene_model(self, path: Path) -> tuple:
+        sd = torch.load(path, weights_only=True)
+        return GaussianModel.from_state_dict(sd["params"]).to(self.device), sd["background"]
 
     def _initial_model(self, scene: Scene, frames: list[Frame], box: np.ndarray) -> tuple[GaussianModel, str, int]:
         """The model training starts from, the log message saying where it came from, its size."""
@@ -204,8 +192,8 @@ class Gaussians3D(Method):
             from reference.methods.mvs import reconstruct
 
             mcfg = dataclasses.replace(MVS_PRESETS[cfg.mvs_preset], margin_m=cfg.margin_m, z_min=cfg.z_min,
-                                       z_max=cfg.z_max, device=cfg.device)
-            cloud, mstats = reconstruct(scene, mcfg, aerial=frames)
+                                       z_max=cfg.z_max)
+            cloud, _ = reconstruct(scene, mcfg, device=self.device, aerial=frames)
             cloud = splat.voxel_downsample(cloud, cfg.init_voxel_m)
             msg = f"MVS: {len(cloud)} fused points (per {cfg.init_voxel_m} m voxel) from {len(frames)} aerial views"
             if len(cloud) > cfg.init_max_points:
@@ -245,45 +233,15 @@ class Gaussians3D(Method):
                                           max_scale=cfg.init_max_scale)
         return model, msg, len(xyz)
 
-    # ---------------------------------------------------------------- appearance (train split)
-    def fit_train(self, dataset) -> None:
-        """The colour map and backgrounds, learned as `mvs` learns them (its `fit_train`)."""
-        cfg = self.config
-        if cfg.train_lanes <= 0:
-            return
-        from reference.methods.mvs import MVS
-
-        mvs = MVS.from_preset(cfg.mvs_preset, self.workdir / "appearance", seed=self.seed,
-                              train_lanes=cfg.train_lanes, device=cfg.device, margin_m=cfg.margin_m,
-                              z_min=cfg.z_min, z_max=cfg.z_max)
-        mvs.fit_train(dataset)
-        self.colour_map, self.learned_backgrounds = mvs.colour_map, mvs.backgrounds
-
-    def _backgrounds(self, scene: Scene) -> Backgrounds:
-        if self.learned_backgrounds is not None:
-            return self.learned_backgrounds
-        sky = sky_colour(list(scene.aerial))
-        return Backgrounds(sky, sky)
-
-    def _load(self, scene: Scene) -> tuple[GaussianModel, torch.Tensor]:
-        if scene.name not in self._models:
-            ckpt = self.scene_dir(scene) / "model.pt"
-            if not ckpt.is_file():
-                raise RuntimeError(f"{scene.name}: render before fit_scene (no {ckpt})")
-            sd = torch.load(ckpt, weights_only=True)
-            self._models[scene.name] = (GaussianModel.from_state_dict(sd["params"]).to(self.config.device), sd["background"])
-            fit = self.scene_dir(scene) / "fit.json"
-            if fit.is_file():
-                self.scene_stats[scene.name] = fileio.read_json(fit, allow_nan=True)
-        return self._models[scene.name]
-
     # ---------------------------------------------------------------- rendering
     @torch.no_grad()
-    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True) -> np.ndarray:
+    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True,
+                     model: GaussianModel | None = None) -> np.ndarray:
         """The Gaussians over black, the learned colour map on what they cover, composited over
         the background (above / below the horizon). ground=False: as the aerial views were
-        fitted (no colour map, the training background)."""
-        model, _ = self._load(scene)
+        fitted (no colour map, the training background). model: instead of the scene's fitted
+        one (a model in training)."""
+        model = self.scene_model(scene)[0] if model is None else model
         v = frame_view(frame, with_image=False)
         dev = model.means.device
         out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh, v.viewmat.to(dev),
@@ -295,51 +253,6 @@ class Gaussians3D(Method):
         return splat.over(self.colour_map(colour), alpha, self._backgrounds(scene).image(frame.camera()))
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
-        set_threads(self.config.threads)
+        self.use_threads()
         for frame in sequence:
             yield self.render_frame(scene, frame)
-
-
-# --------------------------------------------------------------------------- bench helper
-
-
-def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = None, seconds: float | None = None,
-              workdir: str | None = None, overrides: dict | None = None) -> list[dict]:
-    """Held-out aerial PSNR and ground-view PSNR against training seconds, for the first test
-    scene of a SynthTown preset (bench/gaussians.py). Prints one line per checkpoint."""
-    import tempfile
-
-    from reference.methods import get_method_class
-    from skyeyes_bench.data.layout import open_dataset
-
-    if data is None:
-        from skyeyes_bench.data.synthtown import ensure_dataset
-
-        data = ensure_dataset(preset if preset in ("smoke", "small", "paper") else "small")
-    ds = open_dataset(data)
-    scene = ds.split("test")[0]
-    cls = get_method_class(method)
-    wd = Path(workdir or tempfile.mkdtemp(prefix="gs-curve-"))
-    m = cls.from_preset(preset, wd, holdout_every=8, **(overrides or {}))
-    m.fit_train(ds)  # the learned colour map and backgrounds, as reproduce does
-    aerial = list(scene.aerial)
-    held = [f for i, f in enumerate(aerial) if i % 8 == 7]
-    ground = [f for s in scene.sequences.values() for f in s.frames[::4]]
-    rows: list[dict] = []
-    print(f"scene {scene.name}: {len(aerial) - len(held)} train / {len(held)} held-out aerial views, "
-          f"{len(ground)} ground frames scored; method {method}, preset {preset}")
-    print(f"{'iter':>6} {'train s':>8} {'gaussians':>9} {'aerial PSNR':>11} {'ground PSNR':>11}")
-
-    def cb(it, secs, model):
-        if seconds is not None and secs > seconds:
-            return
-        m._models[scene.name] = (model, torch.from_numpy(m._backgrounds(scene).sky))
-        with torch.no_grad():
-            pa = np.mean([psnr(torch.from_numpy(m.render_frame(scene, f, ground=False)), torch.from_numpy(f.image()))
-                          for f in held])
-            pg = np.mean([psnr(torch.from_numpy(m.render_frame(scene, f)), torch.from_numpy(f.image())) for f in ground])
-        rows.append({"iteration": it, "train_s": secs, "gaussians": len(model), "aerial_psnr": pa, "ground_psnr": pg})
-        print(f"{it:>6} {secs:>8.1f} {len(model):>9} {pa:>11.2f} {pg:>11.2f}", flush=True)
-
-    m.fit_scene(scene, callback=cb, progress=False)
-    return rows

@@ -6,14 +6,12 @@ metric has learned nothing a constant image does not already carry; every leader
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
 
 from reference.method import Method
-from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 from skyeyes_bench.errors import UserError
 
@@ -37,17 +35,20 @@ class MeanFrame(Method):
     version = "0.1"
     presets = PRESETS
 
-    def __init__(self, config, workdir, *, seed: int = 0):
-        super().__init__(config, workdir, seed=seed)
+    def __init__(self, config, workdir, **kw):
+        super().__init__(config, workdir, **kw)
         self.mean: np.ndarray | None = None
-        self.scene_stats: dict[str, dict] = {}
 
     def fit_train(self, dataset: Dataset) -> None:
-        path = self.workdir / "mean.npy"
-        if path.is_file():
-            self.mean = np.load(path)
-            return
-        t0 = time.perf_counter()
+        def save(mean, path):
+            with open(path, "wb") as fh:
+                np.save(fh, mean)
+
+        self.mean, info = self.checkpointed(self.train_dir / "mean.npy", lambda: self._mean(dataset), save=save,
+                                            load=np.load, stats=self.train_dir / "fit.json")
+        log.info("mean-frame: mean of %s train ground frames (%.1f s)", info.get("frames"), info.get("seconds", 0.0))
+
+    def _mean(self, dataset: Dataset) -> tuple[np.ndarray, dict]:
         frames = [f for seq in dataset.sequences("train") for f in seq]
         if not frames:
             raise UserError(f"{dataset.root}: mean-frame needs ground frames in the train split; it has none")
@@ -60,13 +61,10 @@ class MeanFrame(Method):
                 raise UserError(f"{f.path}: train ground frame is {f.width}x{f.height}, expected {size[1]}x{size[0]} "
                                 "like the first one (mean-frame needs one frame size)")
             acc += f.image()
-        self.mean = (acc / len(frames)).astype(np.float32)
-        with fileio.atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.save(fh, self.mean)
-        log.info("mean-frame: mean of %d train ground frames (%.1f s)", len(frames), time.perf_counter() - t0)
+        return (acc / len(frames)).astype(np.float32), {"frames": len(frames)}
 
-    def fit_scene(self, scene: Scene) -> None:
-        self.scene_stats[scene.name] = {"fit_seconds": 0.0}
+    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+        """Nothing per scene: every frame is the train mean."""
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         if self.mean is None:

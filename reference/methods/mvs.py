@@ -11,28 +11,30 @@ colours (`reference.common.appearance`). `train_lanes=0` turns that off: backgro
 from the test lane alone (sky: aerial pixels above the horizon; ground: the cloud's lowest
 layer).
 
-Per scene the fused cloud is checkpointed atomically to `<workdir>/scenes/<scene>/cloud.npz`
-with `fit.json`; a later run on the same workdir reuses it.
+Checkpoints (`Method.checkpointed`): the appearance in `<workdir>/train/appearance.json`, each
+scene's fused cloud in `<workdir>/scenes/<scene>/cloud.npz`, each with its `fit.json`; a later
+run on the same workdir reuses them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
-import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 import torch
 
-from reference.common.appearance import AppearanceFit, Backgrounds, ColourMap
+from reference.common.appearance import AppearanceFit, Backgrounds, ColourMap, sky_colour
 from reference.common.geometry import mvs as gmvs
 from reference.common.geometry import region, splat
+from reference.common.geometry.cloud import PointCloud, ground_height, snap_to_plane
 from reference.method import Method
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
-from skyeyes_bench.threads import set_threads
 
 log = logging.getLogger(__name__)
 
@@ -86,20 +88,20 @@ PRESETS = {
 }
 
 
-def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, aerial: list | None = None,
-                progress: bool = False) -> tuple[gmvs.PointCloud, dict]:
-    """Fused cloud of one lane (cropped to its region box) and the stereo stats; `aerial`: the
-    views to use (default all of the scene's)."""
+def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, device: str, aerial: list | None = None,
+                progress: bool = False) -> tuple[PointCloud, dict]:
+    """Fused cloud of one lane (cropped to its region box) on `device`, and the stereo stats;
+    `aerial`: the views to use (default all of the scene's)."""
     aerial = list(scene.aerial) if aerial is None else aerial
     box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
     stereo = gmvs.MVSConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(gmvs.MVSConfig)})
     cloud, _, stats = gmvs.run_mvs([f.image() for f in aerial], [f.camera() for f in aerial], box, stereo,
-                                   device=cfg.device, progress=progress, max_stretch=cfg.max_stretch)
+                                   device=device, progress=progress, max_stretch=cfg.max_stretch)
     stats["box"] = box.tolist()
-    z0 = gmvs.ground_height(cloud)
+    z0 = ground_height(cloud)
     stats["street_height_m"] = z0
     if z0 is not None and cfg.ground_snap_m > 0:
-        cloud = gmvs.snap_to_plane(cloud, (np.array([0.0, 0.0, 1.0]), z0), cfg.ground_snap_m)
+        cloud = snap_to_plane(cloud, (np.array([0.0, 0.0, 1.0]), z0), cfg.ground_snap_m)
     stats["points"] = len(cloud)
     return cloud, stats
 
@@ -108,105 +110,98 @@ class MVS(Method):
     name = "mvs"
     version = "0.1"
     presets = PRESETS
+    scene_checkpoint = "cloud.npz"
 
-    def __init__(self, config, workdir, *, seed: int = 0):
-        super().__init__(config, workdir, seed=seed)
-        self._surfels: dict[str, tuple[dict, np.ndarray | None]] = {}
-        self.scene_stats: dict[str, dict] = {}
+    def __init__(self, config, workdir, **kw):
+        super().__init__(config, workdir, **kw)
+        self._splats: dict[str, tuple[dict, np.ndarray | None]] = {}  # scene -> (surfels, ground colour)
         self.colour_map = ColourMap()
         self.backgrounds: Backgrounds | None = None
 
     # ---------------------------------------------------------------- train split
     def fit_train(self, dataset: Dataset) -> None:
         cfg = self.config
-        path = self.workdir / "train" / "appearance.json"
-        if path.is_file():
-            d = fileio.read_json(path, allow_nan=True)
-            self.colour_map = ColourMap.from_dict(d["colour_map"])
-            self.backgrounds = Backgrounds.from_dict(d["backgrounds"]) if d.get("backgrounds") else None
-            log.info("appearance: reusing %s", path)
-            return
         lanes = dataset.split("train")[: max(cfg.train_lanes, 0)]
         if not lanes:
             log.info("appearance: no train lanes used (train_lanes=%d): identity colour map", cfg.train_lanes)
             return
-        set_threads(cfg.threads)
-        t0 = time.perf_counter()
+        self.use_threads()
+
+        def save(fit, path):
+            path.write_text(json.dumps({"colour_map": fit[0].to_dict(), "backgrounds": fit[1].to_dict()}, indent=2))
+
+        def load(path):
+            d = fileio.read_json(path, allow_nan=True)
+            return ColourMap.from_dict(d["colour_map"]), Backgrounds.from_dict(d["backgrounds"])
+
+        (self.colour_map, self.backgrounds), info = self.checkpointed(
+            self.train_dir / "appearance.json", lambda: self._learn_appearance(lanes), save=save, load=load,
+            stats=self.train_dir / "fit.json")
+        log.info("appearance: fitted on %d train lanes in %.0f s (sky %s, ground %s)",
+                 len(info.get("train_lanes", [])), info.get("seconds", 0.0),
+                 np.round(self.backgrounds.sky, 3).tolist(), np.round(self.backgrounds.ground, 3).tolist())
+
+    def _learn_appearance(self, lanes: list[Scene]) -> tuple[tuple[ColourMap, Backgrounds], dict]:
+        """The colour map and backgrounds from each lane's reconstruction rendered into its ground cameras."""
+        cfg = self.config
         acc = AppearanceFit(seed=self.seed)
         grey = np.full(3, 0.5, np.float32)
         for lane in lanes:
-            cloud, _ = reconstruct(lane, cfg)
+            cloud, _ = reconstruct(lane, cfg, device=self.device)
             params = self._surfel_params(cloud)
             for seq in lane.sequences.values():
                 for f in seq:
                     cam = f.camera()
                     rgb, alpha = splat.render_cloud(params, cam, opacity=cfg.opacity, near=cfg.render_near_m,
-                                                    device=cfg.device)
+                                                    device=self.device)
                     acc.add(rgb, alpha, f.image(), cam)
-        self.colour_map, self.backgrounds = acc.result(grey, grey)
-        info = {"colour_map": self.colour_map.to_dict(), "backgrounds": self.backgrounds.to_dict(),
-                "train_lanes": [lane.name for lane in lanes], "seconds": time.perf_counter() - t0}
-        fileio.write_json(path, info)
-        log.info("appearance: fitted on %d train lanes in %.0f s (sky %s, ground %s)", len(lanes), info["seconds"],
-                 np.round(self.backgrounds.sky, 3).tolist(), np.round(self.backgrounds.ground, 3).tolist())
+        return acc.result(grey, grey), {"train_lanes": [lane.name for lane in lanes]}
 
     # ---------------------------------------------------------------- test scenes
-    def _surfel_params(self, cloud: gmvs.PointCloud) -> dict:
+    def _surfel_params(self, cloud: PointCloud) -> dict:
         cfg = self.config
         params = splat.surfels(splat.voxel_downsample(cloud, cfg.voxel_m), size=cfg.disc_size)
-        return {k: v.to(cfg.device) for k, v in params.items()}
+        return {k: v.to(self.device) for k, v in params.items()}
 
-    def fit_scene(self, scene: Scene, *, progress: bool = True) -> None:
-        cfg = self.config
-        set_threads(cfg.threads)
-        if self.resume_scene(scene, "cloud.npz", self._load):
-            return
-        t0 = time.perf_counter()
-        cloud, stats = reconstruct(scene, cfg, progress=progress)
+    def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[PointCloud, dict]:
+        cloud, stats = reconstruct(scene, self.config, device=self.device, progress=progress)
         if len(cloud) == 0:
             log.warning("%s: MVS fused no point (%s): every ground frame will be the background", scene.name, stats)
-        stats["fit_seconds"] = time.perf_counter() - t0
-        self.scene_dir(scene).mkdir(parents=True, exist_ok=True)
-        with fileio.atomic_path(self.scene_dir(scene) / "cloud.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **dataclasses.asdict(cloud))
-        fileio.write_json(self.scene_dir(scene) / "fit.json", stats)
-        self.scene_stats[scene.name] = stats
-        self._surfels[scene.name] = (self._surfel_params(cloud), splat.ground_colour(cloud))
-        log.info("%s: %d fused points (coverage %.2f raw, %.2f consistent) in %.0f s", scene.name, len(cloud),
-                 stats["raw_coverage"], stats["filtered_coverage"], stats["fit_seconds"])
+        log.info("%s: %d fused points (coverage %.2f raw, %.2f consistent)", scene.name, len(cloud),
+                 stats["raw_coverage"], stats["filtered_coverage"])
+        return cloud, stats
 
-    def _load(self, scene: Scene) -> tuple[dict, np.ndarray | None]:
-        if scene.name not in self._surfels:
-            ckpt = self.scene_dir(scene) / "cloud.npz"
-            if not ckpt.is_file():
-                raise RuntimeError(f"{scene.name}: render before fit_scene (no {ckpt})")
-            with np.load(ckpt) as z:
-                cloud = gmvs.PointCloud(**{k: z[k] for k in ("xyz", "rgb", "normals", "footprint")})
-            self._surfels[scene.name] = (self._surfel_params(cloud), splat.ground_colour(cloud))
-            fit = self.scene_dir(scene) / "fit.json"
-            if fit.is_file():
-                self.scene_stats[scene.name] = fileio.read_json(fit, allow_nan=True)
-        return self._surfels[scene.name]
+    def save_scene_model(self, cloud: PointCloud, path: Path) -> None:
+        with open(path, "wb") as fh:
+            np.savez(fh, **dataclasses.asdict(cloud))
+
+    def load_scene_model(self, path: Path) -> PointCloud:
+        with np.load(path) as z:
+            return PointCloud(**{k: z[k] for k in ("xyz", "rgb", "normals", "footprint")})
+
+    def _splat(self, scene: Scene) -> tuple[dict, np.ndarray | None]:
+        """The scene's cloud as surfels on the device, and its ground colour."""
+        if scene.name not in self._splats:
+            cloud = self.scene_model(scene)
+            self._splats[scene.name] = (self._surfel_params(cloud), splat.ground_colour(cloud))
+        return self._splats[scene.name]
 
     def _backgrounds(self, scene: Scene, ground: np.ndarray | None) -> Backgrounds:
         if self.backgrounds is not None:
             return self.backgrounds
-        from reference.methods.gaussians3d import sky_colour
-
         sky = sky_colour(list(scene.aerial))
         return Backgrounds(sky, ground if ground is not None else sky)
 
     @torch.no_grad()
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         cfg = self.config
-        set_threads(cfg.threads)
-        params, ground = self._load(scene)
+        self.use_threads()
+        params, ground = self._splat(scene)
         bgs = self._backgrounds(scene, ground)
         for frame in sequence:
             cam = frame.camera()
             rgb, alpha = splat.render_cloud(params, cam, opacity=cfg.opacity, near=cfg.render_near_m,
-                                            device=cfg.device)
+                                            device=self.device)
             # The colour map corrects what the aerial views saw; the background is already a
             # ground-view colour.
             yield splat.over(self.colour_map(rgb), alpha, bgs.image(cam))

@@ -4,7 +4,7 @@ Stages (each cached by content hash under `<cache>/reference/diffusion/`, so `sk
 `skyeyes-no-vcm` and `controlnet` share what they have in common):
 
 0. prior: the prior method (SuGaR) is fitted per lane on its *aerial* views only and rendered
-   at the lane's ground poses, for train and test lanes (`render_priors`).
+   at the lane's ground poses, for train and test lanes (`reference.common.priors`).
 1. base: without a pretrained Stable Diffusion, a UNet is first trained unconditionally on the
    train split's ground-truth ground frames (it stands in for the pretrained LDM).
 2. ACM: a ControlNet branch made from that UNet (`ControlNetModel.from_unet`, zero
@@ -22,9 +22,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
-import inspect
-import json
-import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,11 +29,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from reference.method import Method
+from reference.common.priors import frame_key, nearest_aerial, render_priors
+from reference.method import Method, has_field, json_sha
 from skyeyes_bench import fileio
-from skyeyes_bench.data.layout import Dataset, Frame, Scene, Sequence
+from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 from skyeyes_bench.paths import cache_dir
-from skyeyes_bench.threads import set_threads
 
 from ..common.diffusion.core import CoreConfig
 
@@ -129,87 +126,7 @@ PRESETS: dict[str, SkyeyesConfig] = {
 STAGE_VERSION = 3
 
 
-def _sha(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def _frame_key(scene: Scene, frame: Frame) -> str:
-    return f"{scene.name}/{frame.file}"
-
-
 # --------------------------------------------------------------------------- stage 0: priors
-
-
-def scene_aerial_hash(scene: Scene) -> str:
-    """Content hash of what a prior may use: scene.json (poses, intrinsics) and aerial pixels."""
-    h = hashlib.sha256((scene.root / "scene.json").read_bytes())
-    for f in scene.aerial:
-        h.update(fileio.sha256_file(f.path).encode())
-    return h.hexdigest()
-
-
-#: Key of a prior cache entry holding the seconds it cost (frame keys are relative file paths).
-_SECONDS = "_seconds"
-
-
-def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *,
-                  progress: bool = True, timing: dict | None = None) -> dict[str, np.ndarray]:
-    """Fit `prior_method` per scene and render every ground pose.
-
-    The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
-    `render_sequence`; renders are cached by (method, config, seed, scene content) hash under
-    `<cache>/reference/priors/`.
-
-    Args:
-        timing: if given, `timing["cached_s"]` grows by the original seconds (fit + render) of
-            every scene taken from the cache, or of a prior fit resumed from its checkpoint.
-
-    Returns:
-        {"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame.
-    """
-    from tqdm import tqdm
-
-    out: dict[str, np.ndarray] = {}
-    ident = {"method": prior_method.name, "version": prior_method.version,
-             "config": prior_method.config_dict(), "seed": prior_method.seed}
-    for scene in tqdm(scenes, desc="priors", disable=None if progress else True, leave=False):
-        key = _sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
-        path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
-        cached = 0.0
-        if path.is_file():
-            with np.load(path) as z:
-                for f in scene.ground:
-                    out[_frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
-                cached = float(z[_SECONDS]) if _SECONDS in z.files else 0.0  # older caches: unknown
-            if timing is not None:
-                timing["cached_s"] = timing.get("cached_s", 0.0) + cached
-            continue
-        t0 = time.perf_counter()
-        if "progress" in inspect.signature(prior_method.fit_scene).parameters:
-            prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
-        else:
-            prior_method.fit_scene(scene)
-        took = time.perf_counter() - t0
-        resumed = max(0.0, prior_method.scene_fit_seconds(scene, took) - took)  # a resumed fit: its first run's time
-        if timing is not None:
-            timing["cached_s"] = timing.get("cached_s", 0.0) + resumed
-        rendered: dict[str, np.ndarray] = {}
-        for seq in scene.sequences.values():
-            for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
-                rendered[frame.file] = fileio.to_uint8(np.asarray(img))
-        seconds = np.float64(resumed + time.perf_counter() - t0)  # what producing this entry cost
-        with fileio.atomic_path(path, suffix=".npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})
-        out.update({f"{scene.name}/{k}": v.astype(np.float32) / 255.0 for k, v in rendered.items()})
-    return out
-
-
-def nearest_aerial(scene: Scene, frame: Frame) -> Frame:
-    """The aerial view whose camera centre is nearest the ground camera's (the ControlNet
-    baseline's condition)."""
-    centres = np.stack([a.c2w[:3, 3] for a in scene.aerial])  # [A, 3]
-    return scene.aerial[int(np.argmin(np.linalg.norm(centres - frame.c2w[:3, 3], axis=1)))]
 
 
 def make_prior_method(config: SkyeyesConfig, workdir: Path, seed: int, device: str | None = None) -> Method:
@@ -217,8 +134,7 @@ def make_prior_method(config: SkyeyesConfig, workdir: Path, seed: int, device: s
     from reference.methods import get_method_class
 
     cls = get_method_class(config.prior_method)
-    has_device = any(f.name == "device" for f in dataclasses.fields(cls.presets[config.prior_preset]))
-    extra = {"device": device} if device is not None and has_device else {}
+    extra = {"device": device} if device is not None and has_field(cls.presets[config.prior_preset], "device") else {}
     return cls.from_preset(config.prior_preset, workdir, seed=seed, **extra)
 
 
@@ -245,20 +161,15 @@ class Skyeyes(Method):
             # the residual from a view taken elsewhere means nothing: diffuse the frames
             config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
                                          sample_strength=1.0)
-        super().__init__(config, workdir, seed=seed)
+        super().__init__(config, workdir, seed=seed, progress=progress)
         self._prior = prior_method  # tests inject a stand-in; else built lazily from the registry
-        self.progress = progress
         self.acm = None
         self.vcm = None
         self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, 3]
         self.training: dict[str, Any] = {}
-        self.timing: dict[str, float] = {"cached_s": 0.0}  # original seconds of work taken from caches
         self._figure_written = False
 
     # ---------------------------------------------------------------- helpers
-    def cached_seconds(self) -> float:
-        return float(self.timing["cached_s"])
-
     @property
     def prior(self) -> Method:
         if self._prior is None:
@@ -272,8 +183,10 @@ class Skyeyes(Method):
 
     def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
         if self.config.condition == "aerial":
-            return {_frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}
-        return render_priors(dataset, scenes, self.prior, progress=self.progress, timing=self.timing)
+            return {frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}
+        conds, cached_s = render_priors(dataset, scenes, self.prior, progress=self.progress)
+        self.cached_s += cached_s
+        return conds
 
     def _to_model(self, images: list[np.ndarray]):
         import torch
@@ -284,32 +197,12 @@ class Skyeyes(Method):
         return torch.cat([resize(images_to_tensor(im[None]), cfg.resolution) for im in images])
 
     def _stage_ckpt(self, stage: str, key: dict, steps: int) -> Path:
-        """`<cache>/reference/diffusion/<stage>-<hash of everything but the step count>/train-<steps>.pt`.
-
-        A stage asked for N steps starts from the furthest checkpoint of the same stage that has
-        done at most N steps (finished shorter runs, or interrupted longer ones): with per-step
-        generators and a constant learning rate, N steps resumed from k are the same computation
-        as N steps from scratch (bench/skyeyes.py relies on it).
-        """
-        import shutil
-
-        from ..common.diffusion.train import load_checkpoint
+        """`<cache>/reference/diffusion/<stage>-<hash of everything but the step count>/train-<steps>.pt`,
+        started from the furthest shorter run of the same stage (`train.stage_checkpoint`)."""
+        from ..common.diffusion.train import stage_checkpoint
 
         ident = {"stage": stage, "stage_version": STAGE_VERSION, **key}
-        folder = cache_dir() / "reference" / "diffusion" / f"{stage}-{_sha(ident)[:20]}"
-        ckpt = folder / f"train-{steps}.pt"
-        if not ckpt.is_file() and folder.is_dir():
-            done = []
-            for p in folder.glob("train-*.pt"):
-                try:
-                    done.append((int(load_checkpoint(p)["step"]), p))
-                except Exception:  # noqa: BLE001  (an unreadable checkpoint is just not a candidate)
-                    continue
-            done = sorted(d for d in done if d[0] <= steps)
-            if done:
-                with fileio.atomic_path(ckpt) as tmp:
-                    shutil.copyfile(done[-1][1], tmp)
-        return ckpt
+        return stage_checkpoint(cache_dir() / "reference" / "diffusion" / f"{stage}-{json_sha(ident)[:20]}", steps)
 
     # ---------------------------------------------------------------- fit
     def fit_train(self, dataset: Dataset) -> None:
@@ -323,11 +216,11 @@ class Skyeyes(Method):
         frames = [(s, f) for s in scenes for f in s.ground]
         with acc.main_process_first():  # under `accelerate launch`, one process fits the priors
             conds = self._conditions(dataset, scenes)
-        set_threads(self.config.threads)  # the prior stage runs single-threaded; the UNet wants every core
+        self.use_threads()  # the prior stage runs single-threaded; the UNet wants every core
         # 1. tensors in model space: targets and conditions, one row per train ground frame; the
         # model diffuses z0 (the frames, or their residual from the prior: `core.to_diffused`).
         x0 = core.encode(self._to_model([f.image() for _, f in frames]), cfg)
-        cc = core.encode_cond(self._to_model([conds[_frame_key(s, f)] for s, f in frames]), cfg)
+        cc = core.encode_cond(self._to_model([conds[frame_key(s, f)] for s, f in frames]), cfg)
         z0 = core.to_diffused(x0, cc, cfg)
         data_hash = hashlib.sha256(x0.numpy().tobytes()).hexdigest()
         cond_hash = hashlib.sha256(cc.numpy().tobytes()).hexdigest()
@@ -365,7 +258,7 @@ class Skyeyes(Method):
 
         def acm_loss(net, g, part):
             idx = torch.randint(0, n, (c.acm_batch,), generator=g)
-            z, k = _crops(g, c.train_crop, z0[idx], cc[idx])
+            z, k = train.crops(g, c.train_crop, z0[idx], cc[idx])
             return train.denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma)
 
         self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
@@ -392,22 +285,13 @@ class Skyeyes(Method):
                 s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g))
                 rows.append(q[s0:s0 + f_clip])
             idx = torch.tensor(rows)  # [B, F]
-            z, k = _crops(g, c.train_crop, z0[idx], cc[idx])
+            z, k = train.crops(g, c.train_crop, z0[idx], cc[idx])
             with vcm.clip_frames(vmodel, f_clip):
                 return train.clip_denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma)
 
         self.training["vcm"] = self._run("vcm", vmodel, params, vcm_loss, c.vcm_steps, c.vcm_lr, vcm_key, run)
         core.trainable(vmodel, [])
         self.vcm = vmodel
-
-    @property
-    def device(self) -> str:
-        """The configured device with "auto" resolved (CUDA when available, else the CPU)."""
-        import torch
-
-        if self.config.device == "auto":
-            return "cuda" if torch.cuda.is_available() else "cpu"
-        return self.config.device
 
     def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict, run: dict) -> dict:
         from ..common.diffusion import train
@@ -426,13 +310,14 @@ class Skyeyes(Method):
                    "trainable_parameters": sum(p.numel() for p in params),
                    "device": str(acc.device), "processes": acc.num_processes,
                    "mixed_precision": acc.mixed_precision}
-        self.timing["cached_s"] += res["resumed_seconds"]
+        self.cached_s += res["resumed_seconds"]
         if acc.is_main_process:
             fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
             fileio.write_json(self.workdir / "config.json", self.config_dict())
         return summary
 
-    def fit_scene(self, scene: Scene) -> None:
+    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+        """The scene's conditions (its prior renders); the diffusion model is fitted on the train split."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
         self.conds.update(self._conditions(None, [scene]))
@@ -451,8 +336,8 @@ class Skyeyes(Method):
         from ..common.diffusion import core
 
         cfg = self.config.core
-        priors = [self.conds[_frame_key(scene, f)] for f in sequence.frames]
-        set_threads(self.config.threads)
+        priors = [self.conds[frame_key(scene, f)] for f in sequence.frames]
+        self.use_threads()
         cc = core.encode_cond(self._to_model(priors), cfg)
         # Seed per sequence from its id, so frames do not depend on rendering order.
         self._seq_seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
@@ -470,23 +355,6 @@ class Skyeyes(Method):
             write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
                          condition=self.config.condition)
         yield from out
-
-
-def _crops(g, size: int, *tensors):
-    """The same random `size` x `size` window of each row of every tensor [B, ..., h, w] (one
-    window per row, drawn from `g`; all of a row's frames share it). size 0: unchanged."""
-    import torch
-
-    if not size:
-        return tensors
-    h, w = tensors[0].shape[-2:]
-    if size > min(h, w):
-        raise ValueError(f"train_crop {size} exceeds the model-space frame {h}x{w}")
-    b = tensors[0].shape[0]
-    oy = torch.randint(0, h - size + 1, (b,), generator=g).tolist()
-    ox = torch.randint(0, w - size + 1, (b,), generator=g).tolist()
-    return tuple(torch.stack([t[i, ..., y:y + size, x:x + size] for i, (y, x) in enumerate(zip(oy, ox))])
-                 for t in tensors)
 
 
 def _resize_hw(images, h: int, w: int):

@@ -120,6 +120,46 @@ def load_checkpoint(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
+def stage_checkpoint(folder: Path, steps: int) -> Path:
+    """`folder/train-<steps>.pt`: the checkpoint a stage asked for `steps` steps trains into.
+
+    If it does not exist yet, it starts as a copy of the furthest checkpoint in `folder` that has
+    done at most `steps` steps (finished shorter runs, or interrupted longer ones): with per-step
+    generators and a constant learning rate, N steps resumed from k are the same computation as N
+    steps from scratch (bench/skyeyes.py relies on it).
+    """
+    import shutil
+
+    ckpt = folder / f"train-{steps}.pt"
+    if not ckpt.is_file() and folder.is_dir():
+        done = []
+        for p in folder.glob("train-*.pt"):
+            try:
+                done.append((int(load_checkpoint(p)["step"]), p))
+            except Exception:  # noqa: BLE001  (an unreadable checkpoint is just not a candidate)
+                continue
+        done = sorted(d for d in done if d[0] <= steps)
+        if done:
+            with fileio.atomic_path(ckpt) as tmp:
+                shutil.copyfile(done[-1][1], tmp)
+    return ckpt
+
+
+def crops(g, size: int, *tensors):
+    """The same random `size` x `size` window of each row of every tensor [B, ..., h, w] (one
+    window per row, drawn from `g`; all of a row's frames share it). size 0: unchanged."""
+    if not size:
+        return tensors
+    h, w = tensors[0].shape[-2:]
+    if size > min(h, w):
+        raise ValueError(f"train_crop {size} exceeds the model-space frame {h}x{w}")
+    b = tensors[0].shape[0]
+    oy = torch.randint(0, h - size + 1, (b,), generator=g).tolist()
+    ox = torch.randint(0, w - size + 1, (b,), generator=g).tolist()
+    return tuple(torch.stack([t[i, ..., y:y + size, x:x + size] for i, (y, x) in enumerate(zip(oy, ox))])
+                 for t in tensors)
+
+
 def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = "auto"):
     """The Hugging Face `Accelerator` the diffusion stages run under.
 

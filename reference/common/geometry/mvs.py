@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from skyeyes_bench.cameras import Camera
 
-from .cloud import PointCloud, ground_height, snap_to_plane  # noqa: F401  (re-exported until the methods import cloud)
+from .cloud import PointCloud
 from .sweep import aggregate_sources, ncc_costs, sgm, winner
 
 

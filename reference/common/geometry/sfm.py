@@ -90,8 +90,7 @@ def ground_plane_points(frames: list[Frame], *, per_view: int = 2000, max_height
         h, w = img.shape[:2]
         u = rng.uniform(0, w, per_view)
         v = rng.uniform(0, h, per_view)
-        d_cam = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-        d = d_cam @ cam.c2w[:3, :3].T
+        _, d = cam.rays(np.stack([u, v], 1), normalize=False)  # [N, 3], camera z = 1
         o = cam.c2w[:3, 3]
         down = d[:, 2] < -1e-6
         t_ground = -o[2] / np.where(down, d[:, 2], -1.0)

@@ -1,0 +1,88 @@
+"""The per-frame conditions of the diffusion methods: another method's renders of every ground
+pose (Skyeyes' Gaussian prior), cached by content hash; or the nearest aerial view (the
+ControlNet baseline).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from skyeyes_bench import fileio
+from skyeyes_bench.data.layout import Dataset, Frame, Scene
+from skyeyes_bench.paths import cache_dir
+
+if TYPE_CHECKING:
+    from reference.method import Method
+
+#: Key of a prior cache entry holding the seconds it cost (frame keys are relative file paths).
+_SECONDS = "_seconds"
+
+
+def frame_key(scene: Scene, frame: Frame) -> str:
+    return f"{scene.name}/{frame.file}"
+
+
+def scene_aerial_hash(scene: Scene) -> str:
+    """Content hash of what a prior may use: scene.json (poses, intrinsics) and aerial pixels."""
+    h = hashlib.sha256((scene.root / "scene.json").read_bytes())
+    for f in scene.aerial:
+        h.update(fileio.sha256_file(f.path).encode())
+    return h.hexdigest()
+
+
+def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *,
+                  progress: bool = True) -> tuple[dict[str, np.ndarray], float]:
+    """Fit `prior_method` per scene and render every ground pose.
+
+    The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
+    `render_sequence`; renders are cached by (method, config, seed, scene content) hash under
+    `<cache>/reference/priors/`, each entry with the seconds producing it cost.
+
+    Returns:
+        ({"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame, the
+        original seconds of the work taken from caches: entries of this cache, and prior fits
+        resumed from their checkpoints).
+    """
+    from tqdm import tqdm
+
+    from reference.method import json_sha
+
+    out: dict[str, np.ndarray] = {}
+    cached_s = 0.0
+    ident = {"method": prior_method.name, "version": prior_method.version,
+             "config": prior_method.config_dict(), "seed": prior_method.seed}
+    for scene in tqdm(scenes, desc="priors", disable=None if progress else True, leave=False):
+        key = json_sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
+        path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                for f in scene.ground:
+                    out[frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
+                cached_s += float(z[_SECONDS]) if _SECONDS in z.files else 0.0  # older caches: unknown
+            continue
+        t0 = time.perf_counter()
+        before = prior_method.cached_s
+        prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
+        resumed = prior_method.cached_s - before  # a fit resumed from its checkpoint: its first run's time
+        cached_s += resumed
+        rendered: dict[str, np.ndarray] = {}
+        for seq in scene.sequences.values():
+            for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
+                rendered[frame.file] = fileio.to_uint8(np.asarray(img))
+        seconds = np.float64(resumed + time.perf_counter() - t0)  # what producing this entry cost
+        with fileio.atomic_path(path, suffix=".npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})
+        out.update({f"{scene.name}/{k}": v.astype(np.float32) / 255.0 for k, v in rendered.items()})
+    return out, cached_s
+
+
+def nearest_aerial(scene: Scene, frame: Frame) -> Frame:
+    """The aerial view whose camera centre is nearest the ground camera's (the ControlNet
+    baseline's condition)."""
+    centres = np.stack([a.c2w[:3, 3] for a in scene.aerial])  # [A, 3]
+    return scene.aerial[int(np.argmin(np.linalg.norm(centres - frame.c2w[:3, 3], axis=1)))]

@@ -416,3 +416,42 @@ def test_device_and_precision_resolution(monkeypatch):
         train.precision_for("cpu", "fp8", cuda=False, bf16=False)
     acc = train.make_accelerator("cpu", "auto")
     assert acc.device.type == "cpu" and acc.mixed_precision == "no"
+
+
+def test_coordinate_channels_locate_a_crop_in_the_frame():
+    """With `coords` the condition carries x, y in [-1, 1] over the whole frame (checked against
+    numpy's linspace), a crop of it carries the crop's own place, the model takes them as two
+    more input channels, and the residual uses the image channels only."""
+    from reference.common.diffusion.train import crops as _crops
+
+    cfg = core.replace_config(CONCAT, coords=True)
+    assert cfg.cond_channels == 5 and cfg.in_channels == 8
+    img = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    c = core.encode_cond(img, cfg)
+    assert c.shape == (2, 5, 16, 16)
+    torch.testing.assert_close(c[:, :3], img * 2 - 1)
+    lin = np.linspace(-1, 1, 16)
+    np.testing.assert_allclose(c[1, 3].numpy(), np.tile(lin, (16, 1)), atol=1e-6)  # x varies along columns
+    np.testing.assert_allclose(c[1, 4].numpy(), np.tile(lin[:, None], (1, 16)), atol=1e-6)
+    (crop,) = _crops(torch.Generator().manual_seed(3), 8, c)
+    for i in range(2):  # each crop's coordinates name the window it was cut from
+        x0 = int(np.argmin(np.abs(lin - float(crop[i, 3, 0, 0]))))
+        y0 = int(np.argmin(np.abs(lin - float(crop[i, 4, 0, 0]))))
+        torch.testing.assert_close(crop[i], c[i, :, y0:y0 + 8, x0:x0 + 8])
+    assert core.sample_shape(tuple(c.shape), cfg) == (2, 3, 16, 16)
+    x0 = torch.rand(2, 3, 16, 16) * 2 - 1
+    z = core.to_diffused(x0, c, cfg)
+    torch.testing.assert_close(z, (x0 - c[:, :3]) * 2.0)
+    torch.testing.assert_close(core.from_diffused(z, c, cfg), x0)
+    m = core.build_model(cfg, control=True, seed=0).eval()
+    assert m.unet.conv_in.in_channels == 8
+    t = torch.full((2,), 500)
+    with torch.no_grad():
+        a = m(z, t, c)
+        flipped = c.clone()
+        flipped[:, 3:] = -flipped[:, 3:]
+        assert (a - m(z, t, flipped)).abs().max() > 1e-4  # the coordinates reach the output
+    with pytest.raises(AssertionError, match="cond_channels"):
+        m(z, t, c[:, :3])
+    with pytest.raises(ValueError, match="coordinate"):
+        core.replace_config(TINY, coords=True)

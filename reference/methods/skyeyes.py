@@ -102,10 +102,12 @@ PRESETS: dict[str, SkyeyesConfig] = {
     # CPU default (SynthTown small, 128x128 folded to 64x64x12: at 128 the fold is what keeps
     # a step near the 64x64 cost).
     # NOTE: measured here (2 shared cores, load ~4): a training step at batch 12 cost 8.0 CPU-s
-    # on whole 64x64x12 frames and 0.66 CPU-s on 32x32 crops, so `small` trains on crops.
+    # on whole 64x64x12 frames and 0.66 CPU-s on 32x32 crops, so `small` trains on crops, with
+    # coordinate channels: without them its whole-frame samples were a collage of crops.
     "small": SkyeyesConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
-                        head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0),
+                        head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0,
+                        coords=True),
         prior_preset="small", base_steps=0, acm_steps=3000, acm_batch=16, acm_lr=1e-3, train_crop=32,
         vcm_steps=300, vcm_batch=1, sample_steps=10, ckpt_every=100, ema_decay=0.995, snr_gamma=5.0),
     # NOTE: Skyeyes Sec. 4.2: 512x512, ACM 30k iterations at batch 32, VCM 3k iterations at

@@ -234,10 +234,3 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         for h in handlers:
             lg.removeHandler(h)
             h.close()
-
-
-def main(args) -> int:
-    run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
-        force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
-        pretrained=args.pretrained)
-    return 0

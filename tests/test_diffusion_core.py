@@ -16,12 +16,7 @@ TINY = core.CoreConfig(resolution=16, channels=(16, 32), attention=(False, True)
 TINY_V = core.replace_config(TINY, prediction="v_prediction")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest: tiny tensors, one thread
 
 
 def _alpha_bar(cfg=TINY) -> np.ndarray:

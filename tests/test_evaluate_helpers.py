@@ -103,7 +103,7 @@ def _texture(rng, h, w):
 
 def make_dataset(root: Path, *, protocol="evaltest@1", name="evaltiny", scenes=2, seqs=2, frames=16,
                  size=32, seed=0) -> Path:
-    from skyeyes_bench.data.layout import DatasetWriter
+    from skyeyes_bench.data.writer import DatasetWriter
 
     rng = np.random.default_rng(seed)
     intr = {"width": size, "height": size, "fx": size / 2, "fy": size / 2, "cx": size / 2, "cy": size / 2}

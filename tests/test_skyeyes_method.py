@@ -20,7 +20,8 @@ from reference.common.priors import nearest_aerial, render_priors  # noqa: E402
 from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM  # noqa: E402
 from reference.common.diffusion.core import CoreConfig  # noqa: E402
 from skyeyes_bench.cameras import Camera  # noqa: E402
-from skyeyes_bench.data.layout import DatasetWriter, open_dataset  # noqa: E402
+from skyeyes_bench.data.layout import open_dataset  # noqa: E402
+from skyeyes_bench.data.writer import DatasetWriter  # noqa: E402
 from skyeyes_bench.paths import cache_dir  # noqa: E402
 
 SIZE = 16
@@ -80,15 +81,7 @@ TINY = dataclasses.replace(
     sample_steps=4, ckpt_every=2, figure_frames=3)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: a second thread only adds synchronisation (and the cores are shared)."""
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest: tiny tensors, one thread
 
 
 @pytest.fixture(scope="module")

@@ -420,14 +420,3 @@ def open_dataset(root: str | os.PathLike, *, check_files: bool = True, check_pix
         raise ValidationError(f"dataset {root}", problems)
     assert ds is not None
     return ds
-
-
-def __getattr__(name: str):
-    # The writer lives in writer.py (it imports this module to validate what it wrote), so it
-    # cannot be imported here at the top; `from skyeyes_bench.data.layout import DatasetWriter`
-    # keeps working through this lazy lookup.
-    if name in ("DatasetWriter", "SceneWriter"):
-        from . import writer
-
-        return getattr(writer, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

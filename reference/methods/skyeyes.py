@@ -155,7 +155,7 @@ class Skyeyes(Method):
             # a ControlNet branch (the paper's ACM); its fine-tuning keeps both. Its ControlNet
             # takes pixels 8x the latent's size, so no training crops (they would not align).
             core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, prediction="epsilon",
-                                           conditioning="controlnet", residual=False)
+                                           conditioning="controlnet", residual=False, coords=False)
             config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0)
         if config.sample_strength < 1.0 and not config.core.residual:
             raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")

@@ -417,7 +417,7 @@ def test_coordinate_channels_locate_a_crop_in_the_frame():
     """With `coords` the condition carries x, y in [-1, 1] over the whole frame (checked against
     numpy's linspace), a crop of it carries the crop's own place, the model takes them as two
     more input channels, and the residual uses the image channels only."""
-    from reference.common.diffusion.train import crops as _crops
+    from reference.common.diffusion.train import crops
 
     cfg = core.replace_config(CONCAT, coords=True)
     assert cfg.cond_channels == 5 and cfg.in_channels == 8
@@ -428,7 +428,7 @@ def test_coordinate_channels_locate_a_crop_in_the_frame():
     lin = np.linspace(-1, 1, 16)
     np.testing.assert_allclose(c[1, 3].numpy(), np.tile(lin, (16, 1)), atol=1e-6)  # x varies along columns
     np.testing.assert_allclose(c[1, 4].numpy(), np.tile(lin[:, None], (1, 16)), atol=1e-6)
-    (crop,) = _crops(torch.Generator().manual_seed(3), 8, c)
+    (crop,) = crops(torch.Generator().manual_seed(3), 8, c)
     for i in range(2):  # each crop's coordinates name the window it was cut from
         x0 = int(np.argmin(np.abs(lin - float(crop[i, 3, 0, 0]))))
         y0 = int(np.argmin(np.abs(lin - float(crop[i, 4, 0, 0]))))

@@ -116,7 +116,7 @@ def main() -> None:
     if args.child:
         child(*args.child)
         return
-    from test_evaluate_helpers import blurred_submission, make_dataset
+    from builders.evaluation import blurred_submission, make_dataset
 
     from skyeyes_bench.data.layout import open_dataset
 

@@ -1,6 +1,5 @@
 import io
 import os
-import sys
 from pathlib import Path
 
 import pytest

@@ -11,12 +11,12 @@ import pytest
 import scipy.linalg
 from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.errors import UserError
-from skyeyes_bench.evaluate import evaluate, features_path, merge, read_results
+from skyeyes_bench.evaluate import evaluate, features_path, read_results
 from skyeyes_bench.submission import expected_frames, write_template
 
 

@@ -24,7 +24,7 @@ def _render_all(m, ds):
 
 @pytest.mark.slow
 def test_smoke_preset_with_stand_in_prior(synthtown_smoke, tmp_path):
-    from test_skyeyes_method import StandInPrior
+    from builders.skyeyes import StandInPrior
 
     ds = open_dataset(synthtown_smoke)
     runs = {}

@@ -4,7 +4,6 @@ import json
 import re
 
 import pytest
-import torch
 
 from conftest import run_cli
 from reference.methods.gaussians3d import PRESETS

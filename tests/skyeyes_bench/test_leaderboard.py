@@ -7,12 +7,11 @@ import shutil
 from pathlib import Path
 
 import pytest
-from conftest import run_cli
-from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
+from conftest import ROOT, run_cli
+from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
 from skyeyes_bench import leaderboard
 
-ROOT = Path(__file__).resolve().parent.parent
 PAPER = Path("/work/shared/paper/skyeyes-wacv2025.tex")
 
 

@@ -2,7 +2,6 @@
 
 import filecmp
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """I3D port (layout, TF SAME padding, BatchNorm, flax conversion, safe unpickling), LPIPS internals
 with random weights against a direct computation, and the test-only extractors."""
 
-import io
 import math
 import pickle
 

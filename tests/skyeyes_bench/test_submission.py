@@ -10,7 +10,7 @@ import zlib
 import numpy as np
 import pytest
 from conftest import run_cli
-from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import open_dataset

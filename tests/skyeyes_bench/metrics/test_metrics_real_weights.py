@@ -213,7 +213,7 @@ def test_lpips_alex_natural_images():
 def test_evaluate_reports_lpips_ok(tmp_path, monkeypatch):
     """With the weights fetched, `evaluate` scores LPIPS (no longer 'unavailable') and names the
     extractor's combined heads + backbone sha256 in the results."""
-    from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
+    from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import evaluate

@@ -14,63 +14,13 @@ import pytest
 
 pytest.importorskip("diffusers")
 
-from reference.method import Method  # noqa: E402
+from builders.skyeyes import SIZE, StandInPrior, make_tiny_dataset  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
 from reference.common.priors import nearest_aerial, render_priors  # noqa: E402
 from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM  # noqa: E402
 from reference.common.diffusion.core import CoreConfig  # noqa: E402
-from skyeyes_bench.cameras import Camera  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
-from skyeyes_bench.data.writer import DatasetWriter  # noqa: E402
 from skyeyes_bench.paths import cache_dir  # noqa: E402
-
-SIZE = 16
-
-
-def make_tiny_dataset(root: Path, frames: int = 6, seqs: int = 2) -> Path:
-    """Two lanes (train, test), smooth images that drift along each sequence."""
-    rng = np.random.default_rng(0)
-    intr = {"width": SIZE, "height": SIZE, "fx": SIZE / 2, "fy": SIZE / 2, "cx": SIZE / 2, "cy": SIZE / 2}
-    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
-    with DatasetWriter(root, name="tiny", protocol="synthtown@1") as w:
-        for sname in ["train-0-lane00", "test-0-lane00"]:
-            s = w.scene(sname, {"ground": intr, "aerial": intr})
-            for a in range(3):
-                cam = Camera.from_ypr([a * 4.0, 0, 52], 0, -45, fov_deg=90, width=SIZE, height=SIZE)
-                s.add_aerial(rng.random((SIZE, SIZE, 3)).astype(np.float32), cam.c2w)
-            for k in range(seqs):
-                for i in range(frames):
-                    cam = Camera.from_ypr([i * 2.0, 0, 2], 45 * k, 0, fov_deg=90, width=SIZE, height=SIZE)
-                    img = np.stack([(xx + 0.1 * i) % 1, yy, np.full_like(xx, 0.3 * k + 0.1)], -1)
-                    s.add_ground(img.astype(np.float32), cam.c2w, sequence=f"yaw{45 * k:03d}", index=i)
-            s.close()
-        w.finish(splits={"train": ["train-0-lane00"], "test": ["test-0-lane00"]})
-    return root
-
-
-class StandInPrior(Method):
-    """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised. Counts its calls."""
-
-    name = "stand-in-prior"
-    presets = {"default": {}}
-
-    def __init__(self, workdir: Path, seed: int = 0):
-        super().__init__({}, workdir, seed=seed)
-        self.fitted: list[str] = []
-
-    def config_dict(self) -> dict:
-        return {"blur": 3, "noise": 0.1}
-
-    def fit_scene(self, scene, *, progress=None):
-        self.fitted.append(scene.name)
-
-    def render_sequence(self, scene, sequence):
-        from scipy.ndimage import uniform_filter
-
-        rng = np.random.default_rng(len(sequence.name))
-        for f in sequence.frames:
-            img = uniform_filter(f.image(), size=(3, 3, 1))
-            yield np.clip(img + rng.normal(0, 0.1, img.shape), 0, 1).astype(np.float32)
 
 
 TINY = dataclasses.replace(

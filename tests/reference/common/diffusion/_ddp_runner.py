@@ -1,8 +1,8 @@
-"""Run by tests/test_diffusion_parallel.py under `accelerate launch` (2 CPU processes, gloo), or
+"""Run by test_diffusion_parallel.py (next to this file) under `accelerate launch` (2 CPU processes, gloo), or
 directly (one process): a few training steps of a tiny concat-conditioned denoiser on a global
 batch, then the main process writes the weights to OUT.
 
-    python tests/_ddp_runner.py OUT BATCH CKPT_DIR
+    python tests/reference/common/diffusion/_ddp_runner.py OUT BATCH CKPT_DIR
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ from scipy import ndimage
 from skyeyes_bench.cameras import Camera
 from skyeyes_bench.data.synthtown import town as tw
 from skyeyes_bench.data.synthtown.generate import get_preset, lane_cameras
-from skyeyes_bench.data.synthtown.render import SKY, Scene, render, shade_rays, srgb_encode
+from skyeyes_bench.data.synthtown.render import SKY, Scene, render, shade_rays
 from skyeyes_bench.data.synthtown.trace import ground_hit, trace_brute
 
 

@@ -13,10 +13,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
-from test_evaluate_helpers import TEST_PROTOCOL, blurred_submission, make_dataset
-from test_importers import make_carla, make_matrixcity
+from builders.captures import make_carla, make_matrixcity
+from builders.evaluation import TEST_PROTOCOL, blurred_submission, make_dataset
+from conftest import ROOT
 
 HERE = Path(__file__).resolve().parent
 MEMORY = 6 << 30  # the address space torch's import needs, plus room; an unbounded set is not
@@ -40,7 +40,7 @@ def world(tmp_path_factory):
     partials of two submissions with byte-identical submission.json, CARLA and MatrixCity captures."""
     base = tmp_path_factory.mktemp("world")
     env = {**os.environ, "SKYEYES_PROTOCOLS": str(base / "protocols"), "SKYEYES_CACHE": str(base / "cache")}
-    shutil.copytree(HERE.parent / "protocols", base / "protocols")
+    shutil.copytree(ROOT / "protocols", base / "protocols")
     (base / "protocols" / "evaltest").mkdir()
     (base / "protocols" / "evaltest" / "v1.toml").write_text(TEST_PROTOCOL)
     mp = pytest.MonkeyPatch()

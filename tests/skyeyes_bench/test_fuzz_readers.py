@@ -14,8 +14,8 @@ import pytest
 from conftest import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_evaluate_helpers import blurred_submission, install_test_protocol, make_dataset
-from test_importers import make_carla
+from builders.captures import make_carla
+from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
 EXAMPLES = 40  # per reader; the default tier stays fast (about 1 s per reader here)
 

@@ -17,7 +17,6 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 
 from reference.methods import get_method_class
 from reference.reproduce import run

@@ -21,7 +21,7 @@ from reference.common.diffusion import core  # noqa: E402
 from reference.methods.skyeyes import PRESETS, Skyeyes  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 from skyeyes_bench.errors import UserError  # noqa: E402
-from test_skyeyes_method import SIZE, StandInPrior, make_tiny_dataset  # noqa: E402
+from builders.skyeyes import SIZE, StandInPrior, make_tiny_dataset  # noqa: E402
 
 RES = 32  # model input: the SD VAE downsamples 8x, so latents are 4x4
 

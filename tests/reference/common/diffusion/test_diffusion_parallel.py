@@ -15,8 +15,9 @@ pytest.importorskip("accelerate")
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _ddp_runner  # noqa: E402
+from conftest import ROOT  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+RUNNER = Path(__file__).resolve().parent / "_ddp_runner.py"
 
 
 def _launch(tmp: Path, batch: int) -> dict:
@@ -26,7 +27,7 @@ def _launch(tmp: Path, batch: int) -> dict:
     # processes run on the CPU with the gloo backend (MULTI_CPU).
     cmd = [sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2",
            "--num_machines", "1", "--mixed_precision", "no", "--dynamo_backend", "no",
-           "--main_process_port", "29517", str(ROOT / "tests" / "_ddp_runner.py"), str(out), str(batch),
+           "--main_process_port", "29517", str(RUNNER), str(out), str(batch),
            str(tmp / "ckpt")]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]

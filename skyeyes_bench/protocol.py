@@ -23,6 +23,10 @@ from .paths import protocols_dir
 _VERSION_FILE = re.compile(r"^v([1-9]\d*)\.toml$")  # v1.toml, v2.toml ... (no v01)
 _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 
+#: Resampling units `[statistics] cluster` may name: a scene (one lane: its sequences share one
+#: fitted model, so they are not independent) or, as synthtown@1 does, a sequence.
+CLUSTER_UNITS = ("scene", "sequence")
+
 #: Metric names a protocol may ask for, and the settings each one accepts (from `metricspec`).
 METRIC_KEYS: dict[str, frozenset[str]] = {name: m.keys for name, m in METRICS.items()}
 
@@ -70,7 +74,7 @@ class StatsSpec:
     bootstrap_resamples: int
     interval: float  # e.g. 0.95
     seed: int
-    cluster: str  # resampling unit: "sequence"
+    cluster: str  # resampling unit: "scene" (one lane, all its sequences) or "sequence" (v1 protocols)
     emcee_walkers: int
     emcee_steps: int
     emcee_burn: int
@@ -206,6 +210,9 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     for key in ("bootstrap_resamples", "emcee_walkers", "emcee_steps"):
         if getattr(stats, key) < 1:
             raise UserError(f"{file}: key 'statistics.{key}' must be >= 1, got {getattr(stats, key)}")
+    if stats.cluster not in CLUSTER_UNITS:
+        raise UserError(f"{file}: key 'statistics.cluster' must be one of {', '.join(map(repr, CLUSTER_UNITS))}, "
+                        f"got {stats.cluster!r}")
     if not 0 <= stats.emcee_burn < stats.emcee_steps:
         raise UserError(f"{file}: key 'statistics.emcee_burn' must lie in [0, emcee_steps), got {stats.emcee_burn}")
     data = sections["data"]

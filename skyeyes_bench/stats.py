@@ -59,6 +59,54 @@ def percentile_interval(samples: np.ndarray, level: float) -> tuple[float, float
     return float(lo), float(hi)
 
 
+def subsample_counts(n_clusters: int, resamples: int, seed: int, m: int | None = None) -> np.ndarray:
+    """Cluster subsamples without replacement: float64 0/1 [R, K], m = K // 2 ones per row.
+
+    Depends only on (n_clusters, resamples, seed, m), like `resample_indices`."""
+    assert n_clusters >= 2 and resamples >= 1
+    m = n_clusters // 2 if m is None else m
+    assert 1 <= m < n_clusters
+    rng = np.random.default_rng([seed, n_clusters, 1])  # a stream of its own, not the bootstrap's
+    ranks = np.argsort(rng.random((resamples, n_clusters)), axis=1)
+    return (ranks < m).astype(np.float64)
+
+
+def basic_interval(estimate: float, samples: np.ndarray, level: float) -> tuple[float, float]:
+    """Basic (reflected) bootstrap interval: 2 est - q_hi, 2 est - q_lo."""
+    lo, hi = percentile_interval(samples, level)
+    return 2 * estimate - hi, 2 * estimate - lo
+
+
+def bca_interval(estimate: float, samples: np.ndarray, jackknife: np.ndarray, level: float) -> tuple[float, float]:
+    """Bias-corrected and accelerated interval (Efron 1987) from bootstrap samples [R] and
+    leave-one-cluster-out values [K] (acceleration). The bias correction is clipped so that a
+    point estimate below every replicate still gives a finite interval."""
+    from scipy.stats import norm
+
+    s = np.asarray(samples, np.float64)
+    r = len(s)
+    p = (np.sum(s < estimate) + 0.5 * np.sum(s == estimate)) / r
+    z0 = norm.ppf(min(max(p, 0.5 / r), 1 - 0.5 / r))
+    j = np.asarray(jackknife, np.float64)
+    dev = j.mean() - j
+    den = 6.0 * np.sum(dev**2) ** 1.5
+    acc = float(np.sum(dev**3) / den) if den > 0 else 0.0
+    a = (1.0 - level) / 2.0
+    qs = []
+    for z in (norm.ppf(a), norm.ppf(1 - a)):
+        qs.append(float(norm.cdf(z0 + (z0 + z) / (1 - acc * (z0 + z)))))
+    lo, hi = np.quantile(np.sort(s), qs, method="inverted_cdf")
+    return float(lo), float(hi)
+
+
+def subsample_interval(estimate: float, samples: np.ndarray, level: float, scale: float) -> tuple[float, float]:
+    """Subsampling interval (Politis & Romano 1994) from subsample values [R]: the law of
+    scale * (theta_m - est) stands in for that of (est - theta):
+    [est - scale (q_hi - est), est - scale (q_lo - est)]."""
+    lo, hi = percentile_interval(samples, level)
+    return estimate - scale * (hi - estimate), estimate - scale * (lo - estimate)
+
+
 def frame_metric_samples(values: np.ndarray, clusters: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Mean of per-frame values over each resample's frames.
 

@@ -57,6 +57,8 @@ def _write_variant(protos: Path, old: str, new: str) -> Path:
         ("interval = 0.95\n", "interval = 1.5\n", "key 'statistics.interval' must lie in (0, 1)"),
         ("emcee_burn = 1000\n", "emcee_burn = 5000\n", "key 'statistics.emcee_burn'"),
         ('extractor = "lpips-alex-v0.1"\n', "", "missing key 'metrics.lpips.extractor'"),
+        ('cluster = "sequence"\n', 'cluster = "lane"\n',
+         "key 'statistics.cluster' must be one of 'scene', 'sequence', got 'lane'"),
     ],
 )
 def test_bad_protocol_names_file_and_key(protos, old, new, expect):
@@ -139,7 +141,7 @@ def test_sha256_stable_under_reformatting_changed_by_values(protos):
     assert load_protocol_file(f).sha256 == base
     # Any value change: a different hash.
     for old, new in [("seed   =   0", "seed = 1"), ("fov_deg   =   90.0", "fov_deg = 90.5"),
-                     ("k2   =   0.03", "k2 = 0.031"), ('cluster   =   "sequence"', 'cluster = "frame"')]:
+                     ("k2   =   0.03", "k2 = 0.031"), ('cluster   =   "sequence"', 'cluster = "scene"')]:
         f.write_text(_edit(spaced, old, new))
         assert load_protocol_file(f).sha256 != base, new
         assert load_protocol_file(f).sha256 == _independent_sha(f)

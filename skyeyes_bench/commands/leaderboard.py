@@ -1,4 +1,5 @@
-"""`skyeyes-bench leaderboard [--check]`: regenerate (or verify) the leaderboard files."""
+"""`skyeyes-bench leaderboard [--check]`: regenerate (or verify) the leaderboard files;
+`skyeyes-bench leaderboard add RESULTS.json [--name NAME] [--force]`: file a result."""
 
 from __future__ import annotations
 
@@ -7,22 +8,36 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("leaderboard", help="regenerate leaderboard/README.md, index.html and plots",
-                       description="Regenerate leaderboard/README.md, leaderboard/index.html and "
-                       "leaderboard/plots/*.png from leaderboard/results/*.json (measured) and "
-                       "leaderboard/reported/*.toml (numbers from papers, never ranked with measured rows). "
-                       "With --check, write nothing and exit 1 if the files on disk are stale.")
+    p = sub.add_parser("leaderboard", help="regenerate leaderboard/README.md, index.html, plots and strips; "
+                       "`leaderboard add` files a result",
+                       description="Regenerate leaderboard/README.md, leaderboard/index.html, "
+                       "leaderboard/plots/*.png and leaderboard/strips/*.png from leaderboard/results/*.json "
+                       "(measured), leaderboard/frames/ (strip frames) and leaderboard/reported/*.toml (numbers "
+                       "from papers, never ranked with measured rows). With --check, write nothing and exit 1 "
+                       "if the files on disk are stale. `leaderboard add RESULTS.json` files a result first.")
     p.add_argument("--root", metavar="DIR", help="leaderboard folder (default: leaderboard/ of this checkout)")
     p.add_argument("--check", action="store_true", help="exit 1 if the files differ from what the inputs generate")
+    # dest is not "action": the CLI treats a group whose "action" is None as "print its help"
+    acts = p.add_subparsers(dest="lb_action", metavar="ACTION", parser_class=type(p))
+    a = acts.add_parser("add", help="check a results file and file it as leaderboard/results/<name>.json",
+                        description="Check RESULTS.json (complete results of a known protocol with the "
+                        "submission's run time) and file it as <root>/results/<name>.json; save the strip frames "
+                        "(fixed test frames of the submission and, once per protocol and dataset, the ground "
+                        "truth) into <root>/frames/<protocol>_<dataset digest>/ when they are on this machine. "
+                        "Then run `skyeyes-bench leaderboard` to regenerate the page.")
+    a.add_argument("results", metavar="RESULTS.json", help="a results file written by `evaluate` or `merge`")
+    a.add_argument("--name", help="name to file it under (default: the submission's method name)")
+    a.add_argument("--root", dest="add_root", metavar="DIR", help="leaderboard folder (default: leaderboard/)")
+    a.add_argument("--force", action="store_true", help="replace a result already filed under that name")
     p.set_defaults(run=run)
 
 
-def _root(args) -> Path:
+def _root(arg) -> Path:
     from .. import paths
     from ..errors import UserError
 
-    if args.root:
-        return Path(args.root)
+    if arg:
+        return Path(arg)
     repo = paths.repo_root()
     if repo is None:
         raise UserError("not in a source checkout: pass --root DIR (the leaderboard folder)")
@@ -32,7 +47,13 @@ def _root(args) -> Path:
 def run(args) -> int:
     from .. import leaderboard
 
-    root = _root(args)
+    if getattr(args, "lb_action", None) == "add":
+        root = _root(args.add_root or args.root)
+        for line in leaderboard.add_result(args.results, root=root, name=args.name, force=args.force):
+            print(line)
+        print("run `skyeyes-bench leaderboard` to regenerate the page")
+        return 0
+    root = _root(args.root)
     if args.check:
         stale = leaderboard.check(root)
         if stale:

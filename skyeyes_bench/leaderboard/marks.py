@@ -3,15 +3,15 @@
 Every measured table's rows share a protocol (id, version, sha256), extractor weights and ground
 truth (`tables.measured_tables` groups them so), so two rows can be paired. Rules, in order:
 
-1. **Paired bootstrap replicates** (every metric, set metrics included): each results file
-   carries `metrics[m]["replicates"]`, R values of the metric under bootstrap resamples whose
-   indices depend only on (seed, resamples, number of clusters). For two results with the same
+1. A metric whose interval is null in either row (too few scenes) is never credibly best.
+2. **Paired bootstrap replicates** (every metric, set metrics included): each results file
+   carries `metrics[m]["replicates"]`, R values of the metric under resamples whose indices
+   depend only on (seed, resamples, number of clusters). For two results with the same
    statistics, replicate r of A and replicate r of B used the same resample, so the paired
-   bootstrap of the difference is `advantage(A_r, B_r)` (> 0: A better). The best is credibly
-   best when the percentile interval (the results' level) of that difference excludes 0.
-2. Without replicates: per-frame metrics by a paired bootstrap of per-sequence differences
+   replicates of the difference are `advantage(A_r, B_r)` (> 0: A better). The best is credibly
+   best when their interval (the results' level and interval method) excludes 0.
+3. Without replicates: per-frame metrics by a paired bootstrap of per-sequence differences
    (`stats.advantage_interval`); set metrics by non-overlapping intervals (conservative).
-3. A metric whose interval is null (too few scenes) is never credibly best.
 
 A best that is not credibly best gets the dagger.
 """
@@ -42,21 +42,36 @@ def _replicate_array(reps) -> np.ndarray | None:
     return np.array([math.nan if v is None else float(v) for v in reps], dtype=np.float64)
 
 
+#: Statistics that must agree for replicate r of two results to come from the same resample.
+_PAIRING_KEYS = ("resamples", "seed", "interval", "cluster", "clusters")
+
+
 def paired_replicates(a: Row, b: Row, metric: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The two rows' replicates of `metric` if they can be paired (same resamples, seed and
-    length), else None."""
+    """The two rows' replicates of `metric` if they can be paired (same resampling: resamples,
+    seed, interval method, cluster unit and count; same length), else None."""
     ra, rb = _replicate_array(a.replicates.get(metric)), _replicate_array(b.replicates.get(metric))
     if ra is None or rb is None or len(ra) != len(rb):
         return None
-    if any(a.statistics.get(k) != b.statistics.get(k) for k in ("resamples", "seed")):
+    if any(a.statistics.get(k) != b.statistics.get(k) for k in _PAIRING_KEYS):
         return None
     return ra, rb
 
 
-def replicate_interval(ra: np.ndarray, rb: np.ndarray, metric: str, level: float) -> tuple[float, float] | None:
-    """Percentile interval of the paired replicate advantage of A over B (> 0: A better);
-    replicates undefined in either are dropped; None when none is left."""
+def replicate_interval(ra: np.ndarray, rb: np.ndarray, metric: str, level: float, *,
+                       estimate: float | None = None, statistics: dict | None = None) -> tuple[float, float] | None:
+    """Interval of the paired replicate advantage of A over B (> 0: A better), from the replicate
+    differences advantage(A_r, B_r) [R] (undefined ones dropped); None when none is left.
+
+    Bootstrap replicates: their percentile interval. Half-sampling replicates (results'
+    `statistics.interval` "half-sampling"): `stats.interval_from_replicates`, which rescales
+    half-sample spread to the full sample around `estimate` (the advantage of the two values),
+    exactly as `evaluate` and `compare` make their intervals."""
     d = stats.advantage(ra, rb, metric)  # [R]
+    st = statistics or {}
+    half = getattr(stats, "interval_from_replicates", None)
+    if st.get("interval") == "half-sampling" and half is not None and estimate is not None and st.get("clusters"):
+        iv = half(estimate, d, level, int(st["clusters"]))
+        return None if iv is None else (iv[0], iv[1])
     d = d[~np.isnan(d)]
     return stats.percentile_interval(d, level) if len(d) else None
 
@@ -68,12 +83,13 @@ def _level(a: Row) -> float:
 
 def _credible(a: Row, b: Row, m: str) -> tuple[bool, str]:
     """Is row a (the best on m) credibly better than row b (the runner-up)? And by which rule."""
+    if m in a.no_interval or m in b.no_interval:  # too few scenes: no interval means no claim either
+        return False, RULE_NO_INTERVAL
     pair = paired_replicates(a, b, m)
     if pair is not None:
-        iv = replicate_interval(*pair, m, _level(a))
+        est = float(stats.advantage(np.array([a.values[m]]), np.array([b.values[m]]), m)[0])
+        iv = replicate_interval(*pair, m, _level(a), estimate=est, statistics=a.statistics)
         return iv is not None and iv[0] > 0, RULE_REPLICATES
-    if m in a.no_interval or m in b.no_interval:
-        return False, RULE_NO_INTERVAL
     if METRICS[m].kind == "frame":
         seqs = sorted(a.sequences)
         va = np.array([a.sequences[s].get(m, math.nan) for s in seqs], dtype=np.float64)

@@ -120,7 +120,8 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
         if note:
             out += [note, ""]
     if unmeasured:
-        out += ["No measured rows yet for protocol: " + ", ".join(f"`{p}`" for p in unmeasured) + " (any version). File a results file "
+        out += ["No measured rows yet for protocol: " + ", ".join(f"`{p}`" for p in unmeasured) +
+                " (any version). File a results file "
                 "with `skyeyes-bench leaderboard add RESULTS.json`, then run `skyeyes-bench leaderboard`.", ""]
     out += ["## Reported in papers (not measured here, not ranked with measured rows)", ""]
     for t in reported:
@@ -193,11 +194,13 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
            "Reported rows are copied from papers and never ranked with measured rows.</p>",
            f"<p class=note>{_md_code(_INTRO)}</p>", "<h2>Measured</h2>"]
     for t in measured:
-        out += [f'<h3 id="{e(t.file_key)}">{e(t.title)}</h3>', f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>",
+        out += [f'<h3 id="{e(t.file_key)}">{e(t.title)}</h3>',
+                f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>",
                 '<table class="sortable measured"><thead><tr>']
         out.append("".join(f"<th>{e(h)}</th>" for h in _measured_head(t)) + "</tr></thead><tbody>")
         for i, r in enumerate(t.rows):
-            cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>', f'<td data-v="{e(r.version)}">{e(r.version)}</td>']
+            cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>',
+                     f'<td data-v="{e(r.version)}">{e(r.version)}</td>']
             for m in t.metrics:
                 best = i in t.best.get(m, [])
                 mark = f" {DAGGER}" if best and m in t.not_credible else ""
@@ -211,7 +214,8 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
         out += [f"<p class=note>{_md_code(f)}</p>" for f in _footnotes(t)]
         plots = [f'<img src="{e(plot_name(t, m))}" alt="{e(t.key)}: {e(LABEL[m])} against run time">'
                  for m in plot_metrics(t)]
-        out.append(f'<div class="plots">{"".join(plots)}</div>' if plots else "<p>No plot: no row records a run time.</p>")
+        out.append(f'<div class="plots">{"".join(plots)}</div>' if plots else
+                   "<p>No plot: no row records a run time.</p>")
         strip, note = _strip_notes(root, t, files)
         if strip:
             out.append(f'<p><img class="strip" src="{e(strip)}" alt="{e(t.key)}: the same test frames, ground truth '
@@ -220,18 +224,21 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
             out.append(f"<p class=note>{_md_code(note)}</p>")
     if unmeasured:
         out.append("<p>No measured rows yet for protocol: " + ", ".join(f"<code>{e(p)}</code>" for p in unmeasured) +
-                   " (any version). File a results file with <code>skyeyes-bench leaderboard add RESULTS.json</code>.</p>")
+                   " (any version). File a results file with "
+                   "<code>skyeyes-bench leaderboard add RESULTS.json</code>.</p>")
     out.append("<h2>Reported in papers (not measured here, not ranked with measured rows)</h2>")
     for t in reported:
         out += [f"<h3 class=reported>{e(t.title)} ({e(t.protocol)})</h3>",
-                f"<p class=note>Source: {e(t.citation)}<br>{e(t.note)}</p>", '<table class="sortable reported"><thead><tr>']
+                f"<p class=note>Source: {e(t.citation)}<br>{e(t.note)}</p>",
+                '<table class="sortable reported"><thead><tr>']
         head = ["Method", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Reference"]
         out.append("".join(f"<th>{e(h)}</th>" for h in head) + "</tr></thead><tbody>")
         for i, r in enumerate(t.rows):
             cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>']
             for m in t.metrics:
                 cls = ' class="best"' if i in t.best.get(m, []) else ""
-                cells.append(f'<td{cls} data-v="{_sort_value(r.values.get(m))}">{fmt(m, r.values.get(m), t.decimals)}</td>')
+                v = r.values.get(m)
+                cells.append(f'<td{cls} data-v="{_sort_value(v)}">{fmt(m, v, t.decimals)}</td>')
             cells.append(f'<td data-v="{e(r.reference)}">{e(r.reference)}</td>')
             out.append("<tr>" + "".join(cells) + "</tr>")
         out.append("</tbody></table>")

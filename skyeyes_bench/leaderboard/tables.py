@@ -113,7 +113,7 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
         if isinstance(iv, (list, tuple)) and len(iv) == 2 and all(_number(x) is not None for x in iv):
             row.intervals[m] = (float(iv[0]), float(iv[1]))
         else:
-            row.no_interval[m] = str(md.get("interval_reason") or md.get("reason") or NO_INTERVAL)
+            row.no_interval[m] = str(md.get("interval_note") or md.get("interval_reason") or NO_INTERVAL)
         if isinstance(md.get("replicates"), list):
             row.replicates[m] = md["replicates"]
     return row

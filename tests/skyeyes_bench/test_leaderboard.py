@@ -1,9 +1,13 @@
-"""Leaderboard: reported tables equal the paper's, measured tables rank with marks, the output
-is deterministic and `--check` catches stale files."""
+"""Leaderboard: reported tables equal the paper's; `leaderboard add` files checked results with
+strip frames; measured tables rank with marks (paired replicates, else the fallback); plots
+carry the Pareto front; strips have one tile per frame; the output is deterministic and
+`--check` catches stale files."""
 
 import json
 import re
 import shutil
+
+import numpy as np
 from pathlib import Path
 
 import pytest
@@ -11,6 +15,7 @@ from conftest import ROOT, run_cli
 from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
 from skyeyes_bench import leaderboard
+from skyeyes_bench.leaderboard import marks, plots
 
 PAPER = Path("/work/shared/paper/skyeyes-wacv2025.tex")
 
@@ -49,7 +54,9 @@ def test_committed_leaderboard_is_up_to_date():
 
 @pytest.fixture(scope="module")
 def board(tmp_path_factory):
-    """A leaderboard folder with three measured results (two identical methods) + the reported tables."""
+    """Results of three methods (two identical) on a 3-scene, 6-sequence dataset (at least 5
+    clusters: intervals exist), filed with `leaderboard add` into a leaderboard folder that also
+    holds the reported tables."""
     mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("lb")
     try:
@@ -58,56 +65,259 @@ def board(tmp_path_factory):
         from skyeyes_bench.data.layout import open_dataset
         from skyeyes_bench.evaluate import evaluate
 
-        ds = open_dataset(make_dataset(tmp / "ds"))
+        ds = open_dataset(make_dataset(tmp / "ds", scenes=3, seqs=2))
         root = tmp / "leaderboard"
         shutil.copytree(ROOT / "leaderboard" / "reported", root / "reported")
         for name, sigma in (("sharp", 0.6), ("blurry", 1.5), ("blurry-twin", 1.5)):
             sub = blurred_submission(ds, tmp / name, sigma=sigma, method=name)
-            evaluate(sub, data=ds.root, out=root / "results" / f"{name}.json", progress=False)
+            evaluate(sub, data=ds.root, out=tmp / f"{name}.results.json", progress=False)
+            run_cli("leaderboard", "add", str(tmp / f"{name}.results.json"), "--root", str(root))
         yield root, mp
     finally:
         mp.undo()
 
 
-def test_generate_mark_and_check(board, monkeypatch):
+def _fresh(board, tmp_path, names=("blurry", "blurry-twin")) -> Path:
+    """A leaderboard folder with the reported tables and copies of some filed results, without
+    replicates (the fallback rules decide unless a test writes replicates itself)."""
+    root, _ = board
+    lb = tmp_path / "lb"
+    shutil.copytree(root / "reported", lb / "reported")
+    (lb / "results").mkdir()
+    for n in names:
+        d = json.loads((root / "results" / f"{n}.json").read_text())
+        for m in d["metrics"].values():
+            m.pop("replicates", None)
+        (lb / "results" / f"{n}.json").write_text(json.dumps(d))
+    return lb
+
+
+def test_generate_mark_and_check(board):
     root, mp = board
-    monkeypatch.setenv("SKYEYES_PROTOCOLS", str(root.parent / "protocols"))
     run_cli("leaderboard", "--root", str(root))
     md = (root / "README.md").read_text()
     sharp = next(ln for ln in md.splitlines() if ln.startswith("| sharp |"))
     # sharp is best on PSNR and SSIM, credibly (4 sequences, all better): bold, no dagger
     cells = sharp.split(" | ")
     assert cells[2].startswith("**") and cells[3].startswith("**") and "†" not in cells[2]
-    assert "evaltest@1 — measured" in md
+    assert "3.00 (1.00 + 2.00)" in sharp  # run time: fit 1 + render 2 as the submission reports
+    assert "evaltest@1 — measured" in md and "Marks decided by: PSNR, SSIM" in md
     # reported rows live in their own section, never in the measured table
     measured, reported = md.split("## Reported in papers")
     assert "Skyeyes" not in measured and "| Skyeyes | 54.73 | **32.22** |" in reported
+    assert "No measured rows yet for protocol: `carla-town04`, `citysample-region5`, `synthtown`" in measured
     html = (root / "index.html").read_text()
-    assert "<script>" in html and 'class="sortable"' in html and "http" not in html.replace("http-equiv", "")
-    assert (root / "plots" / "evaltest@1.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<script>" in html and 'class="sortable measured"' in html and "http" not in html.replace("http-equiv", "")
+    for m in ("psnr", "ssim", "fid", "kid", "fvd", "kvd"):  # lpips: unavailable without weights
+        assert (root / "plots" / f"evaltest@1-{m}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f'src="plots/evaltest@1-{m}.png"' in html and f"(plots/evaltest@1-{m}.png)" in md
+    assert 'src="strips/evaltest@1.png"' in html and "(strips/evaltest@1.png)" in md
     # deterministic: regenerating gives identical bytes; --check passes
     before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file() and "results" not in p.parts}
     run_cli("leaderboard", "--root", str(root))
     assert before == {p: p.read_bytes() for p in before}
     run_cli("leaderboard", "--root", str(root), "--check")
-    # a stale file or a stale plot makes --check exit 1
+    # a stale file, plot or strip makes --check exit 1
     (root / "README.md").write_text(md + "edited\n")
     (root / "plots" / "old.png").write_bytes(b"x")
+    (root / "strips" / "old.png").write_bytes(b"x")
     rc, out, err = run_cli("leaderboard", "--root", str(root), "--check", check=1)
     assert "README.md (differs)" in err and "plots/old.png (no longer generated)" in err
+    assert "strips/old.png (no longer generated)" in err
     (root / "README.md").write_text(md)
+    (root / "plots" / "old.png").unlink()
+    (root / "strips" / "old.png").unlink()
 
 
-def test_identical_methods_get_the_not_credible_mark(board, monkeypatch):
-    root, mp = board
-    monkeypatch.setenv("SKYEYES_PROTOCOLS", str(root.parent / "protocols"))
-    # drop the sharp one: the two blurry twins tie exactly -> both bold, no dagger; perturb one
-    # PSNR a hair so the best is unique but not credibly better than its twin -> dagger
-    lb = root.parent / "lb2"
-    shutil.copytree(root / "reported", lb / "reported")
-    (lb / "results").mkdir()
+def test_add_files_a_result_with_its_frames_and_refuses_overwrite(board, tmp_path):
+    root, _ = board
+    src = root.parent / "sharp.results.json"
+    filed = json.loads((root / "results" / "sharp.json").read_text())
+    original = json.loads(src.read_text())
+    assert filed.pop("leaderboard")["added_from"] == str(src.resolve())
+    assert filed == original  # filed unchanged apart from what `add` says it added
+    # frames: fewer scenes (3) than frames (4), so 4 evenly spaced of the 6 sequences (numbers 0, 1,
+    # 3, 4), each its middle frame (index 8 of 16)
+    (key,) = [p.name for p in (root / "frames").iterdir()]
+    assert key.startswith("evaltest@1_")
+    chosen = json.loads((root / "frames" / key / "frames.json").read_text())["frames"]
+    seqs = original["dataset"]["sequences"]
+    assert [(f["sequence"], f["index"]) for f in chosen] == [(seqs[q], 8) for q in (0, 1, 3, 4)]
+    for who in ("ground-truth", "sharp", "blurry", "blurry-twin"):
+        assert sorted(p.name for p in (root / "frames" / key / who).iterdir()) == [f"{j}.png" for j in range(4)]
+    gt = np.asarray(__import__("PIL.Image").Image.open(root / "frames" / key / "ground-truth" / "0.png"))
+    from skyeyes_bench import fileio
+
+    truth = fileio.read_image_uint8(Path(original["dataset"]["root"]) / chosen[0]["scene"] / chosen[0]["file"])
+    assert np.array_equal(gt, truth[..., :3])  # 32 px frames are small already: copied as they are
+    # a second add under the same name is refused in one line; --force replaces it
+    rc, out, err = run_cli("leaderboard", "add", str(src), "--root", str(root), check=2)
+    assert err.count("\n") == 1 and "already filed as 'sharp'" in err and "--force" in err
+    run_cli("leaderboard", "add", str(src), "--root", str(root), "--force")
+    # --name files it under another name; without the submission on the machine there are no frames
+    doc = dict(original, submission=dict(original["submission"], path=str(tmp_path / "gone")))
+    (tmp_path / "r.json").write_text(json.dumps(doc))
+    lb = _fresh(board, tmp_path, names=())
+    shutil.copytree(root / "frames", lb / "frames")
+    rc, out, err = run_cli("leaderboard", "add", str(tmp_path / "r.json"), "--root", str(lb), "--name", "elsewhere")
+    assert "no frames for elsewhere" in out and (lb / "results" / "elsewhere.json").is_file()
+    run_cli("leaderboard", "--root", str(lb))
+    assert "The strip has no frames for: sharp" in (lb / "README.md").read_text()  # the method name
+
+
+def _corrupt(doc, how):
+    if how == "not results":
+        return {"hello": 1}
+    if how == "partial":
+        doc["format"] = "skyeyes-bench/partial@1"
+    elif how == "sharded":
+        doc["shard"] = {"index": 0, "count": 2}
+    elif how == "unknown protocol":
+        doc["protocol"]["ref"] = "nosuch@1"
+    elif how == "no fit time":
+        del doc["submission"]["timings"]["fit_s"]
+    elif how == "no timings":
+        doc["submission"]["timings"] = None
+    elif how == "negative render time":
+        doc["submission"]["timings"]["render_s"] = -1
+    elif how == "bad replicates":
+        doc["metrics"]["psnr"]["replicates"] = "many"
+    elif how == "changed protocol":
+        doc["protocol"]["sha256"] = "0" * 64
+    return doc
+
+
+@pytest.mark.parametrize("how, field", [
+    ("not results", "'format'"), ("partial", "'format'"), ("sharded", "'shard'"),
+    ("unknown protocol", "'protocol.ref'"), ("no fit time", "'submission.timings.fit_s'"),
+    ("no timings", "'submission.timings.fit_s'"), ("negative render time", "'submission.timings.render_s'"),
+    ("bad replicates", "'metrics.psnr.replicates'"), ("changed protocol", "'protocol.sha256'"),
+    ("not json", None)])
+def test_add_refuses_a_bad_results_file_in_one_line(board, tmp_path, how, field):
+    root, _ = board
+    bad = tmp_path / "bad.json"
+    doc = json.loads((root.parent / "blurry.results.json").read_text())
+    bad.write_text("{ not json" if how == "not json" else json.dumps(_corrupt(doc, how)))
+    lb = _fresh(board, tmp_path, names=())
+    rc, out, err = run_cli("leaderboard", "add", str(bad), "--root", str(lb), check=2)
+    assert err.count("\n") == 1 and str(bad) in err, err
+    assert field is None or f"field {field}" in err, err
+    assert "partial" in err if how in ("partial", "sharded") else True
+    assert not list((lb / "results").iterdir()) and not (lb / "frames").exists()
+
+
+def test_choose_frames_is_evenly_spaced_and_from_the_dataset_only():
+    # 8 scenes x 2 sequences of 5 frames (listed shuffled): the first sequence of scenes 0, 2, 4, 6, frame 2
+    seqs = [f"s{i}/y{q}" for i in range(8) for q in range(2)]
+    recs = [{"scene": f"s{k // 2}", "file": f"g/{k}-{i}.png", "sequence": k, "index": i}
+            for k in range(16) for i in range(5)]
+    doc = {"dataset": {"sequences": seqs}, "frames": recs[::-1]}
+    got = leaderboard.choose_frames(doc)
+    assert [(f["sequence"], f["index"]) for f in got] == [("s0/y0", 2), ("s2/y0", 2), ("s4/y0", 2), ("s6/y0", 2)]
+    assert [f["tile"] for f in got] == ["0.png", "1.png", "2.png", "3.png"]
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("hib", [True, False])
+def test_pareto_front_equals_brute_force(seed, hib):
+    rng = np.random.default_rng(seed)
+    n = 12
+    xs = [float(v) for v in rng.integers(1, 6, n)]  # few distinct values: ties on both axes
+    ys = [float(v) for v in rng.integers(0, 5, n)]
+    better = (lambda a, b: a > b) if hib else (lambda a, b: a < b)
+    want = set()
+    for i in range(n):
+        beaten = False
+        for j in range(n):
+            no_worse = xs[j] <= xs[i] and (ys[j] == ys[i] or better(ys[j], ys[i]))
+            if no_worse and (xs[j], ys[j]) != (xs[i], ys[i]):
+                beaten = True
+        if not beaten:
+            want.add(i)
+    got = plots.pareto_front(xs, ys, hib)
+    assert set(got) == want and len(got) == len(want)
+    assert [xs[i] for i in got] == sorted(xs[i] for i in got)  # in run-time order, to connect
+
+
+def _with_replicates(lb, advantage, twin):
+    """Hand-made replicates (as `evaluate` writes them once the statistics change lands): blurry
+    better than its twin by `advantage` on PSNR (higher is better) and FID (lower is better);
+    blurry's replicates noisy around its value, the twin's made from them by `twin`."""
+    rng = np.random.default_rng(0)
+    docs = {n: json.loads((lb / "results" / f"{n}.json").read_text()) for n in ("blurry", "blurry-twin")}
+    for m, sign in (("psnr", 1.0), ("fid", -1.0)):
+        docs["blurry"]["metrics"][m]["value"] = docs["blurry-twin"]["metrics"][m]["value"] + sign * advantage
+        base = docs["blurry"]["metrics"][m]["value"] + rng.normal(0, 0.3, 200)
+        docs["blurry"]["metrics"][m]["replicates"] = [*base[:-1].tolist(), None]  # one undefined replicate
+        docs["blurry-twin"]["metrics"][m]["replicates"] = twin(base, sign).tolist()
+    for n, d in docs.items():
+        (lb / "results" / f"{n}.json").write_text(json.dumps(d))
+
+
+def test_paired_replicates_mark_a_constant_shift_credible(board, tmp_path):
+    lb = _fresh(board, tmp_path)
+    # twin worse by a constant on every replicate: PSNR lower by 0.05, FID higher by 0.05 -> credible,
+    # although the replicates' spread (0.3) is far wider than the shift (an unpaired rule would dagger)
+    _with_replicates(lb, 0.05, lambda r, sign: r - sign * 0.05)
+    (t,) = leaderboard.load_tables(lb)[0]
+    assert t.rules["psnr"] == t.rules["fid"] == marks.RULE_REPLICATES
+    assert t.rules["ssim"] == marks.RULE_SEQUENCES and t.rules["kid"] == marks.RULE_OVERLAP  # no replicates
+    for m in ("psnr", "fid"):
+        assert [t.rows[i].method for i in t.best[m]] == ["blurry"] and m not in t.not_credible
+    run_cli("leaderboard", "--root", str(lb))
+    md = (lb / "README.md").read_text()
+    assert "PSNR, FID: paired bootstrap replicates" in md
+
+
+def test_paired_replicates_dagger_when_they_overlap(board, tmp_path):
+    lb = _fresh(board, tmp_path)
+    # the twin's replicates are blurry's in reverse order: differences symmetric about 0 -> dagger
+    _with_replicates(lb, 1e-6, lambda r, sign: r[::-1])
+    (t,) = leaderboard.load_tables(lb)[0]
+    assert t.rules["psnr"] == marks.RULE_REPLICATES
+    assert "psnr" in t.not_credible and "fid" in t.not_credible
+    # replicates made with other statistics cannot be paired: the fallback rule decides
+    d = json.loads((lb / "results" / "blurry-twin.json").read_text())
+    d["statistics"]["seed"] += 1
+    (lb / "results" / "blurry-twin.json").write_text(json.dumps(d))
+    (t,) = leaderboard.load_tables(lb)[0]
+    assert t.rules["psnr"] == marks.RULE_SEQUENCES and t.rules["fid"] == marks.RULE_OVERLAP
+
+
+def test_null_intervals_render_as_too_few_scenes(board, tmp_path):
+    lb = _fresh(board, tmp_path)
     for n in ("blurry", "blurry-twin"):
-        shutil.copy(root / "results" / f"{n}.json", lb / "results")
+        d = json.loads((lb / "results" / f"{n}.json").read_text())
+        d["metrics"]["fid"]["interval"] = None  # no reason given: the default words
+        d["metrics"]["psnr"].update(interval=None, interval_note="too few scenes (K=2)")
+        (lb / "results" / f"{n}.json").write_text(json.dumps(d))
+    run_cli("leaderboard", "--root", str(lb))
+    md = (lb / "README.md").read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| blurry |")).split(" | ")
+    assert row[2].strip("*").endswith("(too few scenes (K=2))") and "[" not in row[2]
+    assert row[5].strip("*").endswith("(too few scenes)") and "[" not in row[5]
+    assert "no interval (too few scenes)" in md
+    assert (lb / "plots" / "evaltest@1-fid.png").is_file()
+
+
+def test_strip_has_one_tile_per_frame_and_row(board):
+    root, _ = board
+    run_cli("leaderboard", "--root", str(root))
+    from PIL import Image
+
+    img = np.asarray(Image.open(root / "strips" / "evaltest@1.png").convert("RGB"))
+    rows, cols = 1 + 3, 4  # ground truth + sharp, blurry, blurry-twin; 4 frames
+    assert img.shape == (plots.HEAD_H + rows * plots.TILE, plots.LABEL_W + cols * plots.TILE, 3)
+    # the ground-truth row's first tile holds the frame (scaled 32 -> 126 px, nearest): not blank
+    y0, x0 = plots.HEAD_H, plots.LABEL_W
+    tile = img[y0 + 1:y0 + plots.TILE - 1, x0 + 1:x0 + plots.TILE - 1]
+    assert tile.std() > 10
+
+
+def test_identical_methods_get_the_not_credible_mark(board, tmp_path):
+    lb = _fresh(board, tmp_path)
+    # the two blurry twins tie exactly -> both bold, no dagger; perturb one PSNR a hair so the
+    # best is unique but not credibly better than its twin -> dagger
     d = json.loads((lb / "results" / "blurry.json").read_text())
     d["metrics"]["psnr"]["value"] += 1e-6
     first = next(iter(d["sequences"]))

@@ -68,7 +68,8 @@ def default_out(submission_dir, shard: tuple[int, int] | None = None) -> Path:
 
 def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress: bool = False) -> dict:
     """Turn a complete (all sequences) partial into results: per-sequence values, summaries with
-    clustered-bootstrap intervals, set metrics. Pure given its inputs (deterministic seeds)."""
+    half-sampling intervals over the protocol's clusters (scenes or sequences) and their
+    replicates, set metrics. Pure given its inputs (deterministic seeds)."""
     from .protocol import load_protocol
 
     timing = {} if timing is None else timing
@@ -78,10 +79,16 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                         f"{doc['protocol']['sha256'][:12]}... then, {protocol.sha256[:12]}... now)")
     st = protocol.statistics
     seq_ids = doc["dataset"]["sequences"]
-    k = len(seq_ids)
+    k_seq = len(seq_ids)
     frames = sorted(doc["frames"], key=lambda r: (r["sequence"], r["index"]))
-    clusters = np.array([r["sequence"] for r in frames], dtype=np.int64)
-    counts = stats.resample_counts(stats.resample_indices(k, st.bootstrap_resamples, st.seed), k)
+    seqs = np.array([r["sequence"] for r in frames], dtype=np.int64)
+    # The resampling unit: scenes (all sequences of a lane share one fitted model) or, for
+    # protocols that say so (synthtown@1), sequences.
+    cl_of_seq, cluster_names = stats.cluster_map(seq_ids, st.cluster)
+    k = len(cluster_names)
+    clusters = cl_of_seq[seqs]
+    few = stats.too_few(k, st.cluster)
+    counts = None if few else stats.replicate_counts(k, st.bootstrap_resamples, st.seed)
     res = dict(doc)
     res["format"] = RESULTS_FORMAT
     res["frames"] = frames
@@ -89,11 +96,30 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         "submission_frames": _digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for r in frames]),
         "ground_truth": _digest([f"{r['scene']}/{r['file']} {r['gt_sha256']}\n" for r in frames]),
     }
-    res["statistics"] = {"method": "clustered bootstrap over sequences (paired submission/ground truth)",
-                         "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
-                         "interval": "percentile"}
+    res["statistics"] = {
+        "method": f"half-sampling of {st.cluster}s without replacement (paired submission/ground truth): each "
+                  f"replicate recomputes the metric on {k // 2} of the {k} {st.cluster}s",
+        "cluster": st.cluster, "clusters": k, "cluster_ids": cluster_names, "min_clusters": stats.MIN_CLUSTERS,
+        "too_few": few, "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
+        "interval": stats.INTERVAL_METHOD, "half_size": k // 2, "scale": stats.half_scale(k) if k >= 2 else None}
+
+    def summarise(value: float, replicates: np.ndarray | None) -> dict:
+        """interval (null + reason below MIN_CLUSTERS), replicates (6 significant digits)."""
+        if replicates is None:
+            return {"interval": None, "interval_note": few, "replicates": None}
+        out: dict = {"replicates": stats.round_replicates(replicates)}
+        iv = stats.interval_from_replicates(value, replicates, st.interval, k)
+        if iv is None:
+            out.update(interval=None, interval_note="no replicate is defined")
+        else:
+            out["interval"] = [iv[0], iv[1]]
+            if iv[2]:
+                out["interval_note"] = ("interval widened to contain the value: the half-sample draws lie on one "
+                                        "side of it (a small-sample bias of this metric larger than its spread)")
+        return out
+
     metrics: dict[str, dict] = {}
-    per_seq: dict[str, dict] = {sid: {"frames": int((clusters == i).sum())} for i, sid in enumerate(seq_ids)}
+    per_seq: dict[str, dict] = {sid: {"frames": int((seqs == i).sum())} for i, sid in enumerate(seq_ids)}
     with _stage(timing, "bootstrap_s"):
         for name in FRAME_METRICS:
             if not protocol.metric(name):
@@ -102,17 +128,16 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                 metrics[name] = {"status": "unavailable", **doc["unavailable"][name]}
                 continue
             v = np.array([r[name] for r in frames], dtype=np.float64)
-            samples = stats.frame_metric_samples(v, clusters, counts)
-            lo, hi = stats.percentile_interval(samples, st.interval)
             value = float(np.mean(v)) if not np.isposinf(v).any() else math.inf
-            metrics[name] = {"status": "ok", "kind": "frame", "value": value, "interval": [lo, hi],
-                             "level": st.interval, "higher_is_better": stats.higher_is_better(name),
-                             "n": int(len(v))}
+            reps = None if counts is None else stats.frame_metric_samples(v, clusters, counts)
+            metrics[name] = {"status": "ok", "kind": "frame", "value": value, "level": st.interval,
+                             "higher_is_better": stats.higher_is_better(name), "n": int(len(v)),
+                             **summarise(value, reps)}
             if name == "psnr":
                 metrics[name]["infinite_frames"] = int(np.isposinf(v).sum())
-                seqv = stats.sequence_psnr(v, clusters, k)
+                seqv = stats.sequence_psnr(v, seqs, k_seq)
             else:
-                seqv = np.bincount(clusters, weights=v, minlength=k) / np.bincount(clusters, minlength=k)
+                seqv = np.bincount(seqs, weights=v, minlength=k_seq) / np.bincount(seqs, minlength=k_seq)
             for i, sid in enumerate(seq_ids):
                 per_seq[sid][name] = float(seqv[i])
     timing.setdefault("set_metrics_s", 0.0)
@@ -124,7 +149,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
             metrics[m.name] = {"status": "unavailable", **doc["unavailable"][m.name]}
             continue
         f = features[m.extractor]
-        xs, xg, seq = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64), f["seq"]
+        xs, xg = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64)
+        cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
         if len(xs) < 2:
             what = "clips" if spec.features == "clip" else "frames"
             metrics[m.name] = {"status": "unavailable",
@@ -132,22 +158,18 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                                "fix": "sequences must hold at least clip_length frames"}
             continue
         with _stage(timing, "set_metrics_s"):
-            value = load_entry_point(spec.estimator)(xs, xg, m, st.seed)
-            fn = stats.set_metric_bootstrap(m.name, xs, xg, seq, k)
-        with _stage(timing, "bootstrap_s"):
-            bar = _tqdm(progress, total=len(counts), desc=f"bootstrap {m.name}", unit="resample")
-            with bar:
-                samples = stats.set_metric_samples(fn, seq, seq, counts, progress=bar.update)
-            samples = samples[np.isfinite(samples)]  # resamples with < 2 rows are undefined
-            lo, hi = stats.percentile_interval(samples, st.interval) if len(samples) else (math.nan, math.nan)
-        metrics[m.name] = {"status": "ok", "kind": "set", "value": float(value), "interval": [lo, hi],
-                           "level": st.interval, "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
+            value = float(load_entry_point(spec.estimator)(xs, xg, m, st.seed))
+        reps = None
+        if counts is not None:
+            with _stage(timing, "bootstrap_s"):
+                fn = stats.set_metric_bootstrap(m.name, xs, xg, cl, k)
+                bar = _tqdm(progress, total=len(counts), desc=f"resample {m.name}", unit="replicate")
+                with bar:
+                    reps = stats.set_metric_samples(fn, cl, cl, counts, progress=bar.update)
+        metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,
+                           "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
                            "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
-                           "resample_mean": float(np.mean(samples)) if len(samples) else math.nan}
-        if not lo <= value <= hi:
-            metrics[m.name]["note"] = (
-                "value outside its percentile interval: a resample repeats sequences, and repeated "
-                "frames bias set metrics on small sets (the interval shows the spread, not a bias-free range)")
+                           **summarise(value, reps)}
     res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
     res["sequences"] = per_seq
     res.pop("unavailable", None)
@@ -205,6 +227,10 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         for name, m in doc["metrics"].items():
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
+                # interval: [lo, hi], or null with the reason (too few clusters); replicates likewise
+                for key, shape in (("interval", [fields.Number]), ("replicates", [fields.Optional(fields.Number)])):
+                    if m.get(key) is not None:
+                        fields.conform(str(path), m[key], shape, f"metrics.{name}.{key}")
                 if m["kind"] not in ("frame", "set"):
                     fields.fail(f"{path}: field 'metrics.{name}.kind'",
                                 f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
@@ -349,17 +375,24 @@ def format_summary(res: dict) -> str:
     lines = [f"{res['submission'].get('method')} {res['submission'].get('method_version') or ''} on "
              f"{res['protocol']['ref']} ({res['dataset']['name']}, {len(res['frames'])} frames, "
              f"{len(res['dataset']['sequences'])} sequences)"]
+    st = res.get("statistics") or {}
+    if st.get("cluster"):
+        lines.append(f"  intervals: {st['interval']} over {st['clusters']} {st['cluster']}s"
+                     + (f" -- {st['too_few']}: no intervals" if st.get("too_few") else ""))
     for name, m in res["metrics"].items():
         if m["status"] != "ok":
             lines.append(f"  {name:<6} unavailable: {m['reason']} (fix: {m['fix']})")
             continue
-        lo, hi = m["interval"]
         arrow = "higher is better" if m["higher_is_better"] else "lower is better"
         extra = f"  ({m['infinite_frames']} exact frames)" if m.get("infinite_frames") else ""
-        if m.get("note"):
-            extra += f"  [note: {m['note']}]"
-        lines.append(f"  {name:<6} {m['value']:.4g}  [{lo:.4g}, {hi:.4g}] {int(m['level'] * 100)}%  "
-                     f"({arrow}){extra}")
+        if m.get("interval") is None:
+            iv = f"(no interval: {m.get('interval_note') or 'none'})"
+        else:
+            lo, hi = m["interval"]
+            iv = f"[{lo:.4g}, {hi:.4g}] {int(m['level'] * 100)}%"
+            if m.get("interval_note"):
+                extra += f"  [note: {m['interval_note']}]"
+        lines.append(f"  {name:<6} {m['value']:.4g}  {iv}  ({arrow}){extra}")
     t = res.get("timing_s", {})
     lines.append("  evaluator time: " + ", ".join(f"{k} {v:.2f}" for k, v in t.items() if isinstance(v, float)))
     return "\n".join(lines)

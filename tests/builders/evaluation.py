@@ -81,13 +81,22 @@ emcee_burn = 100
 """
 
 
+#: The test protocol resampling scenes (lanes) instead of sequences, as synthtown@2 does.
+SCENE_PROTOCOL = TEST_PROTOCOL.replace('id = "evaltest"', 'id = "evalscene"').replace(
+    'cluster = "sequence"', 'cluster = "scene"')
+
+
 def install_test_protocol(tmp_path, monkeypatch, text: str = TEST_PROTOCOL) -> Path:
-    """A copy of protocols/ plus protocols/evaltest/v1.toml; SKYEYES_PROTOCOLS points at it."""
+    """A copy of protocols/ plus protocols/<id>/v<version>.toml of `text` (default: evaltest/v1.toml);
+    SKYEYES_PROTOCOLS points at it. Call again with another text to add a second protocol."""
+    import tomllib
+
     root = tmp_path / "protocols"
     if not root.exists():
         shutil.copytree(ROOT / "protocols", root)
-    (root / "evaltest").mkdir(exist_ok=True)
-    (root / "evaltest" / "v1.toml").write_text(text)
+    raw = tomllib.loads(text)
+    (root / raw["id"]).mkdir(exist_ok=True)
+    (root / raw["id"] / f"v{raw['version']}.toml").write_text(text)
     monkeypatch.setenv("SKYEYES_PROTOCOLS", str(root))
     return root
 

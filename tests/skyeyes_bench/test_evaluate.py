@@ -11,7 +11,7 @@ import pytest
 import scipy.linalg
 from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import SCENE_PROTOCOL, blurred_submission, install_test_protocol, make_dataset
 
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import open_dataset
@@ -22,7 +22,8 @@ from skyeyes_bench.submission import expected_frames, write_template
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    return make_dataset(tmp_path_factory.mktemp("ds") / "evaltiny")
+    # 3 scenes x 2 sequences: evaltest@1 resamples sequences (K = 6 >= 5: intervals are given)
+    return make_dataset(tmp_path_factory.mktemp("ds") / "evaltiny", scenes=3)
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +56,7 @@ def test_perfect_and_blurred(scored):
     mp, mb = rp["metrics"], rb["metrics"]
     assert list(mp) == ["psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"]
     # perfect: PSNR inf, SSIM 1, FID / FVD 0
-    assert mp["psnr"]["value"] == math.inf and mp["psnr"]["infinite_frames"] == 64
+    assert mp["psnr"]["value"] == math.inf and mp["psnr"]["infinite_frames"] == 96
     assert mp["ssim"]["value"] == pytest.approx(1.0, abs=1e-12)
     assert mp["fid"]["value"] == pytest.approx(0.0, abs=1e-6)
     assert mp["fvd"]["value"] == pytest.approx(0.0, abs=1e-6)
@@ -77,24 +78,26 @@ def test_perfect_and_blurred(scored):
     assert mb["psnr"]["value"] == pytest.approx(np.mean([r["psnr"] for r in rb["frames"]]))
     _, feats = read_results(tmp_path / "b2.json", features=True)
     x = feats["random-image-64"]
-    assert x["sub"].shape == (64, 64)
+    assert x["sub"].shape == (96, 64)
     assert mb["fid"]["value"] == pytest.approx(_fid(x["sub"], x["gt"]), rel=1e-5)
     v = feats["random-video-64"]
-    assert v["sub"].shape == (16, 64)  # 4 sequences x 16 frames / clips of 4 every 4
+    assert v["sub"].shape == (24, 64)  # 6 sequences x 16 frames / clips of 4 every 4
     assert mb["fvd"]["value"] == pytest.approx(_fid(v["sub"], v["gt"]), rel=1e-5)
-    # intervals: contain the point value for means; ordered
-    for m in ("psnr", "ssim", "fid", "kid"):
+    # intervals contain their own value (set metrics too); replicates: R of them, rounded
+    st = rb["statistics"]
+    assert st["cluster"] == "sequence" and st["clusters"] == 6 and st["interval"] == "half-sampling"
+    assert st["too_few"] is None
+    for m in ("psnr", "ssim", "fid", "kid", "fvd", "kvd"):
         lo, hi = mb[m]["interval"]
-        assert lo <= hi
-    lo, hi = mb["psnr"]["interval"]
-    assert lo <= mb["psnr"]["value"] <= hi
+        assert lo <= mb[m]["value"] <= hi, m
+        assert len(mb[m]["replicates"]) == 200 and all(isinstance(r, float) for r in mb[m]["replicates"]), m
     # self-description
     assert rb["protocol"]["ref"] == "evaltest@1" and len(rb["protocol"]["sha256"]) == 64
     assert rb["extractors"]["random-image-64"]["status"] == "ok"
     assert rb["sha256"]["ground_truth"] == rp["sha256"]["ground_truth"]
     assert rb["sha256"]["submission_frames"] != rp["sha256"]["submission_frames"]
     assert rb["submission"]["timings"]["fit_s"] == 1.0
-    assert set(rb["sequences"]) == {f"test-0-lane0{i}/yaw{q:03d}" for i in (0, 1) for q in (0, 90)}
+    assert set(rb["sequences"]) == {f"test-0-lane0{i}/yaw{q:03d}" for i in (0, 1, 2) for q in (0, 90)}
     assert {"validate_s", "frame_metrics_s", "features_s", "bootstrap_s", "total_s"} <= set(rb["timing_s"])
     on_disk = json.loads((tmp_path / "b2.json").read_text())
     assert on_disk["metrics"]["fid"]["value"] == mb["fid"]["value"]
@@ -162,6 +165,7 @@ def test_compare_cli(scored, tmp_path):
     res = json.loads(out)
     assert res["metrics"]["ssim"]["bayes"]["p_a_better"] == 0.5 and res["metrics"]["ssim"]["advantage_mean"] == 0
     assert res["metrics"]["fid"]["bootstrap_interval"] == [0.0, 0.0]
+    assert res["metrics"]["fid"]["advantage"] == 0.0 and res["metrics"]["psnr"]["bootstrap_interval"] == [0.0, 0.0]
     # perfect vs blurred: PSNR differences are +inf on every sequence
     rc, out, err = run_cli("compare", str(tmp_path / "gt.json"), str(tmp_path / "b1.json"))
     assert "infinite difference" in out

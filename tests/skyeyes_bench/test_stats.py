@@ -98,7 +98,7 @@ _FAST = dict(resamples=500, level=0.95, seed=0, walkers=16, steps=1000, burn=200
 
 
 def test_compare_identical_methods_zero_variance():
-    a = np.array([25.0, 27.0, 30.0, 26.0])
+    a = np.array([25.0, 27.0, 30.0, 26.0, 28.0, 24.0])
     out = stats.compare_per_sequence(a, a.copy(), "psnr", **_FAST)
     assert out["advantage_mean"] == 0.0
     assert out["bootstrap_interval"] == [0.0, 0.0]
@@ -107,11 +107,14 @@ def test_compare_identical_methods_zero_variance():
     assert not b["fitted"]
 
 
-def test_compare_one_sequence():
-    out = stats.compare_per_sequence(np.array([0.3]), np.array([0.5]), "lpips", **_FAST)
-    assert out["advantage_mean"] == pytest.approx(0.2)  # lower LPIPS is better: A better
-    assert out["bootstrap_interval"] == pytest.approx([0.2, 0.2])
-    assert out["bayes"]["p_a_better"] is None and "one sequence" in out["bayes"]["note"]
+@pytest.mark.parametrize("k", [1, 4])
+def test_compare_too_few_clusters(k):
+    """Below 5 clusters: the point estimate stays, interval and P(better) are 'too few'."""
+    a, b = np.full(k, 0.3), np.linspace(0.4, 0.6, k)
+    out = stats.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
+    assert out["advantage_mean"] == pytest.approx(np.mean(b - a))  # lower LPIPS is better: A better
+    assert out["bootstrap_interval"] is None and out["interval_note"] == f"too few scenes (K={k})"
+    assert out["bayes"]["p_a_better"] is None and out["bayes"]["note"] == f"too few scenes (K={k})"
 
 
 def test_compare_clear_difference_and_sign_convention():
@@ -143,11 +146,98 @@ def test_compare_heavy_outlier_is_robust():
 
 
 def test_compare_psnr_inf():
-    a = np.array([np.inf, np.inf, 30.0])
-    b = np.array([np.inf, 28.0, 29.0])
+    a = np.array([np.inf, np.inf, 30.0, 31.0, 32.0])
+    b = np.array([np.inf, 28.0, 29.0, 30.0, 31.0])
     out = stats.compare_per_sequence(a, b, "psnr", **_FAST)
     assert out["bootstrap_interval"][1] == np.inf
     assert not out["bayes"]["fitted"] and "infinite" in out["bayes"]["note"]
     assert out["bayes"]["p_a_better"] is None  # one tie (0), one +inf, one +1: not all > 0
     d = stats.advantage(a, b, "psnr")
-    np.testing.assert_array_equal(d, [0.0, np.inf, 1.0])
+    np.testing.assert_array_equal(d, [0.0, np.inf, 1.0, 1.0, 1.0])
+
+
+# --------------------------------------------------------------------------- clusters, half-sampling
+
+
+def test_cluster_map_groups_sequences_by_scene():
+    ids = ["test-0-lane01/yaw000", "test-0-lane01/yaw045", "test-0-lane00/yaw000", "b/x", "test-0-lane00/yaw045"]
+    idx, names = stats.cluster_map(ids, "scene")
+    want_names = []
+    for s in ids:  # slow reference: first-seen order of the part before the last '/'
+        if s.split("/")[0] not in want_names:
+            want_names.append(s.split("/")[0])
+    assert names == want_names == ["test-0-lane01", "test-0-lane00", "b"]
+    assert [names[i] for i in idx] == [s.split("/")[0] for s in ids]
+    idx, names = stats.cluster_map(ids, "sequence")
+    assert names == ids and list(idx) == list(range(5))
+    assert stats.too_few(4, "scene") == "too few scenes (K=4)" and stats.too_few(5, "scene") is None
+
+
+def test_replicate_counts_depend_only_on_seed_resamples_and_k():
+    a = stats.replicate_counts(9, 300, seed=4)
+    assert (a.sum(axis=1) == 4).all() and set(np.unique(a)) == {0.0, 1.0}
+    np.testing.assert_array_equal(a, stats.replicate_counts(9, 300, seed=4))
+    assert not np.array_equal(a, stats.replicate_counts(9, 300, seed=5))
+    # every cluster is drawn about equally often (4/9 of the rows)
+    assert np.abs(a.mean(axis=0) - 4 / 9).max() < 0.1
+
+
+@pytest.mark.parametrize("k", [6, 9])
+def test_half_sampling_draws_have_the_variance_of_the_mean(k):
+    """For a mean of K cluster values, the draws est - s (theta_m - est) have variance S^2 / K
+    (S^2 the sample variance, ddof=1): the delete-d jackknife identity, here by Monte Carlo."""
+    v = np.random.default_rng(k).normal(size=k) ** 2
+    reps = stats.frame_metric_samples(v, np.arange(k), stats.replicate_counts(k, 40_000, seed=0))
+    draws = stats.replicate_draws(float(v.mean()), reps, k)
+    assert draws.var() == pytest.approx(v.var(ddof=1) / k, rel=0.05)
+    assert draws.mean() == pytest.approx(v.mean(), abs=0.02 * v.std())
+
+
+def test_set_metric_interval_contains_its_estimate_where_percentile_does_not():
+    """Few frames per scene, high-dimensional features: duplicated frames inflate FID under the
+    bootstrap with replacement, so its percentile interval lies above the estimate; the
+    reported (half-sampling) interval contains it."""
+    rng = np.random.default_rng(3)
+    k, per, d = 8, 2, 64
+    x, y = rng.normal(size=(k * per, d)), rng.normal(0.2, size=(k * per, d))
+    cl = np.repeat(np.arange(k), per)
+    fb = stats.FrechetBootstrap(x, y)
+    est = _slow_fid(x, y)
+    boot = stats.set_metric_samples(fb, cl, cl, stats.resample_counts(stats.resample_indices(k, 300, 0), k))
+    lo, hi = stats.percentile_interval(boot[np.isfinite(boot)], 0.95)
+    assert not lo <= est <= hi and lo > est  # the old interval excludes its own estimate
+    reps = stats.set_metric_samples(fb, cl, cl, stats.replicate_counts(k, 300, 0))
+    lo2, hi2, widened = stats.interval_from_replicates(est, reps, 0.95, k)
+    assert lo2 <= est <= hi2 and lo2 < hi2
+    # each replicate is FID on the chosen scenes only (slow reference)
+    c = stats.replicate_counts(k, 300, 0)[7].astype(bool)
+    assert reps[7] == pytest.approx(_slow_fid(x[c[cl]], y[c[cl]]), rel=1e-6)
+
+
+def test_interval_from_replicates_by_hand():
+    est, reps, k = 2.0, np.array([2.5, 1.5, 3.0, None, 2.0]), 6
+    s = np.sqrt(3 / 3)
+    draws = sorted(est - s * (np.array([2.5, 1.5, 3.0, 2.0]) - est))
+    assert stats.interval_from_replicates(est, reps, 0.5, k)[:2] == (draws[0], draws[2])
+    assert stats.interval_from_replicates(est, [None, None], 0.95, k) is None
+    # all draws on one side: widened to the estimate, and said so
+    lo, hi, widened = stats.interval_from_replicates(1.0, [0.2, 0.3, 0.4], 0.95, 6)
+    assert widened and lo == 1.0 and hi == pytest.approx(1.8)  # draws 1.6..1.8 lie above 1.0
+    assert stats.round_replicates(np.array([1.23456789, np.nan, -np.inf, 12345678.9])) == [1.23457, None, -np.inf,
+                                                                                         12345700.0]
+
+
+def test_paired_replicates_self_zero_and_known_shift():
+    """Replicates of two results on the same clusters use the same rows: differencing A with
+    itself gives exact zeros, a per-frame shift of 0.1 gives 0.1 in every replicate."""
+    rng = np.random.default_rng(0)
+    cl = np.repeat(np.arange(7), 3)
+    v = rng.random(len(cl))
+    counts = stats.replicate_counts(7, 200, 0)
+    ra = stats.frame_metric_samples(v, cl, counts)
+    rb = stats.frame_metric_samples(v, cl, stats.replicate_counts(7, 200, 0))
+    np.testing.assert_array_equal(stats.advantage(ra, rb, "ssim"), 0.0)
+    rs = stats.frame_metric_samples(v + 0.1, cl, counts)
+    np.testing.assert_allclose(stats.advantage(rs, ra, "ssim"), 0.1, rtol=1e-12)
+    lo, hi, _ = stats.interval_from_replicates(0.1, stats.advantage(rs, ra, "ssim"), 0.95, 7)
+    assert lo == pytest.approx(0.1) and hi == pytest.approx(0.1)

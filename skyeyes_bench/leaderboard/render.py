@@ -166,6 +166,7 @@ td.best { font-weight: bold; }
 .note { color: #555; font-size: 0.9em; }
 .plots img { max-width: 32em; margin: 0 0.5em 0.5em 0; }
 img.strip { max-width: 100%; }
+.wide { overflow-x: auto; }
 """
 
 
@@ -196,7 +197,7 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
     for t in measured:
         out += [f'<h3 id="{e(t.file_key)}">{e(t.title)}</h3>',
                 f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>",
-                '<table class="sortable measured"><thead><tr>']
+                '<div class="wide"><table class="sortable measured"><thead><tr>']
         out.append("".join(f"<th>{e(h)}</th>" for h in _measured_head(t)) + "</tr></thead><tbody>")
         for i, r in enumerate(t.rows):
             cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>',
@@ -210,7 +211,7 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
                       f'<td data-v="{e(hardware(r))}">{e(hardware(r))}</td>',
                       f'<td data-v="{_sort_value(r.peak_mb)}">{num(r.peak_mb)}</td>']
             out.append("<tr>" + "".join(cells) + "</tr>")
-        out.append("</tbody></table>")
+        out.append("</tbody></table></div>")
         out += [f"<p class=note>{_md_code(f)}</p>" for f in _footnotes(t)]
         plots = [f'<img src="{e(plot_name(t, m))}" alt="{e(t.key)}: {e(LABEL[m])} against run time">'
                  for m in plot_metrics(t)]

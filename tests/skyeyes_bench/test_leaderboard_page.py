@@ -1,0 +1,60 @@
+"""The leaderboard page in a real headless browser (scripts/check-leaderboard-page.py): a board
+with measured rows, plots and a strip loads without console errors and every image decodes.
+Slow tier: starts Chromium. Fails (never skips) when CI=true and Chromium is missing."""
+
+import importlib.util
+import os
+import shutil
+
+import pytest
+from conftest import ROOT, run_cli
+from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
+
+pytestmark = pytest.mark.slow
+
+
+def _script():
+    path = ROOT / "scripts" / "check-leaderboard-page.py"
+    spec = importlib.util.spec_from_file_location("check_leaderboard_page", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _need_browser(mod):
+    missing = mod._missing()
+    if missing and os.environ.get("CI") == "true":
+        pytest.fail(f"CI=true but the browser check cannot run: {missing}")
+    if missing:
+        pytest.skip(missing)
+
+
+def test_page_with_measured_rows_loads_in_chromium(tmp_path, monkeypatch):
+    mod = _script()
+    _need_browser(mod)
+    install_test_protocol(tmp_path, monkeypatch)
+    from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.evaluate import evaluate
+
+    ds = open_dataset(make_dataset(tmp_path / "ds", scenes=3, seqs=2, frames=8))
+    root = tmp_path / "leaderboard"
+    shutil.copytree(ROOT / "leaderboard" / "reported", root / "reported")
+    for name, sigma in (("sharp", 0.6), ("blurry", 1.5)):
+        sub = blurred_submission(ds, tmp_path / name, sigma=sigma, method=name)
+        evaluate(sub, data=ds.root, out=tmp_path / f"{name}.json", progress=False)
+        run_cli("leaderboard", "add", str(tmp_path / f"{name}.json"), "--root", str(root))
+    run_cli("leaderboard", "--root", str(root))
+    shot = tmp_path / "page.png"
+    problems = mod.check_page(root / "index.html", shot, expect_measured=True)
+    assert problems == []
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the check can fail: a missing plot is a console error and an image of naturalWidth 0
+    next((root / "plots").glob("*.png")).unlink()
+    problems = mod.check_page(root / "index.html", shot, expect_measured=True)
+    assert any("did not load" in p for p in problems) and any("console error" in p for p in problems)
+
+
+def test_committed_page_loads_in_chromium(tmp_path):
+    mod = _script()
+    _need_browser(mod)
+    assert mod.check_page(ROOT / "leaderboard" / "index.html", tmp_path / "page.png") == []

@@ -242,3 +242,111 @@ def test_progress_bars_only_on_a_terminal(tiny, scored, tmp_path, tty):
     blur = scored[1]["b1"]
     _, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(tmp_path / "r.json"), tty=tty)
     assert ("per-frame metrics" in err) == tty, err
+
+
+# --------------------------------------------------------------------------- scene clusters
+
+
+@pytest.fixture(scope="module")
+def scene_scored(tmp_path_factory):
+    """evalscene@1 (cluster = "scene"): blurs 0.7 and 1.5 on a 5-scene and a 2-scene dataset."""
+    mp = pytest.MonkeyPatch()
+    tmp = tmp_path_factory.mktemp("scene")
+    try:
+        install_test_protocol(tmp, mp, SCENE_PROTOCOL)
+        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))
+        out = {}
+        for k in (5, 2):
+            root = make_dataset(tmp / f"ds{k}", protocol="evalscene@1", scenes=k, seqs=2, frames=4, seed=k)
+            ds = open_dataset(root)
+            for name, sigma in (("b1", 0.7), ("b2", 1.5)):
+                sub = blurred_submission(ds, tmp / f"{name}-{k}", sigma=sigma, method=name)
+                evaluate(sub, data=root, out=tmp / f"{name}-{k}.json", progress=False)
+            out[k] = tmp
+        yield tmp
+    finally:
+        mp.undo()
+
+
+def test_scene_clusters_group_frames_by_lane(scene_scored):
+    from skyeyes_bench import stats
+
+    res, feats = read_results(scene_scored / "b1-5.json", features=True)
+    st = res["statistics"]
+    lanes = [f"test-0-lane{i:02d}" for i in range(5)]
+    assert st["cluster"] == "scene" and st["clusters"] == 5 and st["cluster_ids"] == lanes
+    assert len(res["dataset"]["sequences"]) == 10
+    counts = stats.replicate_counts(5, 200, 0)  # depends only on (seed, resamples, clusters)
+    for r in (0, 17, 199):
+        chosen = {lanes[i] for i in np.flatnonzero(counts[r])}
+        assert len(chosen) == 2
+        # slow reference: SSIM over every frame whose scene (lane) was drawn
+        want = np.mean([f["ssim"] for f in res["frames"] if f["scene"] in chosen])
+        assert res["metrics"]["ssim"]["replicates"][r] == pytest.approx(want, rel=1e-5)
+        x = feats["random-image-64"]
+        rows = np.array([res["dataset"]["sequences"][q].split("/")[0] in chosen for q in x["seq"]])
+        assert res["metrics"]["fid"]["replicates"][r] == pytest.approx(_fid(x["sub"][rows], x["gt"][rows]), rel=1e-4)
+    for m, v in res["metrics"].items():
+        if v["status"] == "ok":
+            assert v["interval"][0] <= v["value"] <= v["interval"][1], m
+
+
+def test_too_few_scenes_in_results_and_compare(scene_scored, tmp_path):
+    res, _ = read_results(scene_scored / "b1-2.json")
+    assert res["statistics"]["clusters"] == 2 and res["statistics"]["too_few"] == "too few scenes (K=2)"
+    for m, v in res["metrics"].items():
+        if v["status"] == "ok":
+            assert isinstance(v["value"], float), m  # the point estimate stays
+            assert v["interval"] is None and v["interval_note"] == "too few scenes (K=2)" and v["replicates"] is None
+    rc, text, err = run_cli("compare", str(scene_scored / "b1-2.json"), str(scene_scored / "b2-2.json"))
+    assert "too few scenes (K=2)" in text and "[" not in text.split("\n", 3)[-1]  # no interval printed
+    rc, out, err = run_cli("compare", str(scene_scored / "b1-2.json"), str(scene_scored / "b2-2.json"), "--json")
+    cmp = json.loads(out)
+    assert cmp["cluster"] == "scene" and cmp["clusters"] == 2 and cmp["too_few"] == "too few scenes (K=2)"
+    for m in ("psnr", "ssim", "fid", "kvd"):
+        r = cmp["metrics"][m]
+        assert r["bootstrap_interval"] is None and r["p_a_better_bootstrap"] is None and r["bayes"]["p_a_better"] is None
+        assert r["advantage"] == (r["a"] - r["b"] if r["higher_is_better"] else r["b"] - r["a"])
+
+
+def _parse(text):
+    rows = {}
+    for ln in text.splitlines():
+        p = ln.split()
+        if len(p) > 6 and p[1] == "A" and p[3] == "B" and p[5] == "advantage":
+            rows[p[0]] = (p[2], p[4], p[6])
+    return rows
+
+
+def test_compare_prints_one_estimand(scene_scored, tmp_path):
+    """A, B are the values evaluate reported; the printed advantage is the difference of the
+    printed A and B; the interval comes from the stored replicates (no sidecars needed)."""
+    a, _ = read_results(scene_scored / "b1-5.json")
+    b, _ = read_results(scene_scored / "b2-5.json")
+    rc, text, err = run_cli("compare", str(scene_scored / "b1-5.json"), str(scene_scored / "b2-5.json"))
+    rows = _parse(text)
+    assert set(rows) >= {"psnr", "ssim", "fid", "kid", "fvd", "kvd"}
+    for m, (ta, tb, td) in rows.items():
+        dec = len(td.split(".")[1]) if "." in td else 0
+        assert len(ta.split(".")[1]) == len(tb.split(".")[1]) == dec
+        want = float(ta) - float(tb) if a["metrics"][m]["higher_is_better"] else float(tb) - float(ta)
+        assert float(td) == pytest.approx(want, abs=0.5 * 10**-dec), m
+        assert float(ta) == pytest.approx(a["metrics"][m]["value"], abs=10**-dec)  # the evaluate value
+        assert float(tb) == pytest.approx(b["metrics"][m]["value"], abs=10**-dec)
+    assert "Student-t mu" in text
+    # set metrics from the stored replicates alone: copy the JSON without the sidecars
+    for n in ("b1", "b2"):
+        shutil.copy(scene_scored / f"{n}-5.json", tmp_path)
+    rc, out, err = run_cli("compare", str(tmp_path / "b1-5.json"), str(tmp_path / "b2-5.json"), "--json")
+    cmp = json.loads(out)
+    rc, out2, err = run_cli("compare", str(scene_scored / "b1-5.json"), str(scene_scored / "b2-5.json"), "--json")
+    with_feats = json.loads(out2)
+    for m in ("fid", "kid"):
+        lo, hi = cmp["metrics"][m]["bootstrap_interval"]
+        assert lo <= cmp["metrics"][m]["advantage"] <= hi
+        assert [lo, hi] == pytest.approx(with_feats["metrics"][m]["bootstrap_interval"], rel=1e-4)
+    # a submission compared with itself: zero difference in every replicate
+    rc, out, err = run_cli("compare", str(tmp_path / "b1-5.json"), str(tmp_path / "b1-5.json"), "--json")
+    for m, r in json.loads(out)["metrics"].items():
+        if r["status"] == "ok":
+            assert r["advantage"] == 0 and r["bootstrap_interval"] == [0.0, 0.0], m

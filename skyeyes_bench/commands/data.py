@@ -9,7 +9,7 @@ from pathlib import Path
 
 #: SynthTown size presets (`skyeyes_bench.data.synthtown.presets.PRESETS`, not imported here so
 #: that building the parser stays light).
-_PRESETS = ("smoke", "small", "paper")
+_PRESETS = ("smoke", "small", "small-v1", "paper")
 
 
 def register(sub) -> None:
@@ -27,14 +27,15 @@ def register(sub) -> None:
                    help="read image headers only (default: decode every image, finding truncated files)")
 
     q = ds.add_parser(
-        "synthtown", help="generate the built-in SynthTown dataset (protocol synthtown@1)",
+        "synthtown", help="generate the built-in SynthTown dataset (protocol synthtown@2; small-v1: @1)",
         description="Render SynthTown, the procedural aerial/ground dataset, in the canonical layout: "
         "train towns train-0, train-1 and the held-out test town test-0; per lane 8 ground sequences "
         "(yaw offsets k*45 deg, every 2 m, 2 m high, pitch 0) and aerial views at 52 m, pitch -45 deg; "
-        "RGB, depth (EXR, metres) and semantics. Presets: smoke (tests, seconds), small (the protocol's "
-        "official 128x128, minutes on a CPU), paper (512x512, hours on a CPU).")
+        "RGB, depth (EXR, metres) and semantics. Presets: smoke (tests, seconds; synthtown@1), small "
+        "(synthtown@2's official data: 128x128, 8 test lanes, 32-frame sequences; ~20 min on 2 cores), "
+        "small-v1 (synthtown@1's official data), paper (512x512, hours on a CPU).")
     q.add_argument("--out", metavar="DIR", help="dataset folder to create (default: the data cache, "
-                   "<cache>/data/synthtown-<preset>[-seed<N>], where evaluate and reproduce look)")
+                   "<cache>/data/<dataset>[-seed<N>], e.g. synthtown-v2-small, where evaluate and reproduce look)")
     q.add_argument("--preset", choices=_PRESETS, default="small", help="size preset (default: small)")
     q.add_argument("--seed", type=int, default=0, help="dataset seed: other towns and lanes (default: 0)")
     q.add_argument("--force", action="store_true", help="replace an existing dataset folder")

@@ -1,4 +1,4 @@
-"""Write SynthTown datasets in the canonical layout (protocol synthtown@1).
+"""Write SynthTown datasets in the canonical layout (protocols synthtown@1 and @2; a preset names its own).
 
 Cameras follow the capture protocol (Skyeyes supplement Sec. 1.1): ground cameras every 2 m
 along a lane at 2 m height, pitch 0, yaw = lane heading + k * 45 deg (k = 0..7, one sequence
@@ -27,11 +27,11 @@ from .render import LABELS, PALETTE, Scene, render_batch
 
 #: Bump when the rendered bytes change for the same preset and seed.
 GENERATOR_VERSION = "1"
-PROTOCOL = "synthtown@1"
 
 
-def dataset_name(preset: str, seed: int) -> str:
-    return f"synthtown-{preset}" + (f"-seed{seed}" if seed != 0 else "")
+def dataset_name(preset: str | Preset, seed: int) -> str:
+    """The dataset's name and cache folder: the preset's `dataset` (e.g. synthtown-v2-small), -seedN if seed > 0."""
+    return get_preset(preset).dataset + (f"-seed{seed}" if seed != 0 else "")
 
 
 def get_preset(preset: str | Preset) -> Preset:
@@ -144,7 +144,7 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
         else:
             chunks = map(_render_job, jobs)
         results = (r for c in chunks for r in c)
-        with DatasetWriter(out, name=dataset_name(p.name, seed), protocol=PROTOCOL, overwrite=overwrite) as w:
+        with DatasetWriter(out, name=dataset_name(p, seed), protocol=p.protocol, overwrite=overwrite) as w:
             writers: dict[tuple[int, int], object] = {}
             for (ti, li, kind, a, b, cam), (rgb, depth, labels) in zip(where, results):
                 entry = towns[ti]
@@ -186,7 +186,10 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
 
 
 def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) -> Path:
-    """`<cache>/data/synthtown-<preset>[-seed<N>]`, generated there first if absent.
+    """`<cache>/data/<the preset's dataset>[-seed<N>]`, generated there first if absent.
+
+    A folder there made for another protocol or preset configuration (an older release's data
+    under the same name) is a one-line error, not silently used.
 
     Generation is atomic (a killed run leaves nothing) and serialised by a lock file beside the
     dataset: a second process asking for the same dataset waits for the first and then uses its
@@ -195,14 +198,29 @@ def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) 
     import fcntl
 
     p = get_preset(preset)
-    path = paths.data_dir() / dataset_name(p.name, int(seed))
+    path = paths.data_dir() / dataset_name(p, int(seed))
     if (path / "dataset.json").is_file():
-        return path
+        return _check_cached(path, p)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.parent / f".{path.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes (also if we are killed)
         if (path / "dataset.json").is_file():  # another process made it while we waited
-            return path
+            return _check_cached(path, p)
         if path.exists():
             raise UserError(f"{path}: exists but holds no dataset.json (not a SynthTown dataset); remove it")
         return generate_dataset(path, p.name, int(seed), progress=progress)
+
+
+def _check_cached(path: Path, p: Preset) -> Path:
+    """`path` if its dataset.json was made from preset `p` for `p.protocol`; else a one-line UserError."""
+    from ... import fileio
+
+    def rendered(cfg: dict) -> dict:  # the fields that decide the pixels (not the preset's name)
+        return {k: v for k, v in cfg.items() if k not in ("name", "official")}
+
+    doc = fileio.read_json(path / "dataset.json")
+    cfg = (doc.get("meta") or {}).get("preset_config")
+    if doc.get("protocol") != p.protocol or (cfg is not None and rendered(cfg) != rendered(p.to_dict())):
+        raise UserError(f"{path}/dataset.json: made for protocol {doc.get('protocol')!r} with another "
+                        f"configuration than preset {p.name!r} ({p.protocol}); remove the folder to regenerate it")
+    return path

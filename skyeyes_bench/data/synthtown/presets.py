@@ -29,7 +29,9 @@ class Preset:
             direction); 8 follows the paper's k*pi/4.
         cull_m: distance culling radius in metres (objects farther away are not tested; the haze
             has swallowed them by then).
-        official: the protocol's resolution (only `small`).
+        official: the protocol's official data (its scores go on the leaderboard).
+        protocol: the protocol the data is made for ("synthtown@1" or "synthtown@2").
+        dataset: the dataset's name (and folder under `<cache>/data/`).
     """
 
     name: str
@@ -48,9 +50,14 @@ class Preset:
     aerial_pitch_deg: float = -45.0
     cull_m: float = 220.0
     official: bool = False
+    protocol: str = "synthtown@2"
+    dataset: str = ""
 
     def to_dict(self) -> dict:
+        """What the generator renders from (dataset.json's preset_config); protocol and dataset
+        names are recorded elsewhere in dataset.json, so v1 data keeps its bytes."""
         d = dataclasses.asdict(self)
+        del d["protocol"], d["dataset"]
         d["blocks"] = list(self.blocks)
         d["lanes"] = {t: n for t, n in self.lanes}
         return d
@@ -60,15 +67,24 @@ TRAIN_TOWNS = ("train-0", "train-1")
 TEST_TOWNS = ("test-0",)
 
 PRESETS: dict[str, Preset] = {
-    # Tests and CI: one train lane, one test lane, 16-frame sequences, tiny images.
+    # Tests and CI: one train lane, one test lane, 16-frame sequences, tiny images (synthtown@1:
+    # with one test lane, v2's scene statistics could only say "too few scenes").
     "smoke": Preset("smoke", 48, 48, aa=1, blocks=(3, 3), lanes=(("train-0", 1), ("test-0", 1)),
-                    frames=16, aerial_stride=8, aerial_yaws=4),
-    # The protocol's official size (synthtown@1: 128x128); the CPU default for `reproduce`.
-    "small": Preset("small", 128, 128, aa=2, blocks=(4, 4),
-                    lanes=(("train-0", 2), ("train-1", 2), ("test-0", 2)),
-                    frames=20, aerial_stride=4, aerial_yaws=8, official=True),
+                    frames=16, aerial_stride=8, aerial_yaws=4, protocol="synthtown@1", dataset="synthtown-smoke"),
+    # synthtown@2's official data and the CPU default for `reproduce` (docs/synthtown.md, "Protocol
+    # v2"): 8 test lanes, so intervals resample 8 scenes; 32-frame sequences, so FVD sees 2
+    # non-overlapping 16-frame clips per sequence; a 5x5-block town so 8 lanes fit on distinct
+    # street sides.
+    "small": Preset("small", 128, 128, aa=2, blocks=(5, 5),
+                    lanes=(("train-0", 2), ("train-1", 2), ("test-0", 8)),
+                    frames=32, aerial_stride=4, aerial_yaws=8, official=True, dataset="synthtown-v2-small"),
+    # synthtown@1's official data (2 test lanes, 20-frame sequences), kept so v1 results reproduce.
+    "small-v1": Preset("small-v1", 128, 128, aa=2, blocks=(4, 4),
+                       lanes=(("train-0", 2), ("train-1", 2), ("test-0", 2)),
+                       frames=20, aerial_stride=4, aerial_yaws=8, official=True, protocol="synthtown@1",
+                       dataset="synthtown-small"),
     # Paper-sized images and fuller counts (GPU users; hours on a CPU).
     "paper": Preset("paper", 512, 512, aa=3, blocks=(5, 5),
-                    lanes=(("train-0", 6), ("train-1", 6), ("test-0", 4)),
-                    frames=32, aerial_stride=2, aerial_yaws=8),
+                    lanes=(("train-0", 6), ("train-1", 6), ("test-0", 8)),
+                    frames=32, aerial_stride=2, aerial_yaws=8, dataset="synthtown-v2-paper"),
 }

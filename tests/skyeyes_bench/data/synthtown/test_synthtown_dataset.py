@@ -13,6 +13,7 @@ from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.data.synthtown import PRESETS, ensure_dataset
 from skyeyes_bench.data.synthtown import town as tw
 from skyeyes_bench.data.synthtown.render import LABELS, Scene, render
+from skyeyes_bench.errors import UserError
 from skyeyes_bench.protocol import load_protocol
 
 
@@ -111,13 +112,49 @@ def test_gallery_from_dataset(synthtown_smoke, tmp_path):
 
 
 def test_presets_are_consistent():
-    proto = load_protocol("synthtown@1")
-    assert PRESETS["small"].official and (PRESETS["small"].width, PRESETS["small"].height) == (proto.data.width, proto.data.height)
+    """Every preset's data fits its own protocol; each protocol version has exactly one official
+    preset, at the protocol's resolution; v2's official data has >= 8 test scenes and >= 2 FVD
+    clips per sequence."""
+    from skyeyes_bench.data.synthtown.generate import dataset_name
+
+    official = {}
     for p in PRESETS.values():
+        proto = load_protocol(p.protocol)
         assert p.frames >= 16
         assert {t for t, _ in p.lanes} == set(proto.data.train) | set(proto.data.test) or p.name == "smoke"
         assert p.fov_deg == proto.data.fov_deg
+        if p.official:
+            assert p.protocol not in official, f"two official presets for {p.protocol}"
+            official[p.protocol] = p
+            assert (p.width, p.height) == (proto.data.width, proto.data.height)
+            assert proto.data.default_location == f"cache:{dataset_name(p.name, 0)}"
+    assert set(official) == {"synthtown@1", "synthtown@2"}
+    v2, proto2 = official["synthtown@2"], load_protocol("synthtown@2")
+    assert sum(n for t, n in v2.lanes if t in proto2.data.test) >= 8
+    fvd = proto2.metric("fvd")
+    assert (v2.frames - fvd.clip_length) // fvd.clip_stride + 1 >= 2
     assert PRESETS["paper"].width == 512
+    assert len({p.dataset for p in PRESETS.values()}) == len(PRESETS)  # one cache folder each
+
+
+def test_cached_dataset_of_another_protocol_is_refused(tmp_path, monkeypatch):
+    """An older release's data under the same cache name is an error, not silently scored."""
+    import json
+
+    from skyeyes_bench.data.synthtown.generate import dataset_name, ensure_dataset
+
+    monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path))
+    folder = tmp_path / "data" / dataset_name("small", 0)
+    folder.mkdir(parents=True)
+    (folder / "dataset.json").write_text(json.dumps({"name": "synthtown-v2-small", "protocol": "synthtown@1",
+                                                      "splits": {}, "scenes": [], "meta": {}}))
+    with pytest.raises(UserError, match="made for protocol 'synthtown@1'.*remove the folder"):
+        ensure_dataset("small")
+    cfg = dict(PRESETS["small"].to_dict(), frames=20)
+    (folder / "dataset.json").write_text(json.dumps({"name": "synthtown-v2-small", "protocol": "synthtown@2",
+                                                      "splits": {}, "scenes": [], "meta": {"preset_config": cfg}}))
+    with pytest.raises(UserError, match="another configuration than preset 'small'"):
+        ensure_dataset("small")
 
 
 def test_failed_run_leaves_nothing(tmp_path, monkeypatch):

@@ -254,11 +254,17 @@ def _with_replicates(lb, advantage, twin):
         (lb / "results" / f"{n}.json").write_text(json.dumps(d))
 
 
-def test_paired_replicates_mark_a_constant_shift_credible(board, tmp_path):
+@pytest.mark.parametrize("interval", ["as evaluated", "percentile"])
+def test_paired_replicates_mark_a_constant_shift_credible(board, tmp_path, interval):
     lb = _fresh(board, tmp_path)
     # twin worse by a constant on every replicate: PSNR lower by 0.05, FID higher by 0.05 -> credible,
     # although the replicates' spread (0.3) is far wider than the shift (an unpaired rule would dagger)
     _with_replicates(lb, 0.05, lambda r, sign: r - sign * 0.05)
+    if interval == "percentile":  # bootstrap replicates (not half-sampling): their percentile interval
+        for n in ("blurry", "blurry-twin"):
+            d = json.loads((lb / "results" / f"{n}.json").read_text())
+            d["statistics"]["interval"] = "percentile"
+            (lb / "results" / f"{n}.json").write_text(json.dumps(d))
     (t,) = leaderboard.load_tables(lb)[0]
     assert t.rules["psnr"] == t.rules["fid"] == marks.RULE_REPLICATES
     assert t.rules["ssim"] == marks.RULE_SEQUENCES and t.rules["kid"] == marks.RULE_OVERLAP  # no replicates

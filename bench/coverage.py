@@ -1,7 +1,7 @@
 """Coverage of set-metric (FID, KID) interval methods under clustered data, against a known
 population value.
 
-    nice -n 19 .venv/bin/python bench/coverage.py [--datasets 300] [--resamples 200] [--dim 32]
+    nice -n 19 .venv/bin/python bench/coverage.py [--datasets 300] [--resamples 200] [--dim 16] [--frames 8]
 
 Model (per simulated dataset): K clusters (scenes) of F frames. Ground-truth features
 g = u_c + e_i with a scene effect u_c ~ N(0, tau^2 diag(lam)) and a frame term
@@ -79,8 +79,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--datasets", type=int, default=300)
     ap.add_argument("--resamples", type=int, default=200)
-    ap.add_argument("--dim", type=int, default=32)
-    ap.add_argument("--frames", type=int, default=4, help="frames per cluster")
+    ap.add_argument("--dim", type=int, default=16)
+    ap.add_argument("--frames", type=int, default=8, help="frames per cluster")
     ap.add_argument("--clusters", type=int, nargs="+", default=[8, 16])
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()

@@ -1,7 +1,14 @@
-"""Bayesian model of a paired comparison: the posterior of the mean per-sequence difference
-under a Student-t likelihood, sampled with emcee, and its highest-density interval.
+"""Bayesian model of a paired comparison: the posterior of the location mu of per-cluster
+differences (clusters: the protocol's scenes, or sequences for synthtown@1) under a Student-t
+likelihood, sampled with emcee, and its highest-density interval.
 
-Pure functions on arrays; `stats.compare_per_sequence` is the caller.
+What mu is: the centre of a heavy-tailed model of the per-cluster differences of per-cluster
+frame means. It is the same quantity as `compare`'s headline advantage (difference of the
+frame-weighted means) when every cluster has as many frames and the differences are symmetric;
+otherwise it differs on purpose (one broken cluster does not move it), and `compare` says so
+(`stats.BAYES_ESTIMAND`). Callers give it at least `stats.MIN_CLUSTERS` differences.
+
+Pure functions on arrays; `stats.bayes_summary` is the caller.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ def hdi(samples: np.ndarray, mass: float = 0.95) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class StudentTPosterior:
-    mu: np.ndarray  # [S] posterior samples of the mean difference
+    mu: np.ndarray  # [S] posterior samples of the location of the differences
     sigma: np.ndarray  # [S]
     nu: np.ndarray  # [S]
     acceptance: float  # mean acceptance fraction over walkers
@@ -68,7 +75,7 @@ def _log_prob_factory(d: np.ndarray):
 
 
 def student_t_posterior(d: np.ndarray, *, walkers: int, steps: int, burn: int, seed: int) -> StudentTPosterior:
-    """Sample the posterior of a Student-t model of per-sequence differences d [K] with emcee.
+    """Sample the posterior of a Student-t model of per-cluster differences d [K] with emcee.
 
     Requires K >= 2 and sd(d) > 0 (callers handle the degenerate cases). Convergence is checked:
     mean acceptance fraction in (0.2, 0.8), kept chain longer than 50 autocorrelation times;

@@ -4,7 +4,8 @@ shards -> results (`merge`), and reading / writing the JSON and its features sid
 A results file is JSON (schema `skyeyes-bench/results@1`, docs/evaluate.md) with a sidecar
 `<stem>.features.npz` holding the per-sequence features (submission and ground truth) of every
 set-metric extractor, so intervals of FID/KID/FVD/KVD and paired comparisons can be recomputed
-by resampling sequences. Partial (shard) files, `skyeyes-bench/partial@1`, have the same two
+by resampling clusters (scenes or sequences, as the protocol says); each metric also carries
+its half-sampling replicates, so two results pair without the sidecars. Partial (shard) files, `skyeyes-bench/partial@1`, have the same two
 parts. `skyeyes_bench.evaluate` computes what goes in and re-exports the names here.
 """
 

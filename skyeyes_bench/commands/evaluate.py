@@ -8,8 +8,9 @@ import json
 def register(sub) -> None:
     p = sub.add_parser("evaluate", help="score a submission (validate, metrics, intervals -> results.json)",
                        description="Validate a submission (every problem listed, exit 2, nothing written), "
-                       "then compute the metrics its protocol asks for with clustered-bootstrap intervals "
-                       "and write results JSON plus a .features.npz sidecar.")
+                       "then compute the metrics its protocol asks for with intervals from half-sampling of "
+                       "the protocol's clusters (scenes; none below 5) and write results JSON (with each "
+                       "metric's replicates) plus a .features.npz sidecar.")
     p.add_argument("submission", metavar="SUBMISSION", help="submission folder (holds submission.json)")
     p.add_argument("--data", metavar="DIR", help="dataset folder (default: from submission.json and the "
                    "protocol's default location)")

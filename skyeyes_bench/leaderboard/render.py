@@ -15,7 +15,8 @@ DAGGER = "†"
 #: Marks a hardware cell that `leaderboard add` recorded (the results file did not).
 ADDED = "*"
 
-_INTRO = ("Values are `value [lower, upper]`, the percentile interval of the results' clustered bootstrap "
+_INTRO = ("Values are `value [lower, upper]`, the interval the results carry (clustered resampling of scenes or "
+          "sequences: half-sampling, or the bootstrap in older results) "
           "(`value (too few scenes)` when there are too few scenes for an interval). **Bold**: best in its "
           f"column. {DAGGER}: the best is not credibly better than the runner-up. Credibly better: the "
           "interval of the paired bootstrap of (best − runner-up), signed so that > 0 means better, excludes 0. "

@@ -35,12 +35,15 @@ class MetricDef:
     # ... and its bootstrap: f(xs [N, D], xg [N, D], seq [N], n_sequences) -> fn(w1, w2) -> float,
     #   the same quantity recomputed under resampling weights (see stats.set_metric_bootstrap).
     bootstrap: str | None = None
+    # the smallest value the metric can take (Fréchet distances: 0); a bias-corrected interval
+    # that reaches below it is clipped there (the true value cannot lie below it)
+    lower_bound: float | None = None
 
 
 _KID_KEYS = frozenset({"extractor", "resize", "subset_size", "num_subsets"})
 _CLIP_KEYS = frozenset({"extractor", "resize", "clip_length", "clip_stride"})
 _FRECHET = dict(estimator="skyeyes_bench.estimators:frechet",
-                bootstrap="skyeyes_bench.stats:FrechetBootstrap.from_features")
+                bootstrap="skyeyes_bench.stats:FrechetBootstrap.from_features", lower_bound=0.0)
 _MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.stats:MMDBootstrap.from_features")
 
 #: Every metric, in display order (leaderboard columns, results files follow the protocol's order).

@@ -104,8 +104,9 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         "too_few": few, "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
         "interval": stats.INTERVAL_METHOD, "half_size": k // 2, "scale": stats.half_scale(k) if k >= 2 else None}
 
-    def summarise(value: float, replicates: np.ndarray | None) -> dict:
-        """interval (null + reason below MIN_CLUSTERS), replicates (6 significant digits)."""
+    def summarise(value: float, replicates: np.ndarray | None, floor: float | None = None) -> dict:
+        """interval (null + reason below MIN_CLUSTERS; clipped at the metric's `floor`),
+        replicates (6 significant digits)."""
         if replicates is None:
             return {"interval": None, "interval_note": few, "replicates": None}
         out: dict = {"replicates": stats.round_replicates(replicates)}
@@ -113,7 +114,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         if iv is None:
             out.update(interval=None, interval_note="no replicate is defined")
         else:
-            out["interval"] = [iv[0], iv[1]]
+            out["interval"] = [iv[0] if floor is None else max(iv[0], floor), iv[1]]
             if iv[2]:
                 out["interval_note"] = ("interval widened to contain the value: the half-sample draws lie on one "
                                         "side of it (a small-sample bias of this metric larger than its spread)")
@@ -170,7 +171,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,
                            "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
                            "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
-                           **summarise(value, reps)}
+                           **summarise(value, reps, spec.lower_bound)}
     res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
     res["sequences"] = per_seq
     res.pop("unavailable", None)

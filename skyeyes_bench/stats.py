@@ -431,15 +431,16 @@ def advantage(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
 
 
 def advantage_interval(d: np.ndarray, *, resamples: int, level: float, seed: int) -> tuple[float, float] | None:
-    """Percentile interval of the mean of per-sequence advantages d [K] under a bootstrap of
-    sequences (each its own cluster); None when d holds NaN.
-
-    NOTE: kept for `leaderboard` (its credibility marks); `compare` uses `interval_from_replicates`
-    on scene clusters and the protocol's estimators instead."""
+    """Interval of the mean of per-cluster advantages d [K], each cluster weighted equally: the
+    half-sampling interval `compare_per_sequence` reports. None below MIN_CLUSTERS clusters or
+    when d holds NaN (no interval exists)."""
     k = len(d)
-    counts = resample_counts(resample_indices(k, resamples, seed), k)
-    samples = frame_metric_samples(d, np.arange(k), counts)
-    return None if np.isnan(samples).any() else percentile_interval(samples, level)
+    if k < MIN_CLUSTERS or np.isnan(d).any():
+        return None
+    mean = float(np.mean(d))
+    reps = frame_metric_samples(d, np.arange(k), replicate_counts(k, resamples, seed))
+    iv = interval_from_replicates(mean, reps, level, k)
+    return None if iv is None else (iv[0], iv[1])
 
 
 #: What the Student-t summary describes (printed in compare's JSON beside its numbers).
@@ -499,10 +500,9 @@ def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples
     few = too_few(k, unit)
     if few:
         out["interval_note"] = few
-    elif not math.isnan(mean):
-        reps = frame_metric_samples(d, np.arange(k), replicate_counts(k, resamples, seed))
-        iv = interval_from_replicates(mean, reps, level, k)
-        out["bootstrap_interval"] = list(iv[:2]) if iv else None
+    else:
+        iv = advantage_interval(d, resamples=resamples, level=level, seed=seed)
+        out["bootstrap_interval"] = list(iv) if iv else None
     out["bayes"] = bayes_summary(d, unit=unit, walkers=walkers, steps=steps, burn=burn, seed=seed)
     return out
 

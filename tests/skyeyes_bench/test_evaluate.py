@@ -289,6 +289,7 @@ def test_scene_clusters_group_frames_by_lane(scene_scored):
     for m, v in res["metrics"].items():
         if v["status"] == "ok":
             assert v["interval"][0] <= v["value"] <= v["interval"][1], m
+    assert res["metrics"]["fid"]["interval"][0] >= 0 and res["metrics"]["fvd"]["interval"][0] >= 0  # FID >= 0
 
 
 def test_too_few_scenes_in_results_and_compare(scene_scored, tmp_path):

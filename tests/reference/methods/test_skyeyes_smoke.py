@@ -23,6 +23,7 @@ def _render_all(m, ds):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # ~4 min alone; 600 s ran out with the 2 cores shared (load 5-8)
 def test_smoke_preset_with_stand_in_prior(synthtown_smoke, tmp_path):
     from builders.skyeyes import StandInPrior
 
@@ -51,6 +52,7 @@ def test_smoke_preset_with_stand_in_prior(synthtown_smoke, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # ~4 min alone; 600 s ran out with the 2 cores shared (load 5-8)
 def test_smoke_preset_with_sugar_prior(synthtown_smoke, tmp_path):
     pytest.importorskip("reference.methods.sugar")
     ds = open_dataset(synthtown_smoke)

@@ -45,14 +45,11 @@ def _root(arg) -> Path:
 
 
 def run(args) -> int:
+    action = getattr(args, "lb_action", None)
+    if action is not None:
+        return ACTIONS[action](args)
     from .. import leaderboard
 
-    if getattr(args, "lb_action", None) == "add":
-        root = _root(args.add_root or args.root)
-        for line in leaderboard.add_result(args.results, root=root, name=args.name, force=args.force):
-            print(line)
-        print("run `skyeyes-bench leaderboard` to regenerate the page")
-        return 0
     root = _root(args.root)
     if args.check:
         stale = leaderboard.check(root)
@@ -66,3 +63,17 @@ def run(args) -> int:
     files = leaderboard.write(root)
     print(f"{root}: wrote {', '.join(files)}")
     return 0
+
+
+def _add(args) -> int:
+    from .. import leaderboard
+
+    root = _root(args.add_root or args.root)
+    for line in leaderboard.add_result(args.results, root=root, name=args.name, force=args.force):
+        print(line)
+    print("run `skyeyes-bench leaderboard` to regenerate the page")
+    return 0
+
+
+#: The group's actions (without one, `leaderboard` regenerates the page).
+ACTIONS = {"add": _add}

@@ -241,3 +241,24 @@ def test_paired_replicates_self_zero_and_known_shift():
     np.testing.assert_allclose(stats.advantage(rs, ra, "ssim"), 0.1, rtol=1e-12)
     lo, hi, _ = stats.interval_from_replicates(0.1, stats.advantage(rs, ra, "ssim"), 0.95, 7)
     assert lo == pytest.approx(0.1) and hi == pytest.approx(0.1)
+
+
+def test_set_metric_samples_computes_a_repeated_resample_once():
+    """Half-sampling 6 clusters has C(6, 3) = 20 distinct draws: 300 replicates call the metric
+    20 times, and each replicate equals the metric called directly on its own weights."""
+    import itertools
+
+    k = 6
+    cl = np.repeat(np.arange(k), 2)  # 2 rows per cluster
+    calls = []
+
+    def fn(w1, w2):
+        calls.append(1)
+        return float(w1 @ np.arange(len(w1)) + 0.5 * w2.sum())
+
+    counts = stats.replicate_counts(k, 300, 0)
+    reps = stats.set_metric_samples(fn, cl, cl, counts)
+    distinct = {tuple(c) for c in counts}
+    assert len(calls) == len(distinct) <= len(list(itertools.combinations(range(k), k // 2)))
+    calls.clear()
+    assert np.array_equal(reps, [fn(c[cl], c[cl]) for c in counts])

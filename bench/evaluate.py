@@ -4,9 +4,8 @@
 
 Builds synthetic datasets (DatasetWriter; 16-frame sequences) and blurred submissions in a
 temporary folder, then evaluates each in a fresh process (so peak RSS is that run's own) under
-a bench protocol that keeps every stage of the official ones (PSNR, SSIM, LPIPS, FID, KID, FVD,
-KVD; 1000 bootstrap resamples) but uses the test-only `random-*` extractors, which need no
-weights. LPIPS is reported unavailable unless its weights are registered. Prints one line per
+a bench protocol made from synthtown@2's file (every metric and the statistics: 1000
+resamples) with the test-only `random-*` extractors, which need no weights. LPIPS is reported unavailable unless its weights are registered. Prints one line per
 size; memory should grow only by the per-frame values and features kept (O(N)), not O(N^2).
 """
 
@@ -15,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shutil
 import subprocess
@@ -26,73 +26,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-PROTOCOL = """
-id = "bench"
-version = 1
-title = "evaluate benchmark"
-description = "official stages and statistics, test-only extractors"
-reference = "bench/evaluate.py"
-
-[data]
-source = "synthtown"
-train = ["train-0"]
-test = ["test-0"]
-width = {size}
-height = {size}
-fov_deg = 90.0
-
-[capture]
-ground_height_m = 2.0
-ground_pitch_deg = 0.0
-ground_step_m = 2.0
-yaws_deg = [0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0]
-aerial_height_m = 52.0
-aerial_pitch_deg = -45.0
-sequence = "bench"
-
-[metrics.psnr]
-aggregate = "mean"
-
-[metrics.ssim]
-aggregate = "mean"
-window = 11
-sigma = 1.5
-k1 = 0.01
-k2 = 0.03
-
-[metrics.lpips]
-aggregate = "mean"
-extractor = "lpips-alex-v0.1"
-
-[metrics.fid]
-extractor = "random-image-64"
-
-[metrics.kid]
-extractor = "random-image-64"
-subset_size = 1000
-num_subsets = 100
-
-[metrics.fvd]
-extractor = "random-video-64"
-clip_length = 16
-clip_stride = 16
-
-[metrics.kvd]
-extractor = "random-video-64"
-clip_length = 16
-clip_stride = 16
-subset_size = 1000
-num_subsets = 100
-
-[statistics]
-bootstrap_resamples = 1000
-interval = 0.95
-seed = 0
-cluster = "sequence"
-emcee_walkers = 32
-emcee_steps = 3000
-emcee_burn = 1000
-"""
+def bench_protocol(size: int) -> str:
+    """The current SynthTown protocol's text (every metric, its parameters and statistics) with
+    the test-only `random-*` extractors in place of Inception and I3D, this benchmark's image size,
+    and sequence clusters (the synthetic datasets here have one scene)."""
+    text = (ROOT / "protocols" / "synthtown" / "v2.toml").read_text()
+    subs = [(r'^id = .*$', 'id = "bench"'), (r'^version = .*$', "version = 1"),
+            (r'^(width|height) = .*$', rf"\1 = {size}"), (r'^default_location = .*\n', ""),
+            (r'^extractor = "inception-tf-2015"$', 'extractor = "random-image-64"'),
+            (r'^extractor = "i3d-kinetics400"$', 'extractor = "random-video-64"'),
+            (r'^resize = .*\n', ""), (r'^cluster = .*$', 'cluster = "sequence"')]
+    for pat, rep in subs:
+        text, n = re.subn(pat, rep, text, flags=re.M)
+        assert n, pat  # the protocol file changed shape: update this list
+    return text
 
 
 def child(sub: str, data: str, out: str) -> None:
@@ -125,7 +72,7 @@ def main() -> None:
         protos = tmp / "protocols"
         shutil.copytree(ROOT / "protocols", protos)
         (protos / "bench").mkdir()
-        (protos / "bench" / "v1.toml").write_text(PROTOCOL.replace("{size}", str(args.size)))
+        (protos / "bench" / "v1.toml").write_text(bench_protocol(args.size))
         env = dict(os.environ, SKYEYES_PROTOCOLS=str(protos), SKYEYES_CACHE=str(tmp / "cache"))
         os.environ.update(SKYEYES_PROTOCOLS=env["SKYEYES_PROTOCOLS"], SKYEYES_CACHE=env["SKYEYES_CACHE"])
         print(f"# evaluate benchmark: {args.size}x{args.size} frames, 16-frame sequences, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 METHODS: dict[str, str] = {
     "mean-frame": "reference.methods.mean_frame:MeanFrame",
     "mvs": "reference.methods.mvs:MVS",
+    "nerf": "reference.methods.nerf:NeRF",
     "gaussians3d": "reference.methods.gaussians3d:Gaussians3D",
     "sugar": "reference.methods.sugar:SuGaR",
     "skyeyes": "reference.methods.skyeyes:Skyeyes",

@@ -87,10 +87,11 @@ class Model:
 
 
 def render_rays(model: Model, o: torch.Tensor, d: torch.Tensor, cfg: NeRFConfig, *, near: float,
-                generator: torch.Generator | None = None) -> dict:
+                generator: torch.Generator | None = None, far_field: bool = True) -> dict:
     """rgb [R, 3] over black, opacity acc [R], depth [R] (expected t, m) and sample counts of rays
-    from o [R, 3] along unit d [R, 3]; differentiable in the field's parameters."""
-    t = sample_intervals(o, d, model.box, n_inner=cfg.n_inner, n_outer=cfg.n_outer, near=near,
+    from o [R, 3] along unit d [R, 3]; differentiable in the field's parameters. far_field=False:
+    the rays end where they leave the box."""
+    t = sample_intervals(o, d, model.box, n_inner=cfg.n_inner, n_outer=cfg.n_outer if far_field else 0, near=near,
                          far=model.far(cfg), generator=generator)
     mids, deltas = (t[:, 1:] + t[:, :-1]) / 2, t[:, 1:] - t[:, :-1]  # [R, S]
     u = to_unit(model.box.normalise(o[:, None] + d[:, None] * mids[..., None]))  # [R, S, 3]
@@ -125,7 +126,8 @@ def render_rays(model: Model, o: torch.Tensor, d: torch.Tensor, cfg: NeRFConfig,
 
 
 @torch.no_grad()
-def render_camera(model: Model, cam, cfg: NeRFConfig, *, near: float) -> tuple[np.ndarray, np.ndarray]:
+def render_camera(model: Model, cam, cfg: NeRFConfig, *, near: float, far_field: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """(rgb [H, W, 3] over black, opacity [H, W]) of a `skyeyes_bench.cameras.Camera`."""
     dev = model.background.device
     o, d = cam.rays()
@@ -133,7 +135,7 @@ def render_camera(model: Model, cam, cfg: NeRFConfig, *, near: float) -> tuple[n
     d = torch.tensor(d, dtype=torch.float32, device=dev)
     rgbs, accs = [], []
     for oc, dc in zip(o.split(cfg.chunk), d.split(cfg.chunk)):
-        out = render_rays(model, oc, dc, cfg, near=near)
+        out = render_rays(model, oc, dc, cfg, near=near, far_field=far_field)
         rgbs.append(out["rgb"])
         accs.append(out["acc"])
     rgb = torch.cat(rgbs).reshape(cam.height, cam.width, 3).clamp(0, 1)

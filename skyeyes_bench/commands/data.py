@@ -68,14 +68,26 @@ def register(sub) -> None:
                       "from the protocol is recorded in dataset.json 'meta'. See docs/formats.md.")
     _import_arguments(q, "citysample-region5")
     q.add_argument("--town", default="matrixcity",
-                   help="town / region name of the scenes, '<town>-laneNN' (default: matrixcity)")
+                   help="town / region name of the scenes, '<town>-laneNN' (default: matrixcity); the protocol's "
+                   "train/test towns give the split")
+    q.add_argument("--region", action="append", metavar="TOWN=BLOCK[,BLOCK...]", default=[],
+                   help="instead of --town: scenes of the lanes that these aerial blocks (MatrixCity folder names, "
+                   "e.g. region5=block_10, or paper blocks, e.g. region5=block_E) see best are named TOWN-laneNN; "
+                   "repeat for each region, so one import holds train and test regions; lanes no region covers "
+                   "are left out (docs/formats.md: the public stand-in for region 5)")
     q.add_argument("--pose-format", default="auto", choices=("auto", "raw", "paper"),
                    help="raw transforms.json (rotation x0.01, metres) or paper-split transforms_*.json "
                    "(100 m units); auto: raw if present")
     q.add_argument("--convention", default="opengl", choices=("opengl", "opencv"),
                    help="camera axes of the stored poses (MatrixCity: opengl)")
-    q.add_argument("--depth-root", metavar="DIR",
-                   help="folder mirroring SRC with the depth EXRs (default: beside the images, or '<folder>_depth/')")
+    q.add_argument("--depth-root", metavar="DIR", action="append",
+                   help="folder mirroring SRC with the depth EXRs, '<block>_depth/NNNN.exr' as MatrixCity ships them; "
+                   "repeat to search several, first match wins (default: SRC's siblings '<SRC>_depth_float32' and "
+                   "'<SRC>_depth' when they exist; always also beside the images and in '<block>_depth/')")
+    q.add_argument("--include", action="append", metavar="GLOB",
+                   help="only pose files whose path under SRC matches GLOB (repeatable), e.g. "
+                   "'aerial/train/*/transforms.json' and 'street/train_dense/*/transforms.json' to take one set "
+                   "of a full download (default: every pose file of the chosen --pose-format)")
     q.add_argument("--aerial-radius", type=float, default=60.0, metavar="M",
                    help="attach aerial frames whose view centre on the ground lies within M metres of a lane point")
 
@@ -168,11 +180,28 @@ def _import_matrixcity(args) -> int:
     out, scenes, meta = import_matrixcity(
         args.src, args.out, protocol=args.protocol, town=args.town, split=args.split, pose_format=args.pose_format,
         convention=args.convention, depth_root=args.depth_root, aerial_radius_m=args.aerial_radius,
-        force=args.force, progress=not args.no_progress)
+        regions=_regions(args.region), include=args.include or None, force=args.force,
+        progress=not args.no_progress)
     print(_imported(out, scenes))
     for d in meta["protocol_differences"]:
         print(f"  differs from the protocol: {d}")
     return 0
+
+
+def _regions(values: list[str]) -> dict[str, list[str]] | None:
+    """--region TOWN=BLOCK[,BLOCK...] options -> {town: [block, ...]} (None when there are none)."""
+    from ..errors import UserError
+
+    out: dict[str, list[str]] = {}
+    for v in values:
+        town, eq, blocks = v.partition("=")
+        names = [b for b in blocks.split(",") if b]
+        if not eq or not town or not names:
+            raise UserError(f"--region {v!r}: expected TOWN=BLOCK[,BLOCK...], e.g. region5=block_10")
+        if town in out:
+            raise UserError(f"--region {v!r}: region {town!r} given twice")
+        out[town] = names
+    return out or None
 
 
 def _imported(out: Path, scenes) -> str:

@@ -7,6 +7,7 @@ differs from the protocol is recorded in the dataset's meta.
 
 from __future__ import annotations
 
+import fnmatch
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,17 +30,37 @@ _fail, _number, _int, _name = fields.fail, fields.number, fields.integer, fields
 #    "w", "h", "frames": [{"file_path": relative to the JSON's folder, "transform_matrix": 4x4}]},
 #    rotation orthonormal, translation in units of 100 m.
 #  - depth: EXR, same relative path with .exr, channel 0 in centimetres (float16; 65504 invalid).
+# and from its README ("Data Structure"): `<set>/<block>/` also holds `transforms_origin.json`, the
+# raw poses of every image before the filtering that made `transforms.json` (same raw layout); the
+# images ship as `<block>.tar`; depth ships in sibling trees `<map>_depth/` (float16) and
+# `<map>_depth_float32/` (aerial views), as `<kind>/<set>/<block>_depth/NNNN.exr`.
 
-#: MatrixCity depth EXRs are float16 centimetres; the float16 maximum marks sky / invalid.
-#: NOTE: MatrixCity scripts/rgbd2pc.py reads channel 0 and divides by 1e4 (cm -> 100 m units).
+#: MatrixCity depth EXRs are centimetres; in float16 files the float16 maximum marks sky / invalid.
+#: NOTE: MatrixCity scripts/load_data.py masks `== 65504` only when the file is float16; float32
+#: depth (the `*_depth_float32` release) has no such code, so 655 m and beyond are valid there.
 MATRIXCITY_DEPTH_INVALID = 65504.0
 
+#: Raw-layout pose file beside `transforms.json` (every image before MatrixCity's own filtering);
+#: it matches `transforms_*.json` but is not a paper split.
+MATRIXCITY_ORIGIN_POSES = "transforms_origin.json"
 
-def matrixcity_depth_to_metres(depth_cm: np.ndarray) -> np.ndarray:
-    """MatrixCity depth [H, W] in centimetres -> float32 metres; 65504 (float16 max), non-finite
-    and non-positive values are invalid and become inf (sky)."""
+#: Folder names of MatrixCity's maps; SRC must hold at most one of them.
+MATRIXCITY_MAPS = ("small_city", "big_city", "aerial_street_fusion")
+
+#: Aerial views further than this from the protocol's aerial pitch (deg), or by more than this
+#: fraction from its altitude, are reported in `protocol_differences`.
+AERIAL_PITCH_TOL_DEG = 1.0
+AERIAL_ALTITUDE_TOL = 0.05
+
+
+def matrixcity_depth_to_metres(depth_cm: np.ndarray, *, half: bool) -> np.ndarray:
+    """MatrixCity depth [H, W] in centimetres -> float32 metres. Non-finite and non-positive
+    values are invalid and become inf (sky); so is 65504 when the file stored float16 (`half`),
+    where it is the code for sky / beyond range, never in float32 files."""
     d = np.asarray(depth_cm, dtype=np.float64)
-    bad = ~np.isfinite(d) | (d >= MATRIXCITY_DEPTH_INVALID) | (d <= 0)
+    bad = ~np.isfinite(d) | (d <= 0)
+    if half:
+        bad |= d >= MATRIXCITY_DEPTH_INVALID
     out = (d / 100.0).astype(np.float32)
     out[bad] = np.inf
     return out
@@ -88,13 +109,14 @@ def resample_step(step_m: float, target_m: float, tol: float = 0.1) -> int | Non
 
 @dataclass
 class _MCFrame:
-    block: str
+    block: str  # the pose file's folder (raw) or path without suffix (paper), relative to SRC
     kind: str  # "aerial" | "street"
     order: int
     image: Path
     c2w: np.ndarray  # [4, 4] OpenCV, metres
     intrinsics: dict
     depth: Path | None
+    names: frozenset = frozenset()  # folder names of its pose file and image under SRC (for --region)
 
 
 def _mc_kind(path: Path, src: Path) -> str:
@@ -109,13 +131,42 @@ def _mc_kind(path: Path, src: Path) -> str:
     return kinds.pop()
 
 
-def _mc_depth_path(image: Path, src: Path, depth_root: Path | None) -> Path | None:
+def _depth_folders(folder: Path) -> list[Path]:
+    """Where the depth of images in `folder` may be: the folder itself, `<folder>_depth/`, and
+    `<folder>_depth/<folder>_depth/` (a release tar unpacked into a folder of its own name)."""
+    d = folder.with_name(folder.name + "_depth")
+    return [folder, d, d / d.name]
+
+
+def _mc_depth_path(image: Path, src: Path, depth_roots: list[Path]) -> Path | None:
     rel = image.relative_to(src) if image.is_relative_to(src) else Path(image.name)
-    cands = [image.with_suffix(".exr"), image.parent.with_name(image.parent.name + "_depth") / (image.stem + ".exr")]
-    if depth_root is not None:
-        cands += [depth_root / rel.with_suffix(".exr"),
-                  depth_root / rel.parent.with_name(rel.parent.name + "_depth") / (rel.stem + ".exr")]
+    if rel.parent.name and rel.parent.name == rel.parent.parent.name:  # <block>/<block>/NNNN.png
+        rel = rel.parent.parent / rel.name
+    cands = [f / (image.stem + ".exr") for f in _depth_folders(image.parent)]
+    for root in depth_roots:
+        cands += [f / (rel.stem + ".exr") for f in _depth_folders(root / rel.parent)]
     return next((c for c in cands if c.is_file()), None)
+
+
+def default_depth_roots(src: Path) -> list[Path]:
+    """The release's depth trees beside SRC: `<SRC>_depth_float32` first (aerial depth in float32,
+    MatrixCity's recommendation), then `<SRC>_depth` (float16); those that exist."""
+    src = Path(src).resolve()
+    # NOTE: MatrixCity's README also spells one of these trees "..._depth_flaot32".
+    names = [f"{src.name}_depth_float32", f"{src.name}_depth_flaot32", f"{src.name}_depth"]
+    return [src.with_name(n) for n in names if src.with_name(n).is_dir()]
+
+
+def _raw_image(folder: Path, index: int, where: str) -> Path:
+    """`<folder>/NNNN.png`, or `<folder>/<folder>/NNNN.png` (the block's tar unpacked into the
+    block's own folder); a one-line error that names the tar when it is still packed."""
+    name = f"{index:04d}.png"
+    for cand in (folder / name, folder / folder.name / name):
+        if cand.is_file():
+            return fileio.check_regular(cand)
+    tar = folder.with_name(folder.name + ".tar")
+    hint = f" (unpack {tar} into {folder.parent} first)" if tar.is_file() else ""
+    _fail(where, f"image {folder / name} not found{hint}")
 
 
 def _mc_intrinsics(raw: dict, jfile: Path, img_w: int, img_h: int) -> dict:
@@ -136,7 +187,7 @@ def _mc_intrinsics(raw: dict, jfile: Path, img_w: int, img_h: int) -> dict:
     return {"width": img_w, "height": img_h, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
 
 
-def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_root: Path | None) -> list[_MCFrame]:
+def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_roots: list[Path]) -> list[_MCFrame]:
     raw = fileio.read_json(jfile)
     if not isinstance(raw, dict) or not isinstance(raw.get("frames"), list) or not raw["frames"]:
         _fail(jfile, "field 'frames' must be a non-empty list")
@@ -153,15 +204,16 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
             if "file_path" in fr:
                 image = rel_file(jfile.parent, f"{at}.file_path", fr["file_path"], "image", src)
             else:
-                fi = _int(f"{at}.frame_index", fr.get("frame_index"), "the frame index")
-                image = jfile.parent / f"{fi:04d}.png"
-                if not image.is_file():
-                    _fail(f"{at}.frame_index", f"image {image} not found")
+                fi = _int(f"{at}.frame_index", fr.get("frame_index"), "the frame index", 0)
+                image = _raw_image(jfile.parent, fi, f"{at}.frame_index")
             mat_key = "rot_mat"
         else:
             fp = fr.get("file_path")
             if isinstance(fp, str) and not Path(fp).suffix:
                 fp += ".png"  # NeRF-style file paths may omit the extension
+            if isinstance(fp, str) and "\x00" not in fp and not (jfile.parent / fp).exists():
+                nested = Path(fp).parent / Path(fp).parent.name / Path(fp).name  # <block>/<block>/NNNN.png
+                fp = str(nested) if (jfile.parent / nested).is_file() else fp
             image = rel_file(jfile.parent, f"{at}.file_path", fp, "image", src)
             mat_key = "transform_matrix"
         mat = fr.get(mat_key)
@@ -178,28 +230,38 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
                 [[intr["fx"], 0, intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1]]), width=size[0], height=size[1])
         except UserError as e:
             _fail(f"{at}.{mat_key}", f"{e} (is --pose-format {fmt} right for this file?)")
-        out.append(_MCFrame(block, kind, i, image, cam.c2w, dict(intr), _mc_depth_path(image, src, depth_root)))
+        names = frozenset(Path(block).parts) | frozenset(image.parent.relative_to(src).parts
+                                                       if image.is_relative_to(src) else ())
+        out.append(_MCFrame(block, kind, i, image, cam.c2w, dict(intr), _mc_depth_path(image, src, depth_roots), names))
     return out
 
 
 def _mc_depth_loader(path: Path | None):
     if path is None:
         return None
-    return lambda: matrixcity_depth_to_metres(fileio.read_depth(path))
+    return lambda: matrixcity_depth_to_metres(fileio.read_depth(path), half=fileio.image_header(path)[3] == "half")
 
 
-def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", split: str | None = None,
-                    pose_format: str = "auto", convention: str = "opengl", depth_root: str | Path | None = None,
-                    aerial_radius_m: float = 60.0) -> tuple[list[PlannedScene], dict[str, str], dict]:
-    """Find MatrixCity pose files under `src`, convert poses, cut street tracks into lanes and
-    horizontal cube faces into sequences, resample to the protocol's step where a whole number
-    of source steps matches it, and attach the aerial frames that look at each lane."""
-    src = Path(src)
-    if not src.is_dir():
-        raise UserError(f"{src}: not a folder (expected a MatrixCity capture with transforms*.json files)")
-    _name("--town", town, "a town name")
+def _pose_files(src: Path, pose_format: str, include: list[str] | None = None) -> tuple[Path, str, list[Path]]:
+    """(SRC, possibly moved into the one MatrixCity map it holds, the pose format, its files).
+
+    Raw: every `transforms.json` (never `transforms_origin.json`, the unfiltered raw poses).
+    Paper: every `transforms_*.json` except `transforms_origin.json`. With `include` (glob
+    patterns on the path relative to SRC), only the files that match one of them.
+    """
+    def keep(p: Path) -> bool:
+        return not include or any(fnmatch.fnmatchcase(p.relative_to(src).as_posix(), g) for g in include)
+
     raw_files = sorted(src.rglob("transforms.json"))
-    paper_files = sorted(p for p in src.rglob("transforms_*.json"))
+    paper_files = sorted(p for p in src.rglob("transforms_*.json") if p.name != MATRIXCITY_ORIGIN_POSES)
+    maps = sorted({part for j in [*raw_files, *paper_files] for part in j.relative_to(src).parts[:-1]
+                   if part in MATRIXCITY_MAPS})
+    if len(maps) > 1:
+        raise UserError(f"{src}: holds several MatrixCity maps ({', '.join(maps)}); pass one as SRC, "
+                        f"e.g. {src / maps[0]}")
+    if maps and (src / maps[0]).is_dir() and src.name != maps[0]:  # the download's root: use its one map
+        return _pose_files(src / maps[0], pose_format, include)
+    raw_files, paper_files = [p for p in raw_files if keep(p)], [p for p in paper_files if keep(p)]
     if pose_format == "auto":
         pose_format = "raw" if raw_files else "paper"
     if pose_format not in ("raw", "paper"):
@@ -207,54 +269,129 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
     files = raw_files if pose_format == "raw" else paper_files
     if not files:
         want = "transforms.json" if pose_format == "raw" else "transforms_*.json"
-        raise UserError(f"{src}: no {want} found (expected a MatrixCity capture, see docs/formats.md)")
-    droot = Path(depth_root) if depth_root else None
-    frames = [f for j in files for f in _mc_read_pose_file(j, src, pose_format, convention, droot)]
+        other = "" if pose_format == "raw" else f"; {MATRIXCITY_ORIGIN_POSES} holds raw poses"
+        filt = f" matching --include {' '.join(include)}" if include else ""
+        raise UserError(f"{src}: no {want}{filt} found (expected a MatrixCity capture, see docs/formats.md{other})")
+    return src, pose_format, files
+
+
+def _view_centre(f: _MCFrame, ground_z: float) -> np.ndarray:
+    """Where the optical axis of a camera meets the plane z = ground_z (its position if it never does)."""
+    o, d = f.c2w[:3, 3], f.c2w[:3, 2]
+    return o + (ground_z - o[2]) / d[2] * d if d[2] < -1e-6 else o.copy()
+
+
+def _region_of_lanes(centres: np.ndarray, aerial: list[_MCFrame], regions: dict[str, list[str]], ground_z: float,
+                     radius: float) -> list[str | None]:
+    """Per lane centre [L, 2]: the region (town) whose aerial blocks' view centres come nearest,
+    None when none comes within `radius` m. A region is a list of aerial block names, each matched
+    against the folder names of a frame's pose file and image (`block_10`, or a paper block `block_E`)."""
+    near = np.full((len(centres), len(regions)), np.inf)
+    known = sorted({n for f in aerial for n in f.names})
+    for j, (town, blocks) in enumerate(regions.items()):
+        for b in blocks:
+            if b not in known:
+                raise UserError(f"--region {town}={','.join(blocks)}: no aerial block {b!r} in SRC "
+                                f"(aerial blocks: {', '.join(n for n in known if 'block' in n) or 'none'})")
+        views = np.array([_view_centre(f, ground_z)[:2] for f in aerial if f.names & set(blocks)])
+        near[:, j] = np.min(np.linalg.norm(centres[:, None, :] - views[None, :, :], axis=2), axis=1)
+    names = list(regions)
+    best = np.argmin(near, axis=1)
+    return [names[b] if near[i, b] <= radius else None for i, b in enumerate(best)]
+
+
+def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", split: str | None = None,
+                    pose_format: str = "auto", convention: str = "opengl",
+                    depth_root: str | Path | list[str | Path] | None = None, aerial_radius_m: float = 60.0,
+                    regions: dict[str, list[str]] | None = None,
+                    include: list[str] | None = None) -> tuple[list[PlannedScene], dict[str, str], dict]:
+    """Find MatrixCity pose files under `src`, convert poses, cut street tracks into lanes and
+    horizontal cube faces into sequences, resample to the protocol's step where a whole number
+    of source steps matches it, and attach the aerial frames that look at each lane.
+
+    `regions` ({town: [aerial block, ...]}) names the scenes by region instead of `town`: each
+    lane goes to the region whose aerial blocks look nearest to it (lanes no region covers within
+    `aerial_radius_m` are left out), so one import holds a protocol's train and test regions.
+    """
+    src = Path(src)
+    if not src.is_dir():
+        raise UserError(f"{src}: not a folder (expected a MatrixCity capture with transforms*.json files)")
+    for t in ([*regions] if regions else [town]):
+        _name("--region" if regions else "--town", t, "a town name")
+    src, pose_format, files = _pose_files(src, pose_format, include)
+    if depth_root is None:
+        droots = default_depth_roots(src)
+    else:
+        droots = [Path(d) for d in ([depth_root] if isinstance(depth_root, (str, Path)) else depth_root)]
+        for d in droots:
+            if not d.is_dir():
+                raise UserError(f"--depth-root {d}: not a folder")
+    frames = [f for j in files for f in _mc_read_pose_file(j, src, pose_format, convention, droots)]
     street = [f for f in frames if f.kind == "street"]
     aerial = [f for f in frames if f.kind == "aerial"]
     if not street:
         raise UserError(f"{src}: no street frames found (pose files under a folder named 'street')")
+    if regions and not aerial:
+        raise UserError(f"{src}: --region needs aerial frames (pose files under a folder named 'aerial')")
 
     # 1. Horizontal cube faces only (the protocol's ground cameras have pitch 0).
     level = math.sin(math.radians(10.0))
     horizontal = [f for f in street if abs(f.c2w[2, 2]) < level]
     # 2. Capture points: frames of one block sharing a position (to 1 cm), ordered by first
     #    appearance, so point-major (all faces at a point) and face-major files both work.
+    # 3. Resampling per block: a download holds 5 m (`train`) and 1 m (`train_dense`) blocks.
     lanes: list[list[list[_MCFrame]]] = []  # lane -> point -> faces
+    target = protocol.capture.ground_step_m
     steps_all: list[float] = []
+    block_steps: dict[str, tuple[float, int | None]] = {}  # block -> (source step, k)
     for block in dict.fromkeys(f.block for f in horizontal):
         by_pos: dict[tuple, list[_MCFrame]] = {}
         for f in sorted((f for f in horizontal if f.block == block), key=lambda f: f.order):
             by_pos.setdefault(tuple(np.round(f.c2w[:3, 3] / 0.01).astype(np.int64)), []).append(f)
         pts = list(by_pos.values())
         pos = np.array([p[0].c2w[:3, 3] for p in pts])
-        for idx in split_lanes(pos):
-            lanes.append([pts[i] for i in idx])
-            steps_all += list(np.linalg.norm(np.diff(pos[idx][:, :2], axis=0), axis=1))
+        cut = split_lanes(pos)
+        if not cut:
+            continue
+        steps = np.concatenate([np.linalg.norm(np.diff(pos[idx][:, :2], axis=0), axis=1) for idx in cut])
+        steps_all += list(steps)
+        step = float(np.median(steps))
+        k = resample_step(step, target)
+        block_steps[block] = (step, k)
+        lanes += [[pts[i] for i in idx][::k or 1] for idx in cut]
+    lanes = [lane for lane in lanes if len(lane) >= 2]
     if not lanes:
         raise UserError(f"{src}: street frames form no lane of 2 or more capture points")
     src_step = float(np.median(steps_all))
-    target = protocol.capture.ground_step_m
-    k = resample_step(src_step, target)
     diffs = []
-    if k is None:
-        diffs.append(f"ground step {src_step:.2f} m kept (no whole number of source steps makes {target:g} m)")
-        k = 1
-    elif k > 1:
-        diffs.append(f"ground step resampled from {src_step:.2f} m to {k * src_step:.2f} m (one capture point in {k})")
+    for step, k in sorted(set((round(s, 2), k) for s, k in block_steps.values()), key=lambda t: t[0]):
+        if k is None:
+            diffs.append(f"ground step {step:.2f} m kept (no whole number of source steps makes {target:g} m)")
+        elif k > 1:
+            diffs.append(f"ground step resampled from {step:.2f} m to {k * step:.2f} m (one capture point in {k})")
+    out_steps = sorted({round(s * (k or 1), 4) for s, k in block_steps.values()})
+    # The ground under the street cameras, assumed at the protocol's camera height.
+    ground_z = float(np.median([f.c2w[2, 3] for f in horizontal])) - protocol.capture.ground_height_m
+    if regions:
+        centres = np.array([np.mean([p[0].c2w[:2, 3] for p in lane], axis=0) for lane in lanes]).reshape(-1, 2)
+        towns = _region_of_lanes(centres, aerial, regions, ground_z, aerial_radius_m)
+        if towns.count(None):
+            diffs.append(f"{towns.count(None)} of {len(lanes)} lanes outside every --region left out")
+    else:
+        towns = [town] * len(lanes)
     scenes: list[PlannedScene] = []
     yaws_seen: set[str] = set()
-    for li, lane in enumerate(lanes):
-        lane = lane[::k]
-        if len(lane) < 2:
+    attached: dict[int, _MCFrame] = {}
+    for lane, lane_town in zip(lanes, towns):
+        if lane_town is None:
             continue
         pos = np.array([p[0].c2w[:3, 3] for p in lane])
         travel = pos[-1, :2] - pos[0, :2]
         heading = math.degrees(math.atan2(travel[1], travel[0]))
-        name = f"{town}-lane{len(scenes):02d}"
-        scene = PlannedScene(name, meta={"source": "matrixcity", "town": town, "block": lane[0][0].block,
+        name = f"{lane_town}-lane{sum(s.meta['town'] == lane_town for s in scenes):02d}"
+        scene = PlannedScene(name, meta={"source": "matrixcity", "town": lane_town, "block": lane[0][0].block,
                                          "heading_deg": round(heading, 3)})
-        # 3. One sequence per horizontal face direction, named by its yaw offset from the travel direction.
+        # 4. One sequence per horizontal face direction, named by its yaw offset from the travel direction.
         seqs: dict[str, list[_MCFrame]] = {}
         for point in lane:
             for f in point:
@@ -266,17 +403,18 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
             for i, f in enumerate(fs):
                 scene.ground.append(PlannedFrame("ground", f.image, f.c2w, f.intrinsics, _mc_depth_loader(f.depth),
                                                  seq, i))
-        # 4. Aerial frames whose optical axis meets the ground near a capture point of this lane.
-        ground_z = float(pos[:, 2].mean()) - protocol.capture.ground_height_m
+        # 5. Aerial frames whose optical axis meets the ground near a capture point of this lane.
+        lane_ground_z = float(pos[:, 2].mean()) - protocol.capture.ground_height_m
         for f in aerial:
-            o, d = f.c2w[:3, 3], f.c2w[:3, 2]
-            hit = o + (ground_z - o[2]) / d[2] * d if d[2] < -1e-6 else o
+            hit = _view_centre(f, lane_ground_z)
             if np.min(np.linalg.norm(pos[:, :2] - hit[:2], axis=1)) <= aerial_radius_m:
                 scene.aerial.append(PlannedFrame("aerial", f.image, f.c2w, f.intrinsics, _mc_depth_loader(f.depth)))
+                attached[id(f)] = f
         scene.meta["aerial_radius_m"] = aerial_radius_m
         scenes.append(scene)
     if not scenes:
-        raise UserError(f"{src}: no lane keeps 2 or more capture points after resampling to {target:g} m")
+        raise UserError(f"{src}: no lane keeps 2 or more capture points after resampling to {target:g} m"
+                        + (" inside a --region" if regions else ""))
     want = {yaw_sequence_name(y) for y in protocol.capture.yaws_deg}
     if yaws_seen != want:
         diffs.append(f"yaw offsets {sorted(yaws_seen)} (protocol: {sorted(want)}): public street captures are "
@@ -286,6 +424,20 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
         diffs.append(f"{dropped} non-horizontal street frames (cube-map up/down faces) left out")
     if not aerial:
         diffs.append("no aerial frames found")
+    # 6. The aerial views the dataset holds against the protocol's aerial pitch and altitude.
+    meta_aerial = {}
+    if attached:
+        used = list(attached.values())
+        pitches = [math.degrees(math.asin(float(np.clip(f.c2w[2, 2], -1, 1)))) for f in used]
+        alts = [float(f.c2w[2, 3]) - ground_z for f in used]
+        want_p, want_a = protocol.capture.aerial_pitch_deg, protocol.capture.aerial_height_m
+        meta_aerial = {"aerial_pitch_deg": [round(min(pitches), 2), round(max(pitches), 2)],
+                       "aerial_altitude_m": [round(min(alts), 2), round(max(alts), 2)]}
+        if max(abs(p - want_p) for p in pitches) > AERIAL_PITCH_TOL_DEG:
+            diffs.append(f"aerial pitch {min(pitches):.1f}..{max(pitches):.1f} deg (protocol: {want_p:g})")
+        if max(abs(a - want_a) for a in alts) > AERIAL_ALTITUDE_TOL * want_a:
+            diffs.append(f"aerial altitude {min(alts):.1f}..{max(alts):.1f} m above the ground under the street "
+                         f"cameras (protocol: {want_a:g})")
     sizes = sorted({(f.intrinsics["width"], f.intrinsics["height"]) for f in frames})
     if sizes != [(protocol.data.width, protocol.data.height)]:
         diffs.append(f"image sizes {', '.join(f'{w}x{h}' for w, h in sizes)} (protocol: "
@@ -294,16 +446,21 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
                    for f in frames})
     if fovs != [round(protocol.data.fov_deg, 2)]:
         diffs.append(f"horizontal fov {', '.join(f'{v:g}' for v in fovs)} deg (protocol: {protocol.data.fov_deg:g})")
-    split_name = town_split(town, protocol, split)
+    split_of = {s.name: town_split(s.meta["town"], protocol, split) for s in scenes}
     meta = {"source": "matrixcity", "pose_format": pose_format, "convention": convention,
-            "source_step_m": round(src_step, 4), "step_m": round(k * src_step, 4),
-            "protocol_differences": diffs}
-    return scenes, {s.name: split_name for s in scenes}, meta
+            "source_step_m": round(src_step, 4), "step_m": out_steps[0] if len(out_steps) == 1 else out_steps,
+            "block_steps_m": {b: round(st, 4) for b, (st, _) in block_steps.items()}, **meta_aerial,
+            "depth_roots": [str(d) for d in droots], "protocol_differences": diffs}
+    if regions:
+        meta["regions"] = {t: list(b) for t, b in regions.items()}
+    return scenes, split_of, meta
 
 
 def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "citysample-region5", town: str = "matrixcity",
                       split: str | None = None, pose_format: str = "auto", convention: str = "opengl",
-                      depth_root: str | Path | None = None, aerial_radius_m: float = 60.0, name: str | None = None,
+                      depth_root: str | Path | list[str | Path] | None = None, aerial_radius_m: float = 60.0,
+                      regions: dict[str, list[str]] | None = None, include: list[str] | None = None,
+                      name: str | None = None,
                       force: bool = False, progress: bool = True) -> tuple[Path, list[PlannedScene], dict]:
     """Convert a MatrixCity / CitySample capture into the canonical layout at `out`."""
     from ...protocol import load_protocol
@@ -311,7 +468,7 @@ def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "city
     proto = load_protocol(protocol)
     scenes, split_of, meta = plan_matrixcity(src, proto, town=town, split=split, pose_format=pose_format,
                                              convention=convention, depth_root=depth_root,
-                                             aerial_radius_m=aerial_radius_m)
+                                             aerial_radius_m=aerial_radius_m, regions=regions, include=include)
     meta = {**meta, "importer": "skyeyes-bench data import-matrixcity", "src": str(src)}
     out = write_plan(Path(out), scenes, name=name or Path(out).name, protocol=proto.ref,
                      splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress)

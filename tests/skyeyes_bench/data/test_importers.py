@@ -278,3 +278,20 @@ def test_rgba_png_colour_not_premultiplied(tmp_path):
     _png_rgba(tmp_path / "a.png", px)
     np.testing.assert_array_equal(fileio.read_image_uint8(tmp_path / "a.png"), px)
     np.testing.assert_array_equal(np.rint(fileio.read_image(tmp_path / "a.png") * 255), px[..., :3])
+
+
+@pytest.mark.parametrize("field, value", [("image", "ABS"), ("image", "../outside.png"), ("depth", "ABS"),
+                                          ("image", "rgb/link.png")])
+def test_import_carla_refuses_paths_leaving_the_capture(carla_src, tmp_path, field, value):
+    """An absolute path, '..' or a symlink out of the capture folder: one line naming the field."""
+    src, _ = carla_src
+    outside = tmp_path / "outside.png"
+    outside.write_bytes((src / "rgb" / "000000.png").read_bytes())
+    (src / "rgb" / "link.png").symlink_to(outside)
+    value = str(outside) if value == "ABS" else value
+    _mutate_capture(src, lambda r: r["frames"][0].update({field: value}))
+    out = tmp_path / "work" / "out"
+    out.parent.mkdir()
+    _, _, err = run_cli("data", "import-carla", str(src), str(out), "--no-progress", check=2)
+    assert f"capture.json: frames[0].{field}: " in err and f"{value!r} leaves {src}" in err, err
+    assert err.count("\n") == 1 and os.listdir(out.parent) == []

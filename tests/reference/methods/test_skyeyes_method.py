@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("diffusers")
+import diffusers  # noqa: F401  (a hard dependency of reference: a broken install fails here, never skips)
 
 from builders.skyeyes import SIZE, StandInPrior, make_tiny_dataset  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402

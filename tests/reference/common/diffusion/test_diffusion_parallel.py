@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-pytest.importorskip("accelerate")
+import accelerate  # noqa: F401  (a hard dependency of reference: a broken install fails here, never skips)
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _ddp_runner  # noqa: E402

@@ -188,6 +188,13 @@ class LPIPSv01(Extractor):
 
     def distance(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
         """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N]."""
+        return self._run(pred, gt, spatial=False)
+
+    def distance_map(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+        """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N, H, W] (lpips `spatial=True`)."""
+        return self._run(pred, gt, spatial=True)
+
+    def _run(self, pred, gt, *, spatial: bool) -> np.ndarray:
         torch = _torch_setup()
         model = self.model
 
@@ -195,7 +202,7 @@ class LPIPSv01(Extractor):
             return torch.from_numpy(np.asarray(a, np.float32)).permute(0, 3, 1, 2) * 2.0 - 1.0
 
         with torch.inference_mode():
-            return model(t(pred), t(gt)).double().numpy()
+            return model(t(pred), t(gt), spatial=spatial).double().numpy()
 
 
 class RandomImage64(Extractor):

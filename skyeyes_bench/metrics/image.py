@@ -71,6 +71,13 @@ def ssim(pred: np.ndarray, gt: np.ndarray, *, window: int = 11, sigma: float = 1
     Returns:
         float64 [...].
     """
+    return ssim_map(pred, gt, window=window, sigma=sigma, k1=k1, k2=k2).mean(axis=(-3, -2, -1))
+
+
+def ssim_map(pred: np.ndarray, gt: np.ndarray, *, window: int = 11, sigma: float = 1.5,
+             k1: float = 0.01, k2: float = 0.03) -> np.ndarray:
+    """The SSIM map `ssim` averages: float64 [..., H - 2r, W - 2r, 3] for r = window // 2, where
+    map pixel (i, j) is the window centred on image pixel (i + r, j + r)."""
     pred, gt = _check_pair(pred, gt, "ssim")
     if window % 2 != 1 or pred.shape[-3] < window or pred.shape[-2] < window:
         raise ValueError(f"ssim: odd window <= image size required (window {window}, image {pred.shape[-3:-1]})")
@@ -82,8 +89,7 @@ def ssim(pred: np.ndarray, gt: np.ndarray, *, window: int = 11, sigma: float = 1
     vy = syy - my * my
     cxy = sxy - mx * my
     c1, c2 = (k1 * 1.0) ** 2, (k2 * 1.0) ** 2  # data range 1
-    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
-    return s.mean(axis=(-3, -2, -1))
+    return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
 
 
 def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16) -> np.ndarray:
@@ -102,15 +108,34 @@ def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: in
     Raises:
         MetricUnavailable: the backbone or linear-head weights are missing.
     """
+    return _lpips(pred, gt, net, batch_size, spatial=False)
+
+
+def lpips_map(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16) -> np.ndarray:
+    """LPIPS v0.1 spatial map (`lpips.LPIPS(spatial=True)`): float64 [..., H, W] for inputs as `lpips`.
+
+    Each layer's linear-head output upsampled (bilinear, align_corners=False) to the image size and
+    summed over the 5 layers. Its mean is close to `lpips` (not equal: upsampling is not
+    mean-preserving at the borders).
+
+    Raises:
+        MetricUnavailable: the backbone or linear-head weights are missing.
+    """
+    return _lpips(pred, gt, net, batch_size, spatial=True)
+
+
+def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool) -> np.ndarray:
     from .extractors import get_extractor
 
     pred, gt = _check_pair(pred, gt, "lpips")
     if net not in ("alex", "vgg"):
         raise ValueError(f"lpips: net must be 'alex' or 'vgg', got {net!r}")
     ex = get_extractor(f"lpips-{net}-v0.1")
+    run = ex.distance_map if spatial else ex.distance
+    tail = pred.shape[-3:-1] if spatial else ()  # a map per pair, or a number
     lead = pred.shape[:-3]
     p = pred.reshape((-1,) + pred.shape[-3:])
     g = gt.reshape((-1,) + gt.shape[-3:])
-    out = np.concatenate([ex.distance(p[i:i + batch_size], g[i:i + batch_size])
-                          for i in range(0, len(p), batch_size)]) if len(p) else np.zeros(0)
-    return out.reshape(lead)
+    out = np.concatenate([run(p[i:i + batch_size], g[i:i + batch_size])
+                          for i in range(0, len(p), batch_size)]) if len(p) else np.zeros((0,) + tail)
+    return out.reshape(lead + tail)

@@ -81,14 +81,21 @@ class LPIPSNet(nn.Module):
                     break
         return out
 
-    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+    def forward(self, x0: torch.Tensor, x1: torch.Tensor, spatial: bool = False) -> torch.Tensor:
+        """[B] distances, or with spatial=True the [B, H, W] map: each layer's head output
+        bilinearly upsampled to the input size (align_corners=False), summed over layers, as
+        `lpips.LPIPS(spatial=True)` computes it (its mean is close to, not equal to, the distance)."""
         n = x0.shape[0]
         feats = self.taps_of(torch.cat([x0, x1]))  # one pass for both halves
         total = 0.0
         for f, lin in zip(feats, self.lins):
             f = f / (torch.sqrt((f * f).sum(dim=1, keepdim=True)) + EPS)
             d = (f[:n] - f[n:]) ** 2
-            total = total + lin(d).mean(dim=(2, 3))  # [B, 1]
+            if spatial:  # NOTE: lpips 0.1.4 `upsample(in_tens, out_HW)`: nn.Upsample(bilinear, align_corners=False)
+                total = total + torch.nn.functional.interpolate(lin(d), size=x0.shape[2:], mode="bilinear",
+                                                                align_corners=False)  # [B, 1, H, W]
+            else:
+                total = total + lin(d).mean(dim=(2, 3))  # [B, 1]
         return total[:, 0]
 
     def load_backbone(self, sd: dict[str, torch.Tensor]) -> None:

@@ -9,6 +9,9 @@ protocol's `MetricSpec` of that metric. The pure metric code itself lives in
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
 from .metrics import image, sets
@@ -34,6 +37,80 @@ def lpips(preds: np.ndarray, gts: np.ndarray, settings) -> np.ndarray:
     """LPIPS per frame [B] with the protocol's backbone (AlexNet unless it names VGG)."""
     net = _LPIPS_NET.get(settings.extractor or "lpips-alex-v0.1", "alex")
     return image.lpips(preds, gts, net=net)
+
+
+# --------------------------------------------------------------------------- per sequence (depth)
+
+
+@dataclass(frozen=True)
+class SequenceData:
+    """One test sequence as the depth-based metrics see it (`metricspec.MetricDef.per_sequence`)."""
+
+    preds: np.ndarray  # [T, H, W, 3] submitted frames in [0, 1], in sequence order
+    gts: np.ndarray  # [T, H, W, 3] ground-truth frames
+    depths: np.ndarray  # [T, H, W] ground-truth planar depth, metres (+inf sky)
+    cameras: list  # T cameras.Camera
+    seen: Callable[[float], np.ndarray]  # depth tolerance -> bool [T, H, W] seen masks (cached)
+
+
+def _region(seq: SequenceData, name: str, tol: float) -> np.ndarray:
+    """bool [T, H, W]: the seen pixels for `*_seen`, the others for `*_unseen`."""
+    seen = seq.seen(tol)
+    return seen if name.endswith("_seen") else ~seen
+
+
+def regions(seq: SequenceData, specs: list) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    """psnr_seen / _unseen, ssim_seen / _unseen (values [T], pixel counts [T]) and unseen_share
+    (the share of each frame's pixels no aerial view sees, [T], unweighted)."""
+    from .metrics import regions as R
+
+    out: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    for m in specs:
+        if m.name == "unseen_share":
+            out[m.name] = ((~seq.seen(m.depth_tolerance)).mean(axis=(1, 2)), None)
+        elif m.name.startswith("psnr_"):
+            out[m.name] = R.psnr(seq.preds, seq.gts, _region(seq, m.name, m.depth_tolerance))
+        else:
+            kw = {k: getattr(m, k) for k in ("window", "sigma", "k1", "k2") if getattr(m, k) is not None}
+            out[m.name] = R.ssim(seq.preds, seq.gts, _region(seq, m.name, m.depth_tolerance), **kw)
+    return out
+
+
+def lpips_regions(seq: SequenceData, specs: list) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """lpips_seen / _unseen: the LPIPS spatial map's mean over the region ([T] values, [T] counts);
+    one map per backbone serves both regions."""
+    from .metrics.regions import masked_mean
+
+    maps: dict[str, np.ndarray] = {}
+    out = {}
+    for m in specs:
+        net = _LPIPS_NET.get(m.extractor or "lpips-alex-v0.1", "alex")
+        if net not in maps:
+            maps[net] = image.lpips_map(seq.preds, seq.gts, net=net)  # [T, H, W]
+        out[m.name] = masked_mean(maps[net], _region(seq, m.name, m.depth_tolerance))
+    return out
+
+
+def warp(seq: SequenceData, specs: list) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """warp (the submission) / warp_floor (the ground truth): frame t warped into frame t + 1 with
+    the ground-truth depth and poses, mean |difference| over the valid pixels ([T] values, the
+    last frame NaN; [T] valid pixel counts)."""
+    from .metrics.geometry import warp_coords, warp_error
+
+    n_frames = len(seq.cameras)
+    coords: dict[float, list] = {}
+    out = {}
+    for m in specs:
+        tol = m.depth_tolerance
+        if tol not in coords:  # the geometry depends on the ground truth only: once per tolerance
+            coords[tol] = [warp_coords(seq.depths[t + 1], seq.cameras[t + 1], seq.depths[t], seq.cameras[t], tol)
+                           for t in range(n_frames - 1)]
+        frames = seq.preds if m.name == "warp" else seq.gts
+        values, counts = np.full(n_frames, np.nan), np.zeros(n_frames, np.int64)
+        for t, (uv, valid) in enumerate(coords[tol]):
+            values[t], counts[t] = warp_error(frames[t], frames[t + 1], uv, valid)
+        out[m.name] = (values, counts)
+    return out
 
 
 # --------------------------------------------------------------------------- over the set

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import __version__, fileio, paths
 from .errors import UserError, ValidationError
-from .metricspec import FRAME_METRICS, metric_def
+from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
     PARTIAL_FORMAT, RESULTS_FORMAT, _digest, _stage, _tqdm, default_out, features_path, finalize, format_summary,
@@ -94,7 +94,7 @@ def _frame_batches(items: list, size: int):
 
 
 def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = False,
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, protocol: str | None = None) -> dict[str, Any]:
     """Score a submission folder against its protocol.
 
     Args:
@@ -105,13 +105,16 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
             partial result for `merge`.
         force: replace an existing `out`.
         progress: progress bars on stderr.
+        protocol: score with this protocol (`id@N`) instead of the one `submission.json` names;
+            it must score the same data (`data.dataset_protocol`), e.g. "synthtown@3" for a
+            submission written for "synthtown@2" (same frames, more metrics).
     Returns:
         The results dict (or the partial dict for a shard).
     Raises:
         ValidationError: every problem of the submission, before anything is computed or written.
     """
     from .data.layout import open_dataset
-    from .protocol import load_protocol
+    from .protocol import load_protocol as _load_protocol
 
     shard = parse_shard(shard)
     sub = Path(submission_dir)
@@ -122,7 +125,7 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     t_start = time.perf_counter()
     with _stage(timing, "validate_s"):
         manifest = read_submission(sub)
-        protocol = load_protocol(manifest["protocol"])
+        protocol = _load_protocol(protocol or manifest["protocol"])
         ds = open_dataset(resolve_data(manifest, protocol, data))
         if out is not None:
             fileio.check_output(out, force=force, outside=[ds.root])
@@ -148,13 +151,14 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
                     "resolution": sorted({f"{f.width}x{f.height}" for _, f in expected_frames(ds)}),
                     "official_resolution": f"{protocol.data.width}x{protocol.data.height}"},
         "submission": {"path": str(sub.resolve()), **{k: manifest.get(k) for k in (
-            "method", "method_version", "created", "timings", "peak_memory_mb", "hardware", "config")},
+            "method", "method_version", "protocol", "created", "timings", "peak_memory_mb", "hardware", "config")},
             # every frame, not only this shard's: `merge` refuses parts of different submissions
             "frames_sha256": _digest([f"{rel} {sha}\n" for rel, sha in sub_sha.items()])},
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
     seq_index = {sid: k for k, sid in enumerate(seq_ids)}
     records, unavailable = _frame_metrics(sub, frames, protocol, seq_index, sub_sha, timing, progress)
+    _sequence_metrics(sub, ds, frames, protocol, records, unavailable, timing, progress)
     features, extractors = _features(sub, frames, protocol, seq_index, unavailable, timing, progress)
     doc.update(frames=records, unavailable=unavailable, extractors=extractors)
     if shard is None:
@@ -190,7 +194,7 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
     sha256, hashed once by the caller)."""
     from .metrics import MetricUnavailable
 
-    specs = [protocol.metric(name) for name in FRAME_METRICS if protocol.metric(name)]
+    specs = [protocol.metric(name) for name in FRAME_METRICS if protocol.metric(name) and metric_def(name).per_frame]
     functions = {m.name: load_entry_point(metric_def(m.name).per_frame) for m in specs}
     unavailable: dict[str, dict] = {}
     records = []
@@ -217,6 +221,71 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
                 records.append(rec)
             bar.update(len(batch))
     return records, unavailable
+
+
+def _sequence_metrics(sub: Path, ds, frames, protocol, records: list[dict], unavailable: dict, timing,
+                      progress) -> None:
+    """The frame metrics computed a sequence at a time from the ground truth's depth and poses
+    (`metricspec.MetricDef.per_sequence`: seen / unseen regions, warp consistency), written into
+    `records`: the value (null for an empty region) and, for pixel-weighted metrics, `<name>_n`."""
+    from .estimators import SequenceData
+    from .metrics import MetricUnavailable
+    from .metrics.masks import seen_masks
+
+    specs = [protocol.metric(n) for n in SEQUENCE_METRICS if protocol.metric(n)]
+    groups: dict[str, list] = {}  # entry point -> the specs it computes together
+    for m in specs:
+        groups.setdefault(metric_def(m.name).per_sequence, []).append(m)
+    scenes = sorted({s for s, _ in frames})
+    for entry, ms in list(groups.items()):
+        missing = [f"{s}/{v}_depth/" for s in scenes for v in metric_def(ms[0].name).depth
+                   if not ds.scenes[s].layers()[f"{v}_depth"]]
+        if missing:
+            for m in ms:
+                unavailable[m.name] = {
+                    "reason": f"the dataset has no depth layer {missing[0]}" + (
+                        f" (and {len(missing) - 1} more)" if len(missing) > 1 else "") + f": {m.name} needs it",
+                    "fix": "score a dataset with ground and aerial depth (SynthTown writes it; importers write it when "
+                           "the capture has depth)"}
+            del groups[entry]
+    if not groups:
+        return
+    by_seq: dict[tuple[str, str], list] = {}
+    for s, f in frames:
+        by_seq.setdefault((s, f.sequence), []).append(f)
+    rec_of = {(r["scene"], r["file"]): r for r in records}
+    timing.setdefault("masks_s", 0.0)
+    bar = _tqdm(progress, total=len(by_seq), desc="depth metrics", unit="sequence")
+    with _stage(timing, "sequence_metrics_s"), bar:
+        for (scene, _), fs in by_seq.items():
+            fs = sorted(fs, key=lambda f: f.index)
+            masks: dict[float, np.ndarray] = {}
+
+            def seen(tol: float, scene=scene, fs=fs, masks=masks) -> np.ndarray:
+                if tol not in masks:
+                    with _stage(timing, "masks_s"):
+                        masks[tol] = seen_masks(ds.scenes[scene], fs, tol)
+                return masks[tol]
+
+            data = SequenceData(preds=np.stack([fileio.read_image(sub / frame_relpath(scene, f)) for f in fs]),
+                                gts=np.stack([f.image() for f in fs]), depths=np.stack([f.depth() for f in fs]),
+                                cameras=[f.camera() for f in fs], seen=seen)
+            for entry, ms in groups.items():
+                if all(m.name in unavailable for m in ms):
+                    continue
+                try:
+                    values = load_entry_point(entry)(data, ms)
+                except MetricUnavailable as e:  # missing weights: reported once, not retried per sequence
+                    for m in ms:
+                        unavailable[m.name] = {"reason": e.reason, "fix": e.fix}
+                    continue
+                for name, (v, n) in values.items():
+                    for i, f in enumerate(fs):
+                        rec = rec_of[(scene, f.file)]
+                        rec[name] = None if np.isnan(v[i]) else float(v[i])
+                        if n is not None:
+                            rec[f"{name}_n"] = int(n[i])
+            bar.update(1)
 
 
 def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progress):

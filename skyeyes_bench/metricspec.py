@@ -38,6 +38,20 @@ class MetricDef:
     # the smallest value the metric can take (Fréchet distances: 0); a bias-corrected interval
     # that reaches below it is clipped there (the true value cannot lie below it)
     lower_bound: float | None = None
+    # kind "frame" computed a sequence at a time from the ground truth's depth and poses (the
+    # metrics naming one entry point are computed together):
+    #   f(seq: estimators.SequenceData, specs: list[protocol.MetricSpec]) -> {name: (values [T], weights [T] | None)}
+    per_sequence: str | None = None
+    depth: tuple[str, ...] = ()  # the views ("ground", "aerial") whose depth layers it needs; the protocol
+    # then gives `depth_tolerance`
+    # Pixel-weighted frame metrics: each frame record holds the value on its region (null when the
+    # region is empty) and `<name>_n`, the region's pixel count; the summary pools pixels:
+    # pool "mean": sum(n v) / sum(n); "mse" (PSNR): -10 log10(sum(n 10^(-v/10)) / sum(n)).
+    weighted: bool = False
+    pool: str = "mean"
+    # a property of the ground truth (the same for every submission on the dataset: the unseen
+    # share, the warp floor): reported beside the scores, never ranked or compared
+    reference: bool = False
 
 
 _KID_KEYS = frozenset({"extractor", "resize", "subset_size", "num_subsets"})
@@ -45,6 +59,14 @@ _CLIP_KEYS = frozenset({"extractor", "resize", "clip_length", "clip_stride"})
 _FRECHET = dict(estimator="skyeyes_bench.estimators:frechet",
                 bootstrap="skyeyes_bench.stats:FrechetBootstrap.from_features", lower_bound=0.0)
 _MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.stats:MMDBootstrap.from_features")
+_SSIM_KEYS = frozenset({"window", "sigma", "k1", "k2"})
+_DEPTH = frozenset({"depth_tolerance"})
+# Seen / unseen regions of the ground views (docs/metrics.md): masks from the depth test against
+# every aerial view of the scene; warp consistency from ground-truth depth and poses.
+_REGIONS = dict(per_sequence="skyeyes_bench.estimators:regions", depth=("ground", "aerial"))
+_LPIPS_REGIONS = dict(per_sequence="skyeyes_bench.estimators:lpips_regions", depth=("ground", "aerial"),
+                      extractor=True)
+_WARP = dict(per_sequence="skyeyes_bench.estimators:warp", depth=("ground",), weighted=True)
 
 #: Every metric, in display order (leaderboard columns, results files follow the protocol's order).
 METRICS: dict[str, MetricDef] = {m.name: m for m in (
@@ -59,10 +81,23 @@ METRICS: dict[str, MetricDef] = {m.name: m for m in (
     MetricDef("kid", "set", False, _KID_KEYS, "KID", 4, extractor=True, features="image", **_MMD),
     MetricDef("fvd", "set", False, _CLIP_KEYS, "FVD", 2, extractor=True, features="clip", **_FRECHET),
     MetricDef("kvd", "set", False, _CLIP_KEYS | _KID_KEYS, "KVD", 2, extractor=True, features="clip", **_MMD),
+    MetricDef("psnr_seen", "frame", True, _DEPTH, "PSNR seen", 2, weighted=True, pool="mse", **_REGIONS),
+    MetricDef("psnr_unseen", "frame", True, _DEPTH, "PSNR unseen", 2, weighted=True, pool="mse", **_REGIONS),
+    MetricDef("ssim_seen", "frame", True, _DEPTH | _SSIM_KEYS, "SSIM seen", 3, weighted=True, **_REGIONS),
+    MetricDef("ssim_unseen", "frame", True, _DEPTH | _SSIM_KEYS, "SSIM unseen", 3, weighted=True, **_REGIONS),
+    MetricDef("lpips_seen", "frame", False, _DEPTH | {"extractor"}, "LPIPS seen", 3, weighted=True,
+              **_LPIPS_REGIONS),
+    MetricDef("lpips_unseen", "frame", False, _DEPTH | {"extractor"}, "LPIPS unseen", 3, weighted=True,
+              **_LPIPS_REGIONS),
+    MetricDef("unseen_share", "frame", False, _DEPTH, "Unseen share", 3, reference=True, **_REGIONS),
+    MetricDef("warp", "frame", False, _DEPTH, "Warp error", 4, **_WARP),
+    MetricDef("warp_floor", "frame", False, _DEPTH, "Warp floor", 4, reference=True, **_WARP),
 )}
 
 FRAME_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "frame")
 SET_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "set")
+#: Frame metrics computed a sequence at a time from depth and poses (the rest: frame by frame).
+SEQUENCE_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.per_sequence)
 
 
 def metric_def(name: str) -> MetricDef:

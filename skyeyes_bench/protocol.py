@@ -40,6 +40,9 @@ class DataSpec:
     height: int
     fov_deg: float  # horizontal field of view of ground and aerial cameras
     default_location: str = ""  # "" none; "cache:<name>" = `<cache>/data/<name>`
+    # The protocol whose data this one scores (the `protocol` its datasets' dataset.json and older
+    # submissions name): synthtown@3 scores synthtown@2's frames with more metrics. "": its own.
+    dataset_protocol: str = ""
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,7 @@ class MetricSpec:
     num_subsets: int | None = None
     clip_length: int | None = None  # FVD/KVD clip length in frames
     clip_stride: int | None = None  # frames between clip starts within a sequence
+    depth_tolerance: float | None = None  # relative depth tolerance of the visibility / occlusion tests
 
 
 @dataclass(frozen=True)
@@ -110,7 +114,14 @@ class Protocol:
         d = dataclasses.asdict(self)
         d.pop("sha256"), d.pop("path")
         d["metrics"] = {m.pop("name"): {k: v for k, v in m.items() if v is not None} for m in d["metrics"]}
+        if not d["data"]["dataset_protocol"]:  # unset: absent, so older protocols keep their sha256
+            del d["data"]["dataset_protocol"]
         return d
+
+    @property
+    def data_ref(self) -> str:
+        """The protocol `id@N` its datasets are made for (dataset.json's `protocol`)."""
+        return self.data.dataset_protocol or self.ref
 
 
 # --------------------------------------------------------------------------- validation
@@ -200,6 +211,9 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
                     raise UserError(f"{file}: unknown key 'metrics.{name}.{key}' (known: {allowed})")
         metrics.append(_build(MetricSpec, table, f"metrics.{name}", file, extra={"name": name}))
     for m in metrics:
+        if METRICS[m.name].depth and not (m.depth_tolerance is not None and 0 < m.depth_tolerance < 1):
+            raise UserError(f"{file}: key 'metrics.{m.name}.depth_tolerance' must lie in (0, 1) (a relative depth "
+                            f"tolerance), got {m.depth_tolerance!r}")
         if METRICS[m.name].features == "clip" and (m.clip_length or 0) < 2:
             raise UserError(f"{file}: key 'metrics.{m.name}.clip_length' must be >= 2")
         if METRICS[m.name].extractor and not m.extractor:
@@ -216,6 +230,11 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     if not 0 <= stats.emcee_burn < stats.emcee_steps:
         raise UserError(f"{file}: key 'statistics.emcee_burn' must lie in [0, emcee_steps), got {stats.emcee_burn}")
     data = sections["data"]
+    own = f"{raw['id']}@{raw['version']}"
+    if data.dataset_protocol and (not re.match(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$", data.dataset_protocol)
+                                  or data.dataset_protocol == own):
+        raise UserError(f"{file}: key 'data.dataset_protocol' must name another protocol '<id>@<N>' (whose data "
+                        f"this one scores), got {data.dataset_protocol!r}")
     if data.width < 1 or data.height < 1:
         raise UserError(f"{file}: keys 'data.width' and 'data.height' must be positive")
     if not 0 < data.fov_deg < 180:
@@ -286,6 +305,25 @@ def load_protocol(ref: str, root: Path | None = None) -> Protocol:
     if v not in known[pid]:
         raise UserError(f"protocol {pid!r} has no version {v}; versions: {', '.join(map(str, known[pid]))}")
     return load_protocol_file((root or protocols_dir()) / pid / f"v{v}.toml")
+
+
+def current_for_data(data_ref: str, root: Path | None = None) -> str:
+    """The protocol a new submission for data made for `data_ref` is scored with: the latest
+    version of the same id that scores that data (`data.dataset_protocol`), else `data_ref`.
+
+    synthtown@2's data (synthtown-v2-small) -> "synthtown@3" (same frames, more metrics);
+    synthtown@1's -> "synthtown@1". An unknown id is returned as it is (the caller reports it)."""
+    pid = data_ref.partition("@")[0]
+    best = data_ref
+    for v in available(root).get(pid, []):
+        ref = f"{pid}@{v}"
+        try:
+            p = load_protocol(ref, root)
+        except UserError:
+            continue
+        if p.data.dataset_protocol == data_ref:
+            best = ref
+    return best
 
 
 def list_protocols(root: Path | None = None) -> list[Protocol]:

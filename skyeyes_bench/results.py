@@ -22,7 +22,7 @@ import numpy as np
 
 from . import fields, fileio, stats
 from .errors import UserError, ValidationError
-from .metricspec import FRAME_METRICS, metric_def
+from .metricspec import FRAME_METRICS, METRICS, metric_def
 from .registry import load_entry_point
 
 RESULTS_FORMAT = "skyeyes-bench/results@1"
@@ -129,19 +129,32 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
             if name in doc["unavailable"]:
                 metrics[name] = {"status": "unavailable", **doc["unavailable"][name]}
                 continue
-            v = np.array([r[name] for r in frames], dtype=np.float64)
-            value = float(np.mean(v)) if not np.isposinf(v).any() else math.inf
-            reps = None if counts is None else stats.frame_metric_samples(v, clusters, counts)
+            spec = metric_def(name)
+            v = np.array([np.nan if r[name] is None else r[name] for r in frames], dtype=np.float64)
+            w = np.array([r[f"{name}_n"] for r in frames], dtype=np.float64) if spec.weighted else None
+            if w is not None and not (w[~np.isnan(v)] > 0).any():
+                metrics[name] = {"status": "unavailable", "reason": f"no frame has a pixel of {name}'s region: "
+                                 "its value is undefined on this dataset", "fix": "none (a property of the data)"}
+                continue
+            if w is None:
+                value = float(np.mean(v)) if not np.isposinf(v).any() else math.inf
+            else:
+                value = stats.pooled_value(v, w, spec.pool)
+            reps = None if counts is None else stats.frame_metric_samples(v, clusters, counts, w, spec.pool)
             metrics[name] = {"status": "ok", "kind": "frame", "value": value, "level": st.interval,
                              "higher_is_better": stats.higher_is_better(name), "n": int(len(v)),
                              **summarise(value, reps)}
+            if w is not None:  # pooled pixels (docs/metrics.md): n frames hold `pixels` of the region
+                metrics[name].update(n=int((w > 0).sum()), pixels=int(w.sum()), pool=spec.pool)
+            if spec.reference:
+                metrics[name]["reference"] = True  # a property of the ground truth: not ranked
             if name == "psnr":
                 metrics[name]["infinite_frames"] = int(np.isposinf(v).sum())
                 seqv = stats.sequence_psnr(v, seqs, k_seq)
             else:
-                seqv = np.bincount(seqs, weights=v, minlength=k_seq) / np.bincount(seqs, minlength=k_seq)
+                seqv = stats.frame_metric_samples(v, seqs, np.eye(k_seq), w, spec.pool)
             for i, sid in enumerate(seq_ids):
-                per_seq[sid][name] = float(seqv[i])
+                per_seq[sid][name] = None if np.isnan(seqv[i]) else float(seqv[i])
     timing.setdefault("set_metrics_s", 0.0)
     for m in protocol.metrics:
         spec = metric_def(m.name)
@@ -220,7 +233,12 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
         for name in FRAME_METRICS:
             if name in r:
-                fields.conform(str(path), r[name], fields.Number, f"frames[{i}].{name}")
+                weighted = metric_def(name).weighted  # a value per region, null when the region is empty
+                fields.conform(str(path), r[name], fields.Optional(fields.Number) if weighted else fields.Number,
+                               f"frames[{i}].{name}")
+                if weighted:
+                    fields.integer(f"{path}: field 'frames[{i}].{name}_n'", r.get(f"{name}_n"),
+                                   "the frame's pixel count of the region")
     shard = doc.get("shard")
     if partial and shard is not None:  # a shard holds at least one sequence: N <= sequences
         fields.integer(f"{path}: field 'shard.count'", shard["count"], "the number of shards", 1, max(n_seq, 1))
@@ -237,9 +255,11 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
                     fields.fail(f"{path}: field 'metrics.{name}.kind'",
                                 f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
                 if m["kind"] == "frame":  # compared per sequence: every sequence holds a value
+                    # (pixel-weighted metrics: null where the sequence has no pixel of the region)
+                    weighted = name in METRICS and METRICS[name].weighted
+                    seq_shape = fields.Optional(fields.Number) if weighted else fields.Number
                     for sid in doc["dataset"]["sequences"]:
-                        fields.conform(str(path), doc["sequences"].get(sid), {name: fields.Number},
-                                       f"sequences.{sid}")
+                        fields.conform(str(path), doc["sequences"].get(sid), {name: seq_shape}, f"sequences.{sid}")
                 if m["kind"] == "set":
                     fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
 
@@ -386,6 +406,8 @@ def format_summary(res: dict) -> str:
             lines.append(f"  {name:<6} unavailable: {m['reason']} (fix: {m['fix']})")
             continue
         arrow = "higher is better" if m["higher_is_better"] else "lower is better"
+        if m.get("reference"):
+            arrow = "of the ground truth: not a score"
         extra = f"  ({m['infinite_frames']} exact frames)" if m.get("infinite_frames") else ""
         if m.get("interval") is None:
             iv = f"(no interval: {m.get('interval_note') or 'none'})"
@@ -395,6 +417,8 @@ def format_summary(res: dict) -> str:
             if m.get("interval_note"):
                 extra += f"  [note: {m['interval_note']}]"
         lines.append(f"  {name:<6} {m['value']:.4g}  {iv}  ({arrow}){extra}")
+        if m.get("pixels") is not None:
+            lines[-1] += f"  [{m['pixels']} pixels of {m['n']} frames]"
     t = res.get("timing_s", {})
     lines.append("  evaluator time: " + ", ".join(f"{k} {v:.2f}" for k, v in t.items() if isinstance(v, float)))
     return "\n".join(lines)

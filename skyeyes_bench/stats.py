@@ -194,16 +194,24 @@ def subsample_interval(estimate: float, samples: np.ndarray, level: float, scale
     return estimate - scale * (hi - estimate), estimate - scale * (lo - estimate)
 
 
-def frame_metric_samples(values: np.ndarray, clusters: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def frame_metric_samples(values: np.ndarray, clusters: np.ndarray, counts: np.ndarray,
+                         weights: np.ndarray | None = None, pool: str = "mean") -> np.ndarray:
     """Mean of per-frame values over each resample's frames.
 
     Args:
         values: [N] per-frame values (may hold +inf, e.g. PSNR of an exact frame).
         clusters: [N] int, the sequence id (0..K-1) of each frame.
         counts: [R, K] how often each sequence is drawn.
+        weights: [N] pixel counts of a pixel-weighted metric (`metricspec.MetricDef.weighted`), or
+            None: every frame counts once. With weights, frames of weight 0 (NaN values) are left
+            out and the frames are pooled by `pool`: "mean", sum(w v) / sum(w); "mse" (PSNR
+            values), -10 log10(sum(w 10^(-v/10)) / sum(w)), the PSNR of the pooled squared error.
     Returns:
-        [R] resampled means; +inf where a drawn sequence holds an infinite value.
+        [R] resampled means; +inf where a drawn sequence holds an infinite value (unweighted);
+        NaN where the drawn frames hold no weight.
     """
+    if weights is not None:
+        return _pooled_samples(values, clusters, counts, weights, pool)
     values = np.asarray(values, dtype=np.float64)
     k = counts.shape[1]
     n_per = np.bincount(clusters, minlength=k).astype(np.float64)
@@ -218,6 +226,29 @@ def frame_metric_samples(values: np.ndarray, clusters: np.ndarray, counts: np.nd
     out[neg] = -np.inf
     out[pos & neg] = np.nan  # +inf and -inf in one mean: undefined (not produced by our metrics)
     return out
+
+
+def _pooled_samples(values, clusters, counts, weights, pool: str) -> np.ndarray:
+    assert pool in ("mean", "mse"), pool
+    v = np.asarray(values, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    use = (w > 0) & ~np.isnan(v)
+    with np.errstate(over="ignore"):
+        t = v if pool == "mean" else np.power(10.0, -v / 10.0)  # PSNR -> MSE (+inf -> 0)
+    w = np.where(use, w, 0.0)
+    k = counts.shape[1]
+    num = np.bincount(clusters, weights=w * np.where(use, t, 0.0), minlength=k)
+    den = np.bincount(clusters, weights=w, minlength=k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (counts @ num) / (counts @ den)  # 0 / 0 -> NaN: no weight drawn
+        return out if pool == "mean" else -10.0 * np.log10(out)
+
+
+def pooled_value(values: np.ndarray, weights: np.ndarray | None, pool: str = "mean") -> float:
+    """The summary of per-frame values [N] over all frames, as `frame_metric_samples` pools them."""
+    values = np.asarray(values, dtype=np.float64)
+    one = np.zeros(len(values), dtype=np.int64)
+    return float(frame_metric_samples(values, one, np.ones((1, 1)), weights, pool)[0])
 
 
 def sequence_psnr(psnrs: np.ndarray, clusters: np.ndarray, k: int) -> np.ndarray:
@@ -556,12 +587,17 @@ def _usable_replicates(doc: dict, m: dict, st, unit: str, k: int) -> list | None
     return reps if same and isinstance(reps, list) and len(reps) == st.bootstrap_resamples else None
 
 
-def _frame_values(doc: dict, name: str, order: list[tuple[str, str]]) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame values [N] of `name` and sequence numbers [N], in the frame order `order`."""
+def _frame_values(doc: dict, name: str,
+                  order: list[tuple[str, str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Per-frame values [N] of `name` (null -> NaN), sequence numbers [N] and, for a pixel-weighted
+    metric, the pixel counts [N] (else None), in the frame order `order`."""
     by = {(r["scene"], r["file"]): r for r in doc["frames"]}
     rows = [by[key] for key in order]
-    return (np.array([r[name] for r in rows], dtype=np.float64),
-            np.array([r["sequence"] for r in rows], dtype=np.int64))
+    weights = None
+    if name in METRICS and METRICS[name].weighted:
+        weights = np.array([r[f"{name}_n"] for r in rows], dtype=np.float64)
+    return (np.array([np.nan if r[name] is None else r[name] for r in rows], dtype=np.float64),
+            np.array([r["sequence"] for r in rows], dtype=np.int64), weights)
 
 
 def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict | None = None,
@@ -603,6 +639,10 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
            "metrics": {}}
     for name, ma in a["metrics"].items():
         mb = b["metrics"].get(name)
+        if ma.get("reference") or (name in METRICS and METRICS[name].reference):
+            out["metrics"][name] = {"status": "skipped", "a": ma.get("value"), "note": f"{name} is a property of the "
+                                    "ground truth (the same for A and B): reported, not compared"}
+            continue
         if mb is None or ma["status"] != "ok" or mb["status"] != "ok":
             out["metrics"][name] = {"status": "skipped", "note": f"{name} unavailable in "
                                     f"{'A' if ma['status'] != 'ok' else 'B'}"}
@@ -614,15 +654,18 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
                    "p_a_better_bootstrap": None}
         reps = None
         if ma["kind"] == "frame":
-            fa, seq = _frame_values(a, name, order)
-            fb, _ = _frame_values(b, name, order)
+            fa, seq, wa = _frame_values(a, name, order)
+            fb, _, wb = _frame_values(b, name, order)
             clusters = cl_of_seq[seq]
-            per_cluster = np.eye(k)
-            d = advantage(frame_metric_samples(fa, clusters, per_cluster), frame_metric_samples(fb, clusters, per_cluster),
-                          name)
+            pool = METRICS[name].pool if name in METRICS else "mean"
+
+            def samples(f, w, c):
+                return frame_metric_samples(f, clusters, c, w, pool)
+
+            d = advantage(samples(fa, wa, np.eye(k)), samples(fb, wb, np.eye(k)), name)
             r["bayes"] = bayes_summary(d, unit=unit, walkers=st.emcee_walkers, steps=steps, burn=burn, seed=st.seed)
             if counts is not None:
-                reps = (frame_metric_samples(fa, clusters, counts), frame_metric_samples(fb, clusters, counts))
+                reps = (samples(fa, wa, counts), samples(fb, wb, counts))
         else:
             r["bayes"] = {"fitted": False, "p_a_better": None, "hdi": None,
                           "note": f"set metric: no per-{unit} values; paired resampling only"}

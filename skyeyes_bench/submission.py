@@ -86,13 +86,18 @@ def _protocol_sha(ref: str) -> str | None:
 def make_manifest(ds, *, method: str, method_version: str, config: dict | None, timings: dict | None,
                   peak_memory_mb: float | None, hardware: dict | None) -> dict[str, Any]:
     """The content of `submission.json` for a submission of dataset `ds`."""
+    from .protocol import current_for_data
+
     n = len(expected_frames(ds))
+    # New submissions are scored with the latest protocol that scores this data (synthtown@2's
+    # data -> synthtown@3: the same frames with the depth-based metrics too).
+    current = current_for_data(ds.protocol)
     return {
         "format": FORMAT,
         "method": method,
         "method_version": str(method_version),
-        "protocol": ds.protocol,
-        "protocol_sha256": _protocol_sha(ds.protocol),
+        "protocol": current,
+        "protocol_sha256": _protocol_sha(current),
         "dataset": {"name": ds.name, "split": SPLIT, "frames": n},
         "created": _now(),
         "tool_version": __version__,
@@ -259,16 +264,22 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     root = sub.resolve()
     problems: list[str] = []
     mfile = sub / SUBMISSION_FILE
-    if manifest["protocol"] != protocol.ref:
+    # A protocol that scores another one's data (synthtown@3: synthtown@2's frames) also scores
+    # submissions written for that one; its protocol_sha256 is then checked against that file.
+    written_for = protocol.ref if manifest["protocol"] == protocol.ref else protocol.data_ref
+    if manifest["protocol"] != written_for:
+        also = f" (or {protocol.data_ref!r}, whose data it scores)" if protocol.data_ref != protocol.ref else ""
         problems.append(f"{mfile}: field 'protocol' is {manifest['protocol']!r}, the evaluation uses "
-                        f"{protocol.ref!r}")
+                        f"{protocol.ref!r}{also}")
     sha = manifest.get("protocol_sha256")
-    if sha and sha != protocol.sha256:
-        problems.append(f"{mfile}: field 'protocol_sha256' does not match protocol {protocol.ref} "
-                        f"({sha[:12]}... vs {protocol.sha256[:12]}...): the protocol file changed")
-    if ds.protocol != protocol.ref:
+    want = protocol.sha256 if written_for == protocol.ref else _protocol_sha(written_for)
+    if sha and want and sha != want:
+        problems.append(f"{mfile}: field 'protocol_sha256' does not match protocol {written_for} "
+                        f"({sha[:12]}... vs {want[:12]}...): the protocol file changed")
+    if ds.protocol != protocol.data_ref:
         problems.append(f"{ds.root}/dataset.json: dataset is for protocol {ds.protocol!r}, the submission "
-                        f"for {protocol.ref!r}")
+                        f"for {protocol.ref!r}" + (f" (which scores data made for {protocol.data_ref!r})"
+                                                  if protocol.data_ref != protocol.ref else ""))
     if manifest["dataset"]["name"] != ds.name:
         problems.append(f"{mfile}: field 'dataset.name' is {manifest['dataset']['name']!r}, the dataset is "
                         f"{ds.name!r}")

@@ -18,6 +18,9 @@ def register(sub) -> None:
                    "the folder, or SUBMISSION.shard-I-of-N.results.json)")
     p.add_argument("--shard", metavar="I/N", help="evaluate only sequences k with k %% N == I; write a "
                    "partial result for `skyeyes-bench merge`")
+    p.add_argument("--protocol", metavar="ID@N", help="score with this protocol instead of the one submission.json "
+                   "names; it must score the same data, e.g. synthtown@3 for a synthtown@2 submission (same frames, "
+                   "plus the seen/unseen and warp metrics)")
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary")
@@ -30,7 +33,7 @@ def run(args) -> int:
     shard = parse_shard(args.shard)
     out = args.out or default_out(args.submission, shard)
     res = evaluate(args.submission, data=args.data, out=out, shard=shard, force=args.force,
-                   progress=not args.quiet)
+                   progress=not args.quiet, protocol=args.protocol)
     if args.json:
         print(json.dumps(res, indent=2))
     elif shard:

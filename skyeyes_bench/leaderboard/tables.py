@@ -134,16 +134,29 @@ def measured_tables(root: Path) -> list[Table]:
     for (ref, sha, ex, gt), docs in sorted(groups.items(), key=lambda kv: kv[0]):
         seen[ref] = seen.get(ref, 0) + 1
         key = ref if seen[ref] == 1 else f"{ref}#{seen[ref]}"
-        metrics = [m for m in METRIC_ORDER if any(m in d["metrics"] for d, _ in docs)]
+        present = [m for m in METRIC_ORDER if any(m in d["metrics"] for d, _ in docs)]
+        metrics = [m for m in present if not METRICS[m].reference]  # ranked columns
         rows = [measured_row(d, name, metrics) for d, name in docs]
         rows.sort(key=lambda r: (r.method.lower(), r.version, r.source))
         exs = ", ".join(f"{i} ({(w or '-')[:12]})" for i, w in ex) or "none"
         d0 = docs[0][0]
         note = (f"protocol sha256 {sha[:12]}…; extractors {exs}; dataset {d0['dataset']['name']} "
                 f"({len(d0['dataset']['sequences'])} sequences, {len(d0['frames'])} frames)")
+        note += _reference_note([m for m in present if METRICS[m].reference], [d for d, _ in docs])
         tables.append(Table(key, f"{ref} — measured", ref, metrics, rows, reported=False, note=note, gt_sha=gt,
                             frames_key=frames_key(d0)))
     return tables
+
+
+def _reference_note(names: list[str], docs: list[dict]) -> str:
+    """'; of the ground truth, the same for every row: Unseen share 0.312, Warp floor 0.0123' ('' if none):
+    metrics that describe the test data (`metricspec.MetricDef.reference`) are shown once, not ranked."""
+    parts = []
+    for m in names:
+        v = next((d["metrics"][m]["value"] for d in docs if (d["metrics"].get(m) or {}).get("status") == "ok"), None)
+        if v is not None:
+            parts.append(f"{LABEL[m]} {v:.{DIGITS[m]}f}")
+    return f"; of the ground truth, the same for every row: {', '.join(parts)}" if parts else ""
 
 
 def reported_tables(root: Path) -> list[Table]:

@@ -14,7 +14,7 @@ import pytest
 from conftest import ROOT
 
 from skyeyes_bench import leaderboard, paths, protocol, stats
-from skyeyes_bench.metricspec import FRAME_METRICS, METRICS, SET_METRICS, metric_def
+from skyeyes_bench.metricspec import FRAME_METRICS, METRICS, SEQUENCE_METRICS, SET_METRICS, metric_def
 from skyeyes_bench.registry import load_entry_point
 
 
@@ -36,23 +36,31 @@ def test_shipped_protocols_name_only_table_metrics():
 
 
 def test_table_is_complete_and_consistent():
-    assert tuple(METRICS) == ("psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd")
-    assert FRAME_METRICS == ("psnr", "ssim", "lpips") and SET_METRICS == ("fid", "kid", "fvd", "kvd")
+    regions = ("psnr_seen", "psnr_unseen", "ssim_seen", "ssim_unseen", "lpips_seen", "lpips_unseen", "unseen_share")
+    assert tuple(METRICS) == ("psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd", *regions, "warp", "warp_floor")
+    assert FRAME_METRICS == ("psnr", "ssim", "lpips", *regions, "warp", "warp_floor")
+    assert SET_METRICS == ("fid", "kid", "fvd", "kvd")
+    assert SEQUENCE_METRICS == (*regions, "warp", "warp_floor")
     settings = {f.name for f in dataclasses.fields(protocol.MetricSpec)} - {"name"}
     for name, m in METRICS.items():
         assert m.name == name and m.kind in ("frame", "set")
         assert m.keys <= settings, f"{name}: keys {sorted(m.keys - settings)} are not protocol.MetricSpec fields"
         assert m.extractor == ("extractor" in m.keys)
+        assert bool(m.depth) == ("depth_tolerance" in m.keys) == bool(m.per_sequence)
+        assert m.pool in ("mean", "mse") and (m.pool == "mse") == (m.weighted and name.startswith("psnr"))
         if m.kind == "frame":
-            assert m.per_frame and m.features is None and m.estimator is None and m.bootstrap is None
-            assert callable(load_entry_point(m.per_frame))
+            assert bool(m.per_frame) != bool(m.per_sequence)  # frame by frame, or a sequence at a time
+            assert m.features is None and m.estimator is None and m.bootstrap is None
+            assert callable(load_entry_point(m.per_frame or m.per_sequence))
         else:
             assert m.features in ("image", "clip") and m.extractor and m.per_frame is None
             assert callable(load_entry_point(m.estimator)) and callable(load_entry_point(m.bootstrap))
             assert ("clip_length" in m.keys) == (m.features == "clip")
     # the readers derive from the table, not from copies of it
     assert protocol.METRIC_KEYS == {n: m.keys for n, m in METRICS.items()}
-    assert stats.LOWER_IS_BETTER == {"lpips", "fid", "kid", "fvd", "kvd"}
+    assert stats.LOWER_IS_BETTER == {"lpips", "fid", "kid", "fvd", "kvd", "lpips_seen", "lpips_unseen", "unseen_share",
+                                     "warp", "warp_floor"}
+    assert {n for n, m in METRICS.items() if m.reference} == {"unseen_share", "warp_floor"}
     assert [stats.higher_is_better(n) for n in METRICS] == [m.higher_is_better for m in METRICS.values()]
     assert leaderboard.METRIC_ORDER == tuple(METRICS)
     assert leaderboard.LABEL["kid"] == "KID" and leaderboard._DIGITS["kid"] == 4

@@ -11,6 +11,7 @@ import pytest
 from conftest import ROOT, run_cli
 
 from skyeyes_bench.errors import UserError
+from skyeyes_bench.metricspec import SEQUENCE_METRICS
 from skyeyes_bench.protocol import list_protocols, load_protocol, load_protocol_file
 
 V1 = ROOT / "protocols" / "synthtown" / "v1.toml"
@@ -159,8 +160,45 @@ def test_repository_protocols_load():
         assert p.capture.ground_height_m == 2.0 and p.capture.ground_step_m == 2.0
         assert p.capture.aerial_pitch_deg == -45.0 and p.capture.ground_pitch_deg == 0.0
         assert p.metric("fvd").clip_length == 16
-        assert set(p.metric_names) == {"psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"}
+        base = {"psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"}
+        assert set(p.metric_names) == (base if p.ref != "synthtown@3" else base | set(SEQUENCE_METRICS))
     assert (carla.data.width, carla.data.height) == (512, 512) == (city.data.width, city.data.height)
+
+
+def test_synthtown_v3_is_v2_plus_the_depth_metrics():
+    import dataclasses
+
+    v2 = load_protocol_file(ROOT / "protocols" / "synthtown" / "v2.toml")
+    v3 = load_protocol_file(ROOT / "protocols" / "synthtown" / "v3.toml")
+    assert v3.data_ref == "synthtown@2" and v2.data_ref == "synthtown@2"
+    assert dataclasses.replace(v3.data, dataset_protocol="") == v2.data
+    assert v3.capture == v2.capture and v3.statistics == v2.statistics
+    assert v3.metrics[:len(v2.metrics)] == v2.metrics
+    assert {m.name for m in v3.metrics[len(v2.metrics):]} == set(SEQUENCE_METRICS)
+    assert {m.depth_tolerance for m in v3.metrics[len(v2.metrics):]} == {0.01}
+    assert v3.metric("lpips_seen").extractor == v3.metric("lpips").extractor
+    # v1 and v2 keep their sha256 (results filed with them stay comparable)
+    assert v2.sha256 == "2f003448a43bfcabdbc9c74e0dee4bfd203ccc26e16a57df5f1bfa05b09f68f5"
+    assert "dataset_protocol" not in v2.to_dict()["data"]
+
+
+def test_current_protocol_for_data_and_dataset_protocol_checks(protos):
+    from skyeyes_bench.protocol import current_for_data
+
+    v1 = V1.read_text()
+    (protos / "synthtown" / "v2.toml").write_text(_edit(v1, "version = 1\n", 'version = 2\n').replace(
+        'width = ', 'dataset_protocol = "synthtown@1"\nwidth = ', 1))
+    assert current_for_data("synthtown@1") == "synthtown@2" and load_protocol("synthtown@2").data_ref == "synthtown@1"
+    assert current_for_data("other@4") == "other@4"
+    for bad in ("synthtown@2", "synthtown", "x y@1"):
+        (protos / "synthtown" / "v2.toml").write_text(_edit(v1, "version = 1\n", 'version = 2\n').replace(
+            'width = ', f'dataset_protocol = "{bad}"\nwidth = ', 1))
+        with pytest.raises(UserError, match="key 'data.dataset_protocol' must name another protocol"):
+            load_protocol("synthtown@2")
+    (protos / "synthtown" / "v2.toml").write_text(_edit(v1, "version = 1\n", 'version = 2\n') + (
+        "\n[metrics.warp]\ndepth_tolerance = 1.5\n"))
+    with pytest.raises(UserError, match=r"key 'metrics.warp.depth_tolerance' must lie in \(0, 1\)"):
+        load_protocol("synthtown@2")
 
 
 def test_protocols_list_and_show_cli(protos):

@@ -1,5 +1,6 @@
-"""`skyeyes-bench data check|synthtown|gallery|import-carla|import-matrixcity`: check datasets,
-generate SynthTown, import CARLA / MatrixCity captures (all in the canonical layout)."""
+"""`skyeyes-bench data check|synthtown|gallery|capture-carla|import-carla|import-matrixcity`: check
+datasets, generate SynthTown, capture CARLA towns, import CARLA / MatrixCity captures (all in the
+canonical layout)."""
 
 from __future__ import annotations
 
@@ -53,6 +54,44 @@ def register(sub) -> None:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--rows", type=int, default=3, help="lanes shown (default: 3)")
     q.add_argument("--size", type=int, default=160, help="tile size in pixels when rendering (default: 160)")
+
+    q = ds.add_parser(
+        "capture-carla", help="capture a CARLA town on a running server into a capture folder (or plan it)",
+        description="Capture the protocol's lanes of a CARLA town (carla-town04@1: ground cameras every 2 m at "
+        "2 m height, pitch 0, yaws k*45 deg; aerial cameras at 52 m, pitch -45 deg; 512x512, fov 90) with RGB "
+        "and depth sensors in synchronous mode, into OUT/<town>/laneNN/{rgb,depth}/ and OUT/capture.json, which "
+        "'data import-carla OUT DATASET' reads. Lanes come from the map's waypoints: driving lanes outside "
+        "junctions, one per road, resampled every 2 m from the lane's first waypoint, --min-points..--max-points "
+        "long (docs/formats.md, 'CARLA capture'). OUT/plan.json holds every planned transform; --plan-only stops "
+        "there. A time-out is retried; running the command again resumes (finished frames are kept). Needs "
+        "the 'carla' client package (pip install 'skyeyes-bench[carla]', matching the server's version), "
+        "except for --plan-only --waypoints FILE.")
+    q.add_argument("--town", required=True, help="CARLA map, e.g. Town04 (loaded on the server if another is)")
+    q.add_argument("--out", metavar="DIR", required=True, help="capture folder (created; reused to resume)")
+    q.add_argument("--host", default="localhost", help="CARLA server host (default: localhost)")
+    q.add_argument("--port", type=int, default=2000, help="CARLA server RPC port (default: 2000)")
+    q.add_argument("--protocol", default="carla-town04", metavar="ID[@N]",
+                   help="protocol whose [capture] geometry and image size to use (default: carla-town04)")
+    q.add_argument("--plan-only", action="store_true",
+                   help="write OUT/plan.json (every transform, in capture.json's format) and stop")
+    src = q.add_mutually_exclusive_group()
+    src.add_argument("--waypoints", metavar="FILE", help="the map's waypoints as JSON (format in docs/formats.md; "
+                     "a server run writes OUT/waypoints.json): plan without a server and without the carla package")
+    src.add_argument("--xodr", metavar="FILE", help="the town's OpenDRIVE file (CARLA ships <town>.xodr): "
+                     "waypoints without a server, through the carla package")
+    q.add_argument("--waypoint-distance", type=float, default=1.0, metavar="M",
+                   help="spacing of the map's waypoints before resampling to the 2 m step (default: 1.0)")
+    q.add_argument("--min-points", type=int, default=16,
+                   help="shortest lane kept, in points (default: 16, one 16-frame FVD clip)")
+    q.add_argument("--max-points", type=int, default=32, help="points per lane, from its start (default: 32)")
+    q.add_argument("--max-lanes", type=int, help="at most this many lanes, evenly spaced in road order (default: all)")
+    q.add_argument("--aerial-stride", type=int, default=4, help="aerial cameras every N-th lane point (default: 4)")
+    q.add_argument("--aerial-yaws", type=int, default=8, help="aerial headings per aerial point (default: 8)")
+    q.add_argument("--timeout", type=float, default=20.0, metavar="S",
+                   help="seconds to wait for the server and for each sensor image (default: 20)")
+    q.add_argument("--retries", type=int, default=3, help="extra attempts per frame after a time-out (default: 3)")
+    q.add_argument("--force", action="store_true", help="start over when OUT holds a capture of another plan")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     q = ds.add_parser("import-carla", help="convert a CARLA capture folder into the canonical layout",
                       description="Convert a CARLA capture folder (RGB PNGs, depth-camera PNGs, capture.json with "
@@ -165,6 +204,58 @@ def _gallery(args) -> int:
     return 0
 
 
+def _capture_carla(args) -> int:
+    import shutil
+
+    from .. import fileio
+    from ..data.capture import carla_live
+    from ..data.capture.carla_plan import PLAN_FILE, WAYPOINTS_FILE, PlanConfig, plan_capture, read_waypoints
+    from ..data.capture.carla_plan import waypoints_document
+    from ..errors import UserError
+    from ..protocol import load_protocol
+
+    out = Path(args.out)
+    if args.port <= 0 or args.timeout <= 0 or args.retries < 0 or args.waypoint_distance <= 0:
+        raise UserError("--port and --timeout must be > 0, --retries >= 0, --waypoint-distance > 0")
+    proto = load_protocol(args.protocol)
+    cfg = PlanConfig.from_protocol(proto, min_points=args.min_points, max_points=args.max_points,
+                                   max_lanes=args.max_lanes, aerial_stride=args.aerial_stride,
+                                   aerial_yaws=args.aerial_yaws)
+    server = carla_live.Server(args.host, args.port, args.timeout, args.retries)
+    # 1. The map's waypoints: a file, an OpenDRIVE map, or the server.
+    if args.waypoints:
+        town, waypoints = read_waypoints(args.waypoints)
+        if town != args.town:
+            raise UserError(f"{args.waypoints}: field 'town' is {town!r}, expected {args.town!r} (--town)")
+    elif args.xodr:
+        waypoints = carla_live.waypoints_from_xodr(Path(args.xodr), args.town, args.waypoint_distance)
+    else:
+        _, client = carla_live.connect(server)
+        waypoints = carla_live.waypoints_from_map(carla_live.town_world(client, args.town).get_map(),
+                                                  args.waypoint_distance)
+    # 2. The plan; an existing capture folder must hold the same plan (resume) unless --force.
+    plan = plan_capture(args.town, waypoints, cfg)
+    old = out / PLAN_FILE
+    if old.is_file() and fileio.read_json(old).get("frames") != plan["frames"]:
+        if not args.force:
+            raise UserError(f"{old}: a capture of another plan (town, options or protocol differ); pass --force "
+                            "to start over, or another --out")
+        shutil.rmtree(out)
+    if not args.waypoints:
+        fileio.write_json(out / WAYPOINTS_FILE, waypoints_document(args.town, waypoints, args.waypoint_distance))
+    fileio.write_json(old, plan)
+    nground = sum(r["kind"] == "ground" for r in plan["frames"])
+    print(f"planned {old}: {len(plan['plan']['lanes'])} lanes, {nground} ground and "
+          f"{len(plan['frames']) - nground} aerial frames ({args.town}, protocol {proto.ref})")
+    if args.plan_only:
+        return 0
+    # 3. Render what is not on disk yet; capture.json last.
+    done, kept = carla_live.capture(plan, out, server, progress=not args.no_progress)
+    print(f"wrote {out / 'capture.json'}: {done} frames rendered, {kept} kept from an earlier run; "
+          f"import with: skyeyes-bench data import-carla {out} DATASET")
+    return 0
+
+
 def _import_carla(args) -> int:
     from ..data.importers import import_carla
 
@@ -212,5 +303,6 @@ def _imported(out: Path, scenes) -> str:
 
 
 #: Action name -> function (`register` adds a parser for each).
-ACTIONS = {"check": _check, "synthtown": _synthtown, "gallery": _gallery, "import-carla": _import_carla,
+ACTIONS = {"check": _check, "synthtown": _synthtown, "gallery": _gallery, "capture-carla": _capture_carla,
+           "import-carla": _import_carla,
            "import-matrixcity": _import_matrixcity}

@@ -3,6 +3,7 @@
 import json
 import re
 
+import numpy as np
 import pytest
 
 from conftest import run_cli
@@ -88,7 +89,10 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     rc, stdout, _ = run_cli(*args)
     assert "psnr" in stdout
     res = json.loads((out / "results.json").read_text())
-    assert res["metrics"]["psnr"]["status"] == "ok" and res["metrics"]["psnr"]["value"] > 5
+    # Mechanics only: 6 iterations from the plane score 14.1 dB, below a constant image (14.2);
+    # what a fit must beat is tested in tests/reference/methods/test_methods_quality.py.
+    assert res["metrics"]["psnr"]["status"] == "ok"
+    assert res["metrics"]["psnr"]["value"] == pytest.approx(np.mean([f["psnr"] for f in res["frames"]]))
     sub = json.loads((out / "submission" / "submission.json").read_text())
     n_frames = len(res["frames"])
     assert len(sub["timings"]["per_frame_render_s"]) == n_frames

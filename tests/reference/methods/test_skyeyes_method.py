@@ -207,3 +207,35 @@ def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     prior = make_prior_method(PRESETS["small"], tmp_path / "p", 0, "cuda")
     assert prior.name == "sugar" and prior.config.device == "cuda"
     assert make_prior_method(PRESETS["small"], tmp_path / "q", 0, None).config.device == "cpu"
+
+
+
+@pytest.mark.slow  # one tiny fit, ~20 s of CPU
+def test_condition_moves_its_frame_and_vcm_carries_it_across_the_clip(tiny, tmp_path):
+    """Change only frame 0's condition (its prior, inverted): frame 0's output changes (the
+    generator listens to its conditioning); with the VCM the later frames of its clip change too
+    (they attend to the generated first frame); frame by frame (the same fitted model without
+    the VCM, as SkyeyesNoVCM samples) they stay exactly as they were."""
+    from reference.common.priors import frame_key
+
+    core_cfg = dataclasses.replace(TINY.core, conditioning="concat", residual=True, residual_scale=2.0)
+    m, _, out = _run(Skyeyes, tiny, tmp_path / "run", core=core_cfg)
+    scene = open_dataset(tiny).split("test")[0]
+    seq = next(iter(scene.sequences.values()))
+    clip = slice(1, TINY.clip_frames)
+
+    def render(vcm: bool) -> np.ndarray:
+        m.config = dataclasses.replace(m.config, vcm=vcm)
+        return np.stack(list(m.render_sequence(scene, seq)))
+
+    plain = render(False)
+    key = frame_key(scene, seq.frames[0])
+    m.conds[key] = 1.0 - m.conds[key]
+    moved, moved_plain = render(True), render(False)
+    before = out[seq.id]
+    assert np.abs(moved[0] - before[0]).max() > 1e-2  # the condition reaches its frame
+    assert np.abs(moved_plain[0] - plain[0]).max() > 1e-2
+    # VCM: frames 2..F of the clip attend to the first (6.6e-4 measured after 2 VCM steps) ...
+    assert np.abs(moved[clip] - before[clip]).max() > 1e-4
+    # ... frame by frame nothing but frame 0 moves.
+    assert np.abs(moved_plain[clip] - plain[clip]).max() < 1e-6

@@ -1,6 +1,7 @@
 """Helpers shared by the evaluate/submission/leaderboard tests (no tests here): a tiny dataset
 built with DatasetWriter and a test protocol that uses the test-only `random-*` extractors."""
 
+import contextlib
 import shutil
 from pathlib import Path
 
@@ -99,6 +100,22 @@ def install_test_protocol(tmp_path, monkeypatch, text: str = TEST_PROTOCOL) -> P
     (root / raw["id"] / f"v{raw['version']}.toml").write_text(text)
     monkeypatch.setenv("SKYEYES_PROTOCOLS", str(root))
     return root
+
+
+@contextlib.contextmanager
+def protocol_env(tmp: Path, text: str = TEST_PROTOCOL):
+    """For module-scoped fixtures (the per-test cache and monkeypatch are not there yet): the
+    protocol `text` installed under `tmp` and the cache at `tmp/cache`, both undone on exit.
+    Yields the MonkeyPatch (to install more protocols or set more variables)."""
+    import pytest
+
+    mp = pytest.MonkeyPatch()
+    try:
+        install_test_protocol(tmp, mp, text)
+        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))
+        yield mp
+    finally:
+        mp.undo()
 
 
 def _texture(rng, h, w):

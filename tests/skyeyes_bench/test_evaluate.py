@@ -11,7 +11,7 @@ import pytest
 import scipy.linalg
 from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from builders.evaluation import SCENE_PROTOCOL, blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env
 
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import open_dataset
@@ -29,19 +29,14 @@ def tiny(tmp_path_factory):
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory, tiny):
     """Results of the perfect submission and of blurs sigma 0.7 and 1.5, evaluated once."""
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("scored")
-    try:
-        install_test_protocol(tmp, mp)
-        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))  # module scope: the per-test cache is not set yet
+    with protocol_env(tmp):
         ds = open_dataset(tiny)
         subs = {"gt": write_template(ds, tmp / "gt", from_ground_truth=True),
                 "b1": blurred_submission(ds, tmp / "b1", sigma=0.7),
                 "b2": blurred_submission(ds, tmp / "b2", sigma=1.5)}
         res = {k: evaluate(v, data=tiny, out=tmp / f"{k}.json", progress=False) for k, v in subs.items()}
         yield ds, subs, res, tmp
-    finally:
-        mp.undo()
 
 
 def _fid(x, y):
@@ -252,22 +247,15 @@ def test_progress_bars_only_on_a_terminal(tiny, scored, tmp_path, tty):
 @pytest.fixture(scope="module")
 def scene_scored(tmp_path_factory):
     """evalscene@1 (cluster = "scene"): blurs 0.7 and 1.5 on a 5-scene and a 2-scene dataset."""
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("scene")
-    try:
-        install_test_protocol(tmp, mp, SCENE_PROTOCOL)
-        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))
-        out = {}
+    with protocol_env(tmp, SCENE_PROTOCOL):
         for k in (5, 2):
             root = make_dataset(tmp / f"ds{k}", protocol="evalscene@1", scenes=k, seqs=2, frames=4, seed=k)
             ds = open_dataset(root)
             for name, sigma in (("b1", 0.7), ("b2", 1.5)):
                 sub = blurred_submission(ds, tmp / f"{name}-{k}", sigma=sigma, method=name)
                 evaluate(sub, data=root, out=tmp / f"{name}-{k}.json", progress=False)
-            out[k] = tmp
         yield tmp
-    finally:
-        mp.undo()
 
 
 def test_scene_clusters_group_frames_by_lane(scene_scored):

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 import scipy.linalg
-from builders.evaluation import SCENE_PROTOCOL, blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env
 from conftest import run_cli
 
 from skyeyes_bench import stats
@@ -25,19 +25,14 @@ K_SCENES, SEQS, FRAMES = 5, 2, 8  # 80 frames, 20 clips of 4
 
 @pytest.fixture(scope="module")
 def oracle(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("oracle")
-    try:
-        install_test_protocol(tmp, mp, ORACLE_PROTOCOL)
-        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))
+    with protocol_env(tmp, ORACLE_PROTOCOL):
         root = make_dataset(tmp / "ds", protocol="evaloracle@1", scenes=K_SCENES, seqs=SEQS, frames=FRAMES, seed=7)
         ds = open_dataset(root)
         for name, sigma in (("a", 0.6), ("b", 1.4)):
             sub = blurred_submission(ds, tmp / name, sigma=sigma, method=name)
             evaluate(sub, data=root, out=tmp / f"{name}.json", progress=False)
         yield tmp
-    finally:
-        mp.undo()
 
 
 def _protocol():

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from conftest import ROOT, run_cli
-from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
+from builders.evaluation import blurred_submission, make_dataset, protocol_env
 
 from skyeyes_bench import leaderboard
 from skyeyes_bench.leaderboard import marks, plots
@@ -57,11 +57,8 @@ def board(tmp_path_factory):
     """Results of three methods (two identical) on a 3-scene, 6-sequence dataset (at least 5
     clusters: intervals exist), filed with `leaderboard add` into a leaderboard folder that also
     holds the reported tables."""
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("lb")
-    try:
-        install_test_protocol(tmp, mp)
-        mp.setenv("SKYEYES_CACHE", str(tmp / "cache"))  # module scope: the per-test cache is not set yet
+    with protocol_env(tmp) as mp:
         from skyeyes_bench.data.layout import open_dataset
         from skyeyes_bench.evaluate import evaluate
 
@@ -73,8 +70,6 @@ def board(tmp_path_factory):
             evaluate(sub, data=ds.root, out=tmp / f"{name}.results.json", progress=False)
             run_cli("leaderboard", "add", str(tmp / f"{name}.results.json"), "--root", str(root))
         yield root, mp
-    finally:
-        mp.undo()
 
 
 def _fresh(board, tmp_path, names=("blurry", "blurry-twin")) -> Path:

@@ -65,6 +65,7 @@ def regions(seq: SequenceData, specs: list) -> dict[str, tuple[np.ndarray, np.nd
     from .metrics import regions as R
 
     out: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    ssim_maps: dict[tuple, np.ndarray] = {}  # one map per setting serves both regions
     for m in specs:
         if m.name == "unseen_share":
             out[m.name] = ((~seq.seen(m.depth_tolerance)).mean(axis=(1, 2)), None)
@@ -72,7 +73,10 @@ def regions(seq: SequenceData, specs: list) -> dict[str, tuple[np.ndarray, np.nd
             out[m.name] = R.psnr(seq.preds, seq.gts, _region(seq, m.name, m.depth_tolerance))
         else:
             kw = {k: getattr(m, k) for k in ("window", "sigma", "k1", "k2") if getattr(m, k) is not None}
-            out[m.name] = R.ssim(seq.preds, seq.gts, _region(seq, m.name, m.depth_tolerance), **kw)
+            key = tuple(sorted(kw.items()))
+            if key not in ssim_maps:
+                ssim_maps[key] = image.ssim_map(seq.preds, seq.gts, **kw).mean(axis=-1)  # [T, H - 2r, W - 2r]
+            out[m.name] = R.map_mean(ssim_maps[key], _region(seq, m.name, m.depth_tolerance))
     return out
 
 

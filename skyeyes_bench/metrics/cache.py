@@ -32,23 +32,34 @@ def _entry(ex, key: str) -> Path:
     return _entry_dir(ex) / key[:2] / f"{key}.f64"
 
 
-def _read_entry(path: Path, dim: int) -> np.ndarray | None:
-    """The cached feature [dim], or None if absent or corrupted."""
+def read_verified(path: Path, size: int, counts: dict[str, int]) -> bytes | None:
+    """The `size` bytes of a cache entry written by `write_verified`, or None if it is absent or
+    damaged (wrong length or sha256; then `counts["corrupt"]` goes up and the caller recomputes)."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
         return None
     body, tail = data[:-32], data[-32:]
-    if len(data) != dim * 8 + 32 or hashlib.sha256(body).digest() != tail:
-        last_call["corrupt"] += 1
+    if len(data) != size + 32 or hashlib.sha256(body).digest() != tail:
+        counts["corrupt"] += 1
         return None
-    return np.frombuffer(body, dtype="<f8").astype(np.float64)
+    return body
+
+
+def write_verified(path: Path, body: bytes) -> None:
+    """Write a cache entry atomically: `body` followed by its sha256 (32 bytes)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(body + hashlib.sha256(body).digest())
+
+
+def _read_entry(path: Path, dim: int) -> np.ndarray | None:
+    """The cached feature [dim], or None if absent or corrupted."""
+    body = read_verified(path, dim * 8, last_call)
+    return None if body is None else np.frombuffer(body, dtype="<f8").astype(np.float64)
 
 
 def _write_entry(path: Path, feat: np.ndarray) -> None:
-    body = np.ascontiguousarray(feat, dtype="<f8").tobytes()
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(body + hashlib.sha256(body).digest())
+    write_verified(path, np.ascontiguousarray(feat, dtype="<f8").tobytes())
 
 
 def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress: bool, unit: str) -> np.ndarray:

@@ -68,12 +68,12 @@ def project(points: np.ndarray, w: np.ndarray, c2ws: np.ndarray, Ks: np.ndarray)
     assert points.ndim == 2 and points.shape[1] == 3 and w.shape == (points.shape[0],), (points.shape, w.shape)
     assert c2ws.ndim == 3 and c2ws.shape[1:] == (4, 4) and Ks.shape == (c2ws.shape[0], 3, 3), (c2ws.shape, Ks.shape)
     rot, t = c2ws[:, :3, :3], c2ws[:, :3, 3]  # [A, 3, 3], [A, 3]
-    rel = points[None, :, :] - w[None, :, None] * t[:, None, :]  # [A, N, 3]
-    cam = np.einsum("anj,ajk->ank", rel, rot)  # R^T (X - w t), row-wise
+    # R^T (X - w t) row-wise = X R - w (t R); batched matmul (einsum was 4x slower here)
+    cam = np.matmul(points[None], rot) - w[None, :, None] * np.matmul(t[:, None, :], rot)  # [A, N, 3]
     z = cam[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = cam[..., :2] / np.where(z > 0, z, np.nan)[..., None]
-    uv = np.einsum("anj,akj->ank", xy, Ks[:, :2, :2]) + Ks[:, None, :2, 2]
+    uv = np.matmul(xy, np.swapaxes(Ks[:, :2, :2], 1, 2)) + Ks[:, None, :2, 2]  # [A, N, 2]
     return uv, z
 
 
@@ -144,7 +144,10 @@ def seen_mask(ground_depth: np.ndarray, ground_cam: Camera, aerial_depths: np.nd
     c2ws = np.stack([c.c2w for c in aerial_cams])
     Ks = np.stack([c.K for c in aerial_cams])
     order = np.argsort(np.linalg.norm(c2ws[:, :3, 3] - ground_cam.c2w[:3, 3], axis=1), kind="stable")
+    sees_sky = np.isposinf(dep).any(axis=(1, 2))  # [A]: only these can see a point at infinity
     for s in range(0, len(order), chunk):
+        if not sees_sky[order[s:]].any():
+            todo = todo[w[todo] > 0]
         if not len(todo):
             break
         idx = order[s:s + chunk]

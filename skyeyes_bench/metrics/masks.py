@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import paths
-from ..fileio import atomic_path, sha256_file
+from ..fileio import sha256_file
+from .cache import read_verified, write_verified
 
 #: Bump when `geometry.seen_mask` changes what it computes: old entries are then never read.
 VERSION = "visibility-1"
@@ -39,21 +40,12 @@ def _camera_text(frame) -> str:
 
 
 def _read(path: Path, n_bits: int) -> np.ndarray | None:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        return None
-    body, tail = data[:-32], data[-32:]
-    if len(body) != (n_bits + 7) // 8 or hashlib.sha256(body).digest() != tail:
-        last_call["corrupt"] += 1
-        return None
-    return np.unpackbits(np.frombuffer(body, np.uint8), count=n_bits).astype(bool)
+    body = read_verified(path, (n_bits + 7) // 8, last_call)
+    return None if body is None else np.unpackbits(np.frombuffer(body, np.uint8), count=n_bits).astype(bool)
 
 
 def _write(path: Path, mask: np.ndarray) -> None:
-    body = np.packbits(mask.ravel()).tobytes()
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(body + hashlib.sha256(body).digest())
+    write_verified(path, np.packbits(mask.ravel()).tobytes())
 
 
 def seen_masks(scene, frames: list, tol: float) -> np.ndarray:

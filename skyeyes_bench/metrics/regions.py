@@ -57,6 +57,11 @@ def ssim(pred: np.ndarray, gt: np.ndarray, masks: np.ndarray, **settings) -> tup
         float64 [B] (NaN where the region has no window centre), int64 [B] centre counts.
     """
     pred, gt = _check(pred, gt, masks, "ssim")
-    smap = image.ssim_map(pred, gt, **settings).mean(axis=-1)  # [B, H - 2r, W - 2r]
-    r = (masks.shape[1] - smap.shape[1]) // 2
-    return masked_mean(smap, np.asarray(masks, bool)[:, r:masks.shape[1] - r, r:masks.shape[2] - r])
+    return map_mean(image.ssim_map(pred, gt, **settings).mean(axis=-1), masks)
+
+
+def map_mean(maps: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`masked_mean` of maps [B, h, w] that cover the centre of the masks [B, H, W] (a 'valid'
+    map such as SSIM's leaves out (H - h) / 2 pixels on each side): the masks are cropped alike."""
+    r, c = (masks.shape[1] - maps.shape[1]) // 2, (masks.shape[2] - maps.shape[2]) // 2
+    return masked_mean(maps, np.asarray(masks, bool)[:, r:r + maps.shape[1], c:c + maps.shape[2]])

@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from builders.evaluation import install_test_protocol
+from builders.evaluation import TEST_PROTOCOL, install_test_protocol
 from conftest import run_cli
 
 from skyeyes_bench.data.layout import open_dataset
@@ -49,16 +49,8 @@ aggregate = "mean"
 """ + "".join(f"""
 [metrics.{name}]
 depth_tolerance = 0.01
-""" + ('extractor = "lpips-alex-v0.1"\n' if name.startswith("lpips") else "") for name in SEQUENCE_METRICS) + """
-[statistics]
-bootstrap_resamples = 200
-interval = 0.95
-seed = 0
-cluster = "sequence"
-emcee_walkers = 16
-emcee_steps = 400
-emcee_burn = 100
-"""
+""" + ('extractor = "lpips-alex-v0.1"\n' if name.startswith("lpips") else "") for name in SEQUENCE_METRICS) + (
+    "\n" + TEST_PROTOCOL[TEST_PROTOCOL.index("[statistics]"):])
 
 
 def _write(ds, out, image_of, method):

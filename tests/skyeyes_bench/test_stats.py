@@ -284,3 +284,99 @@ def test_set_metric_samples_resample_submission_and_ground_truth_together(kind, 
         reps = c[cl].astype(int)  # how often each row is drawn
         want = slow(np.repeat(x, reps, axis=0), np.repeat(y, reps, axis=0))
         assert got[r] == pytest.approx(want, rel=1e-6, abs=1e-9), r
+
+
+# --------------------------------------------------------------------------- gaps found by bench/mutation.py
+
+
+def test_polynomial_kernel_defaults_are_kid_closed_form():
+    """KID's kernel (Binkowski et al. 2018): k(x, y) = (x.y / D + 1)^3 with the defaults."""
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(4, 7)), rng.normal(size=(3, 7))
+    want = [[(float(a @ b) / 7 + 1.0) ** 3 for b in y] for a in x]
+    np.testing.assert_allclose(stats.polynomial_kernel(x, y), want, rtol=1e-12)
+    np.testing.assert_allclose(stats.polynomial_kernel(x, y, degree=2, gamma=0.5, coef0=0.0),
+                               [[(0.5 * float(a @ b)) ** 2 for b in y] for a in x], rtol=1e-12)
+
+
+def test_resample_indices_draw_every_cluster_uniformly():
+    k, r = 5, 4000
+    idx = stats.resample_indices(k, r, seed=1)
+    assert idx.shape == (r, k) and idx.min() == 0 and idx.max() == k - 1
+    freq = np.bincount(idx.ravel(), minlength=k)
+    assert scipy.stats.chisquare(freq).pvalue > 1e-3, freq
+    np.testing.assert_array_equal(idx, stats.resample_indices(k, r, seed=1))
+    assert not np.array_equal(idx, stats.resample_indices(k, r, seed=2))
+
+
+def test_frame_metric_samples_with_negative_infinities_and_an_empty_cluster():
+    """Materialised means (numpy): -inf where a drawn cluster holds -inf, NaN with +inf and -inf
+    together; a cluster with no frame (the last) contributes nothing."""
+    k = 5
+    clusters = np.array([0, 0, 1, 2, 2, 3])  # cluster 4 has no frame
+    values = np.array([1.0, 2.0, -np.inf, 4.0, np.inf, 6.0])
+    counts = np.array([[1, 0, 0, 1, 3], [0, 1, 0, 1, 0], [1, 1, 1, 0, 0], [0, 0, 0, 2, 1], [1, 0, 0, 0, 0]], float)
+    got = stats.frame_metric_samples(values, clusters, counts)
+    for r, c in enumerate(counts):
+        rows = np.repeat(values, c[clusters].astype(int))
+        with np.errstate(invalid="ignore"):
+            want = np.mean(rows)
+        assert (np.isnan(got[r]) and np.isnan(want)) or got[r] == want, (r, got[r], want)
+    with np.errstate(invalid="ignore"):  # 0 / 0 for the empty sequence: NaN, said by numpy
+        seq = stats.sequence_psnr(np.array([20.0, 30.0, 25.0]), np.array([0, 0, 1]), 3)  # sequence 2: no frame
+    assert seq.shape == (3,) and seq[1] == pytest.approx(25.0) and np.isnan(seq[2])
+
+
+@pytest.mark.parametrize("kind", ["fid", "kid"])
+def test_set_metric_bootstrap_with_a_cluster_without_rows_and_too_few_rows(kind):
+    """A sequence shorter than a clip has no clip rows: its cluster is empty (here the last).
+    Fewer than 2 rows on either side has no value (NaN)."""
+    rng = np.random.default_rng(3)
+    k, d = 4, 5
+    cl = np.array([0, 0, 1, 1, 1, 2, 2, 0])  # cluster 3: no row
+    x, y = rng.normal(size=(8, d)), rng.normal(0.3, size=(8, d))
+    fn = stats.set_metric_bootstrap(kind, x, y, cl, k)
+    slow = _slow_fid if kind == "fid" else _slow_mmd
+    counts = np.array([[1.0, 1.0, 0.0, 1.0], [0.0, 1.0, 1.0, 1.0], [1.0, 0.0, 1.0, 0.0]])
+    got = stats.set_metric_samples(fn, cl, cl, counts)
+    for r, c in enumerate(counts):
+        rows = c[cl] > 0
+        assert got[r] == pytest.approx(slow(x[rows], y[rows]), rel=1e-6, abs=1e-9), r
+    one = np.array([0.0, 0.0, 0.0, 1.0]) if kind == "kid" else np.array([0.0, 0.0, 0.0, 1.0])[cl]
+    assert np.isnan(fn(one, one))
+    single = np.zeros(len(cl))
+    single[2] = 1.0
+    if kind == "fid":
+        assert np.isnan(fn(single, np.ones(len(cl)))) and np.isnan(fn(np.ones(len(cl)), single))
+
+
+def test_bayes_summary_without_a_fit_says_why():
+    """The documented outcomes without sampling: too few clusters, a missing value, infinite
+    differences (P = 1 / 0 when all on one side, else none), zero variance at a non-zero value."""
+    kw = dict(unit="scene", walkers=8, steps=50, burn=10, seed=0)
+    few = stats.bayes_summary(np.ones(3), **kw)
+    assert few == {"fitted": False, "estimand": stats.BAYES_ESTIMAND.format(unit="scene"), "clusters": 3,
+                   "note": "too few scenes (K=3)", "p_a_better": None, "hdi": None}
+    nan = stats.bayes_summary(np.array([1.0, np.nan, 2.0, 3.0, 4.0]), **kw)
+    assert nan["note"] == "a scene has no value for one method" and nan["p_a_better"] is None and nan["hdi"] is None
+    d = np.array([0.5, np.inf, 0.2, 0.1, 0.3])
+    up = stats.bayes_summary(d, **kw)
+    assert up["p_a_better"] == 1.0 and up["hdi"] is None and "1 scene(s) have an infinite difference" in up["note"]
+    assert stats.bayes_summary(-d, **kw)["p_a_better"] == 0.0
+    assert stats.bayes_summary(np.array([0.5, -np.inf, 0.2, 0.1, 0.3]), **kw)["p_a_better"] is None
+    flat = stats.bayes_summary(np.full(6, -0.25), **kw)
+    assert not flat["fitted"] and flat["mu_mean"] == -0.25 and flat["hdi"] == [-0.25, -0.25]
+    assert flat["p_a_better"] == 0.0 and stats.bayes_summary(np.full(6, 0.25), **kw)["p_a_better"] == 1.0
+
+
+def test_compare_per_sequence_reports_its_inputs():
+    a, b = np.array([0.30, 0.32, 0.35, 0.31, 0.29, 0.33]), np.array([0.40, 0.41, 0.39, 0.45, 0.38, 0.42])
+    out = stats.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
+    assert {k: out[k] for k in ("metric", "higher_is_better", "clusters", "level")} == {
+        "metric": "lpips", "higher_is_better": False, "clusters": 6, "level": 0.95}
+    assert out["advantage_mean"] == pytest.approx(np.mean(b - a))
+    lo, hi = out["bootstrap_interval"]
+    assert lo <= out["advantage_mean"] <= hi and lo > 0
+    assert out["bayes"]["fitted"] and out["bayes"]["clusters"] == 6 and "per-scene" in out["bayes"]["estimand"]
+    nan = stats.compare_per_sequence(a, np.where(np.arange(6) == 2, np.nan, b), "lpips", **_FAST)
+    assert math.isnan(nan["advantage_mean"]) and nan["bootstrap_interval"] is None

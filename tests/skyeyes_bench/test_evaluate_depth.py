@@ -193,3 +193,18 @@ def test_leaderboard_shows_reference_metrics_once(depth_scored, tmp_path):
     assert f"of the ground truth, the same for every row: Unseen share {share:.3f}, Warp floor" in t.note
     page = render_markdown(tmp_path, measured, [], [], {})
     assert "Warp error ↓" in page and "PSNR unseen ↑" in page and "Unseen share ↓" not in page
+
+
+def test_missing_depth_layers_make_only_their_metrics_unavailable(depth_scored, synthtown_smoke, tmp_path):
+    _, subs, res, _ = depth_scored
+    data = tmp_path / "no-aerial-depth"
+    shutil.copytree(synthtown_smoke, data)
+    for scene in data.iterdir():
+        if (scene / "aerial_depth").is_dir():
+            shutil.rmtree(scene / "aerial_depth")
+    out = evaluate(subs["grey"], data=data, progress=False)["metrics"]
+    for name in ("psnr_seen", "ssim_unseen", "unseen_share", "lpips_seen"):
+        assert out[name]["status"] == "unavailable"
+        assert out[name]["reason"].startswith("the dataset has no depth layer test-0-lane00/aerial_depth/")
+    assert out["warp"]["value"] == res["grey"]["metrics"]["warp"]["value"]  # needs ground depth only
+    assert out["psnr"]["value"] == res["grey"]["metrics"]["psnr"]["value"]

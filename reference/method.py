@@ -142,6 +142,9 @@ class Method(abc.ABC):
         #: Original seconds of the work this instance took from caches instead of doing it
         #: (resumed checkpoints, cached stages and priors): a run reports its wall time plus this.
         self.cached_s = 0.0
+        #: Worker processes for fits of several scenes (`reference.parallel.fit_scenes`): a run
+        #: option (`reproduce --jobs`), not config, since it changes run time and never results.
+        self.jobs = 1
         self._scene_models: dict[str, Any] = {}
         self.workdir.mkdir(parents=True, exist_ok=True)
 
@@ -265,6 +268,13 @@ class Method(abc.ABC):
                                          stats=folder / "fit.json", seconds="fit_seconds")
         self._scene_models[scene.name] = model
         self.scene_stats[scene.name] = stats
+
+    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
+        """`fit_scene` for each scene, `self.jobs` of them at once in worker processes where the
+        method allows it (`reference.parallel`); the same result as fitting them in turn."""
+        from reference.parallel import fit_scenes
+
+        fit_scenes(self, scenes, jobs=self.jobs, progress=self.progress if progress is None else progress)
 
     def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[Any, dict]:
         """Fit `scene` from scratch: (what `save_scene_model` saves, the fit's statistics)."""

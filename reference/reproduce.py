@@ -119,13 +119,18 @@ def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]
 
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
         force: bool = False, progress: bool = True, device: str | None = None,
-        pretrained: str | None = None) -> dict:
-    """The whole pipeline; returns the results dict (see module docstring for the files)."""
+        pretrained: str | None = None, jobs: int | None = None) -> dict:
+    """The whole pipeline; returns the results dict (see module docstring for the files).
+    jobs: worker processes fitting scenes at once (`reference.parallel`; None: every core for
+    the CPU geometry methods, else 1); it changes run time, never results."""
     from reference.methods import get_method_class
+    from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import evaluate, format_summary
     from skyeyes_bench.submission import SubmissionWriter
 
+    if jobs is not None and jobs < 1:
+        raise UserError(f"--jobs {jobs}: expected a number of worker processes >= 1")
     cls = get_method_class(method)
     config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
@@ -157,6 +162,8 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         fileio.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
         m = cls(config, work / "method", seed=seed, progress=progress)
+        m.jobs = default_jobs(m) if jobs is None else jobs
+        log.info("scene fits: %d worker process(es) (--jobs)", m.jobs)
         # 2. Fit: train split, then each test scene (checkpoints make this resumable). The time
         # of a fit is its wall time plus the original time of what it took from caches.
         t0 = time.perf_counter()
@@ -167,8 +174,8 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             log.info("process %s: training done; the main process renders and scores", os.environ.get("RANK"))
             return {}
         scenes = ds.split("test")
+        m.fit_scenes(scenes, progress=progress)
         for scene in scenes:
-            m.fit_scene(scene, progress=progress)
             stats = m.scene_stats.get(scene.name, {})
             log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
         fit_s = time.perf_counter() - t0 + m.cached_s

@@ -35,12 +35,14 @@ def scene_aerial_hash(scene: Scene) -> str:
 
 
 def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *,
-                  progress: bool = True) -> tuple[dict[str, np.ndarray], float]:
+                  progress: bool = True, jobs: int = 1) -> tuple[dict[str, np.ndarray], float]:
     """Fit `prior_method` per scene and render every ground pose.
 
     The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
     `render_sequence`; renders are cached by (method, config, seed, scene content) hash under
-    `<cache>/reference/priors/`, each entry with the seconds producing it cost.
+    `<cache>/reference/priors/`, each entry with the seconds producing it cost (the scene's fit,
+    as its fit.json records it, plus the renders). Scenes not in the cache are fitted `jobs` at a
+    time in worker processes (`reference.parallel.fit_scenes`), then rendered here.
 
     Returns:
         ({"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame, the
@@ -50,14 +52,20 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
     from tqdm import tqdm
 
     from reference.method import json_sha
+    from reference.parallel import fit_scenes
 
     out: dict[str, np.ndarray] = {}
     cached_s = 0.0
     ident = {"method": prior_method.name, "version": prior_method.version,
              "config": prior_method.config_dict(), "seed": prior_method.seed}
+    paths = {scene.name: cache_dir() / "reference" / "priors"
+             / f"{scene.name}-{json_sha({**ident, 'scene': scene_aerial_hash(scene)})[:24]}.npz" for scene in scenes}
+    todo = [scene for scene in scenes if not paths[scene.name].is_file()]
+    before = prior_method.cached_s
+    fit_scenes(prior_method, todo, jobs=jobs, progress=progress)  # the prior's fit bars obey ours
+    cached_s += prior_method.cached_s - before  # fits resumed from checkpoints: their first run's time
     for scene in tqdm(scenes, desc="priors", disable=None if progress else True, leave=False):
-        key = json_sha({**ident, "scene": scene_aerial_hash(scene)})[:24]
-        path = cache_dir() / "reference" / "priors" / f"{scene.name}-{key}.npz"
+        path = paths[scene.name]
         if path.is_file():
             with np.load(path) as z:
                 for f in scene.ground:
@@ -65,15 +73,12 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
                 cached_s += float(z[_SECONDS]) if _SECONDS in z.files else 0.0  # older caches: unknown
             continue
         t0 = time.perf_counter()
-        before = prior_method.cached_s
-        prior_method.fit_scene(scene, progress=progress)  # the prior's fit bars obey ours
-        resumed = prior_method.cached_s - before  # a fit resumed from its checkpoint: its first run's time
-        cached_s += resumed
         rendered: dict[str, np.ndarray] = {}
         for seq in scene.sequences.values():
             for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
                 rendered[frame.file] = fileio.to_uint8(np.asarray(img))
-        seconds = np.float64(resumed + time.perf_counter() - t0)  # what producing this entry cost
+        fit_s = float(prior_method.scene_stats.get(scene.name, {}).get("fit_seconds", 0.0))
+        seconds = np.float64(fit_s + time.perf_counter() - t0)  # what producing this entry cost
         with fileio.atomic_path(path, suffix=".npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})

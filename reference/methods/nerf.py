@@ -86,7 +86,7 @@ PRESETS = {
     # the smoke lane (1850-3800 rays/s with 6 levels at load 3.5-6; 8 levels cost ~4/3 per sample)
     # to 120 x 1024 rays; not yet measured on small (docs/reproduce.md).
     "small": NeRFMethodConfig(iterations=120, batch_rays=1024, hidden=32, n_inner=64, n_outer=16, occ_res=48,
-                              occ_warmup=32, mvs_preset="small"),
+                              occ_warmup=32, mvs_preset="fast"),
     # Instant-NGP's own scale (GPU users, 512x512).
     "paper": NeRFMethodConfig(iterations=20_000, batch_rays=8192, levels=16, log2_T=19, n_max=4096, n_inner=256,
                               n_outer=64, occ_res=128, occ_warmup=256, init_steps=500, mvs_preset="paper",

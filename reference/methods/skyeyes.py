@@ -186,7 +186,7 @@ class Skyeyes(Method):
     def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
         if self.config.condition == "aerial":
             return {frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}
-        conds, cached_s = render_priors(dataset, scenes, self.prior, progress=self.progress)
+        conds, cached_s = render_priors(dataset, scenes, self.prior, progress=self.progress, jobs=self.jobs)
         self.cached_s += cached_s
         return conds
 
@@ -320,9 +320,13 @@ class Skyeyes(Method):
 
     def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
         """The scene's conditions (its prior renders); the diffusion model is fitted on the train split."""
+        self.fit_scenes([scene], progress=progress)
+
+    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
+        """The scenes' conditions at once: their prior fits run `jobs` at a time (`render_priors`)."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
-        self.conds.update(self._conditions(None, [scene]))
+        self.conds.update(self._conditions(None, scenes))
 
     # ---------------------------------------------------------------- render
     def _generate(self, conds):

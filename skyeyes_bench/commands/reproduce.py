@@ -31,6 +31,10 @@ def register(sub) -> None:
                         "diffusers folder (unet/, vae/, text_encoder/, tokenizer/, optional controlnet/); its UNet, "
                         "VAE and text encoder replace the from-scratch model, with the paper's ControlNet branch and "
                         "epsilon objective. Nothing is downloaded.")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="worker processes fitting scenes (lanes) at once; results are identical for any N, only the "
+                        "run time changes (default: every core for the CPU geometry methods and Skyeyes' prior, "
+                        "which fit a lane on one thread; else 1)")
     p.add_argument("--force", action="store_true",
                    help="discard this run's cached stages and replace the outputs in --out, also another run's "
                         "(without it the same run resumes, another run's --out is refused)")
@@ -44,5 +48,5 @@ def run(args) -> int:
 
     reproduce.run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
                   force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
-                  pretrained=args.pretrained)
+                  pretrained=args.pretrained, jobs=args.jobs)
     return 0

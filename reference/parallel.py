@@ -1,0 +1,113 @@
+"""Scene-parallel fits: the scenes of a method fitted in worker processes at once.
+
+The geometry methods (`mvs`, `gaussians3d`, `sugar`, `nerf`, and `sugar` as Skyeyes' prior) fit
+each lane on one torch thread (a second OpenMP thread only spins on this shared 2-core machine:
+`Gaussians3DConfig.threads`), so one process leaves the other cores idle. Lanes are independent
+(each fit seeds itself from the method's seed, never from a previous lane), so `jobs` worker
+processes fit `jobs` lanes at a time and the result is the same, bit for bit, as fitting them in
+turn: each worker runs the method's own `fit_scene`, which writes the lane's checkpoint through
+a temporary file; the calling process then loads every checkpoint as a resumed fit would.
+
+Timing stays honest: the seconds a loaded checkpoint records are added to `cached_s` only for
+lanes fitted by an earlier run (the original cost of work taken from a cache); lanes the workers
+fitted now are in the caller's wall clock already.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from reference.method import Method
+    from skyeyes_bench.data.layout import Scene
+
+log = logging.getLogger(__name__)
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (the affinity mask, else os.cpu_count())."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def default_jobs(method: "Method") -> int:
+    """Worker processes when the user did not say: every core for a method on the CPU, else 1.
+    `fit_scenes` uses them only for methods that fit a scene on one thread (`parallel_ok`)."""
+    return available_cores() if method.device == "cpu" else 1
+
+
+def parallel_ok(method: "Method") -> bool:
+    """Whether `method`'s scenes may be fitted in worker processes: it keeps a checkpoint per
+    scene to hand back, and fits on one torch thread (more would oversubscribe the cores)."""
+    return method.scene_checkpoint is not None and getattr(method.config, "threads", None) == 1
+
+
+class _Keep(logging.Handler):
+    """Collects a worker's log records, made picklable, to be handled again by the caller."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        record.msg, record.args = record.getMessage(), None
+        record.exc_text = self.formatter.formatException(record.exc_info) if record.exc_info else record.exc_text
+        record.exc_info = None
+        self.records.append(record)
+
+
+def _fit_one(method: "Method", scene: "Scene") -> tuple[dict, list[logging.LogRecord]]:
+    """Worker: fit one scene with the caller's method (its train-split state included); return
+    the fit's statistics and the log records it made (the caller's log gets them). The
+    checkpoint is on disk when this returns."""
+    keep = _Keep()
+    keep.setFormatter(logging.Formatter())
+    root = logging.getLogger()
+    root.addHandler(keep)
+    root.setLevel(logging.INFO)
+    method.progress = False
+    method.fit_scene(scene, progress=False)
+    return method.scene_stats.get(scene.name, {}), keep.records
+
+
+def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
+    """`method.fit_scene` for every scene, `jobs` scenes at a time in worker processes (1: in
+    this process, in turn). Afterwards every scene is fitted in `method` as `fit_scene` leaves
+    it, and `method.cached_s` counts only work earlier runs did."""
+    todo = []
+    if jobs > 1 and parallel_ok(method):
+        todo = [s for s in scenes if not (method.scene_dir(s) / method.scene_checkpoint).is_file()]
+    if len(todo) > 1:
+        try:
+            pickle.dumps(method)
+        except Exception as err:  # noqa: BLE001  (any pickling failure: fall back, say why)
+            log.warning("%s: scenes fitted in turn, not in %d processes: the method does not pickle (%s)",
+                        method.name, jobs, err)
+            todo = []
+    fresh: set[str] = set()
+    if len(todo) > 1:
+        from tqdm import tqdm
+
+        n = min(jobs, len(todo))
+        log.info("%s: fitting %d scenes in %d worker processes", method.name, len(todo), n)
+        # spawn, not fork: torch's thread pools do not survive a fork.
+        with ProcessPoolExecutor(n, mp_context=get_context("spawn")) as pool:
+            futures = {pool.submit(_fit_one, method, s): s for s in todo}
+            for fut in tqdm(as_completed(futures), total=len(futures), desc=f"{method.name} scenes",
+                            disable=None if progress else True, leave=False):
+                _, records = fut.result()  # a worker's exception is raised here, with its traceback
+                for record in records:  # into this process's log (reproduce.log), as if fitted here
+                    logging.getLogger(record.name).handle(record)
+        fresh = {s.name for s in todo}
+    for scene in scenes:
+        before = method.cached_s
+        method.fit_scene(scene, progress=progress)
+        if scene.name in fresh:
+            method.cached_s = before  # fitted now by a worker: its time is in the caller's wall clock

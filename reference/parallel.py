@@ -28,6 +28,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: The most worker processes that ran at once in this process (for the peak memory of a run).
+_most_workers = 0
+
+
+def most_workers() -> int:
+    """The largest number of worker processes `fit_scenes` ran at once in this process."""
+    return _most_workers
+
 
 def available_cores() -> int:
     """CPU cores this process may run on (the affinity mask, else os.cpu_count())."""
@@ -96,6 +104,8 @@ def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progre
         from tqdm import tqdm
 
         n = min(jobs, len(todo))
+        global _most_workers
+        _most_workers = max(_most_workers, n)
         log.info("%s: fitting %d scenes in %d worker processes", method.name, len(todo), n)
         # spawn, not fork: torch's thread pools do not survive a fork.
         with ProcessPoolExecutor(n, mp_context=get_context("spawn")) as pool:

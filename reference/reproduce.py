@@ -101,7 +101,13 @@ def _main_process() -> bool:
 
 
 def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    """Peak resident memory of the run (MB): this process's, plus, when scene fits ran in worker
+    processes, that many times the largest worker's (an upper bound: they ran side by side)."""
+    from reference.parallel import most_workers
+
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: KiB
+    workers = most_workers() * resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss if most_workers() else 0
+    return (own + workers) / 1024.0
 
 
 def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]:

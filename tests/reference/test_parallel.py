@@ -11,6 +11,7 @@ import pytest
 
 from conftest import run_cli
 from reference.methods.mvs import MVS
+from reference.parallel import most_workers
 from skyeyes_bench.data.layout import open_dataset
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -34,6 +35,7 @@ def test_workers_fit_the_same_scenes_and_count_their_seconds_once(synthtown_smok
     with caplog.at_level(logging.INFO):
         workers, _ = fit(synthtown_smoke, tmp_path / "workers", 2)
     assert f"fitting {len(scenes)} scenes in 2 worker processes" in caplog.text
+    assert most_workers() == 2  # the run's peak memory counts two workers side by side
     for s in scenes:  # each worker's own log line ("<scene>: N fused points") reached this log
         assert f"{s.name}: " in caplog.text and "fused points" in caplog.text
         a, b = in_turn.scene_model(s), workers.scene_model(s)

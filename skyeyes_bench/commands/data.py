@@ -136,7 +136,9 @@ def _import_arguments(q, default_protocol: str) -> None:
     q.add_argument("src", metavar="SRC", help="source capture folder")
     q.add_argument("out", metavar="OUT", help="output dataset folder (canonical layout); must not exist")
     q.add_argument("--protocol", default=default_protocol, metavar="ID[@N]",
-                   help=f"protocol the dataset is for; its train/test towns give the splits (default: {default_protocol})")
+                   help=f"protocol the dataset is for; its train/test towns give the splits (default: {default_protocol}, "
+                   "the latest version; dataset.json names the version whose data it is, e.g. @1 for @2, which "
+                   "scores @1's frames with the depth metrics too)")
     q.add_argument("--split", choices=("train", "test"),
                    help="split for towns the protocol does not list (default: refuse them)")
     q.add_argument("--force", action="store_true", help="replace OUT if it exists (only once the new one is complete)")

@@ -248,7 +248,7 @@ def _capture_carla(args) -> int:
     fileio.write_json(old, plan)
     nground = sum(r["kind"] == "ground" for r in plan["frames"])
     print(f"planned {old}: {len(plan['plan']['lanes'])} lanes, {nground} ground and "
-          f"{len(plan['frames']) - nground} aerial frames ({args.town}, protocol {proto.ref})")
+          f"{len(plan['frames']) - nground} aerial frames ({args.town}, protocol {proto.data_ref})")
     if args.plan_only:
         return 0
     # 3. Render what is not on disk yet; capture.json last.

@@ -62,6 +62,7 @@ class _Keep(logging.Handler):
 
     def __init__(self):
         super().__init__(logging.INFO)
+        self.setFormatter(logging.Formatter())
         self.records: list[logging.LogRecord] = []
 
     def emit(self, record: logging.LogRecord) -> None:
@@ -71,18 +72,17 @@ class _Keep(logging.Handler):
         self.records.append(record)
 
 
-def _fit_one(method: "Method", scene: "Scene") -> tuple[dict, list[logging.LogRecord]]:
+def _fit_one(method: "Method", scene: "Scene") -> list[logging.LogRecord]:
     """Worker: fit one scene with the caller's method (its train-split state included); return
-    the fit's statistics and the log records it made (the caller's log gets them). The
-    checkpoint is on disk when this returns."""
+    the log records it made (the caller's log gets them). The checkpoint, with the fit's
+    statistics beside it, is on disk when this returns."""
     keep = _Keep()
-    keep.setFormatter(logging.Formatter())
     root = logging.getLogger()
     root.addHandler(keep)
     root.setLevel(logging.INFO)
     method.progress = False
     method.fit_scene(scene, progress=False)
-    return method.scene_stats.get(scene.name, {}), keep.records
+    return keep.records
 
 
 def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
@@ -112,7 +112,7 @@ def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progre
             futures = {pool.submit(_fit_one, method, s): s for s in todo}
             for fut in tqdm(as_completed(futures), total=len(futures), desc=f"{method.name} scenes",
                             disable=None if progress else True, leave=False):
-                _, records = fut.result()  # a worker's exception is raised here, with its traceback
+                records = fut.result()  # a worker's exception is raised here, with its traceback
                 for record in records:  # into this process's log (reproduce.log), as if fitted here
                     logging.getLogger(record.name).handle(record)
         fresh = {s.name for s in todo}

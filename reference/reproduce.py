@@ -106,7 +106,7 @@ def peak_rss_mb() -> float:
     from reference.parallel import most_workers
 
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: KiB
-    workers = most_workers() * resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss if most_workers() else 0
+    workers = most_workers() * resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return (own + workers) / 1024.0
 
 

@@ -51,7 +51,17 @@ class CoreConfig:
     # epsilon error ~3x at t = 500 and ~160x at t = T, so the DDIM trajectory never locks on and
     # frames come out as noise (x0 error 0.18 vs a signal variance of 0.13); v keeps the x0 error
     # bounded at every t. See docs/skyeyes.md for the figures.
+    #
+    # "flow": rectified flow (Liu et al. 2023; SD3's convention, Esser et al. 2024): the sample
+    # at flow time tau in [0, 1] is z_tau = (1 - tau) z0 + tau flow_noise eps, the network
+    # predicts the velocity dz/dtau = flow_noise eps - z0, and sampling integrates it from
+    # tau = 1 to 0 with diffusers' FlowMatchEulerDiscreteScheduler. With `residual`, tau = 1 is
+    # the prior plus noise of std `flow_noise`: a bridge from the prior to the frame, as
+    # ResShift (Yue et al., NeurIPS 2023) and I2SB (Liu et al., ICML 2023) start restoration
+    # from the degraded image. A small `flow_noise` keeps the sample near its prior's layout
+    # from the first step; 1 is the usual noise-to-data flow.
     prediction: str = "v_prediction"
+    flow_noise: float = 1.0
     pretrained: str | None = None  # local SD1.5 diffusers folder
     # How the condition (prior) enters the denoiser: "controlnet" (the paper's ACM: a
     # ControlNet branch beside a UNet, the pretrained path) or "concat" (the condition is
@@ -70,6 +80,10 @@ class CoreConfig:
     coords: bool = False
 
     def __post_init__(self):
+        if self.prediction not in ("epsilon", "v_prediction", "flow"):
+            raise ValueError(f"prediction {self.prediction!r}: expected 'epsilon', 'v_prediction' or 'flow'")
+        if not self.flow_noise > 0:
+            raise ValueError(f"flow_noise {self.flow_noise}: expected > 0")
         if self.conditioning not in ("controlnet", "concat"):
             raise ValueError(f"conditioning {self.conditioning!r}: expected 'controlnet' or 'concat'")
         if self.residual and self.conditioning != "concat":
@@ -113,8 +127,37 @@ def core_config_from_dict(d: dict) -> CoreConfig:
 # --------------------------------------------------------------------------- schedulers
 
 
+class FlowObjective:
+    """Training side of the rectified flow (`prediction="flow"`), shaped like the DDPM
+    scheduler `train.denoise_loss` uses: integer timesteps t in 0..T are flow times tau = t / T
+    (0: the clean sample, which a VCM clip's first frame is given at; training draws 1..T),
+    `add_noise` gives z_tau = (1 - tau) z0 + tau flow_noise eps, and the network sees t itself
+    as its timestep, as the sampler (`FlowMatchEulerDiscreteScheduler`, timesteps sigma T) does."""
+
+    def __init__(self, cfg: CoreConfig):
+        from types import SimpleNamespace
+
+        self.config = SimpleNamespace(num_train_timesteps=cfg.train_timesteps, prediction_type="flow")
+        self.noise_scale = cfg.flow_noise
+
+    def tau(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """Flow times [B] -> [B, 1, ...] broadcastable against `like`."""
+        tau = t.to(torch.float32) / self.config.num_train_timesteps
+        return tau.view(-1, *([1] * (like.ndim - 1))).to(like.dtype)
+
+    def add_noise(self, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        tau = self.tau(t, x0)
+        return (1.0 - tau) * x0 + tau * self.noise_scale * noise
+
+    def velocity(self, x0: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """d z_tau / d tau: what the network predicts (diffusers' flow-match model output)."""
+        return self.noise_scale * noise - x0
+
+
 def train_scheduler(cfg: CoreConfig):
-    """DDPM for training (objective: `cfg.prediction`)."""
+    """DDPM for training (objective: `cfg.prediction`), or the flow's `FlowObjective`."""
+    if cfg.prediction == "flow":
+        return FlowObjective(cfg)
     from diffusers import DDPMScheduler
 
     return DDPMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
@@ -126,6 +169,11 @@ def sample_scheduler(cfg: CoreConfig):
     """DDIM for sampling: trailing spacing so the first step is t = T - 1 (the noisiest), and
     `set_alpha_to_one` so the last step lands on the clean image (alpha_bar = 1). In pixel
     space the x0 estimate is clipped to the image range [-1, 1] at every step."""
+    if cfg.prediction == "flow":
+        # Euler steps on sigma = tau from 1 to 0 (shift 1: evenly spaced), timesteps sigma T.
+        from diffusers import FlowMatchEulerDiscreteScheduler
+
+        return FlowMatchEulerDiscreteScheduler(num_train_timesteps=cfg.train_timesteps, shift=1.0)
     from diffusers import DDIMScheduler
 
     return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,

@@ -16,21 +16,32 @@ def _scheduler(cfg, steps: int):
     # NOTE: diffusers' DDIMScheduler.step takes the previous timestep as t - T // n; with
     # trailing spacing that is the next scheduled timestep (and the last step lands on
     # alpha_bar = 1) only when n divides T. Otherwise frames would be denoised off-schedule.
-    if steps < 1 or cfg.train_timesteps % steps:
+    # The flow's Euler scheduler keeps its own sigma list: any count works.
+    if steps < 1 or (cfg.prediction != "flow" and cfg.train_timesteps % steps):
         raise ValueError(f"DDIM steps {steps} must divide the {cfg.train_timesteps} training timesteps")
     sched = sample_scheduler(cfg)
     sched.set_timesteps(steps)
     return sched
 
 
-def _start(sched, shape, generator: torch.Generator, strength: float, init: torch.Tensor | None):
-    """The starting sample and the timesteps still to run. strength 1: pure noise, every step.
+def _is_flow(sched) -> bool:
+    from diffusers import FlowMatchEulerDiscreteScheduler
+
+    return isinstance(sched, FlowMatchEulerDiscreteScheduler)
+
+
+def _start(sched, shape, generator: torch.Generator, strength: float, init: torch.Tensor | None,
+           flow_noise: float = 1.0):
+    """The starting sample and the timesteps still to run. strength 1: pure noise (of std
+    `flow_noise` for the flow: a residual model then starts at its prior plus that noise), every step.
     strength s < 1 (SDEdit, Meng et al. 2022): `init` (zeros when None: for a residual model,
     the condition itself) noised to the first scheduled timestep below s T, and the steps from
     there. Noise is drawn on the CPU from `generator` (identical frames on every device)."""
     noise = torch.randn(shape, generator=generator)
+    flow = _is_flow(sched)
+    scale = flow_noise if flow else sched.init_noise_sigma
     if strength >= 1.0:
-        return noise * sched.init_noise_sigma, sched.timesteps
+        return noise * scale, sched.timesteps
     if not 0.0 < strength:
         raise ValueError(f"strength {strength}: expected 0 < strength <= 1")
     limit = strength * sched.config.num_train_timesteps
@@ -38,7 +49,24 @@ def _start(sched, shape, generator: torch.Generator, strength: float, init: torc
     if len(steps) == 0:
         raise ValueError(f"strength {strength} leaves no sampling step")
     init = torch.zeros(shape) if init is None else init.cpu()
+    if flow:
+        tau = float(steps[0]) / sched.config.num_train_timesteps
+        return (1.0 - tau) * init + tau * scale * noise, steps
     return sched.add_noise(init, noise, steps[:1].expand(shape[0])), steps
+
+
+def _step(sched, out: torch.Tensor, t, x: torch.Tensor) -> torch.Tensor:
+    """One sampler step: deterministic DDIM (eta = 0), or an Euler step of the flow."""
+    if _is_flow(sched):
+        return sched.step(out, t, x).prev_sample
+    return sched.step(out, t, x, eta=0.0).prev_sample
+
+
+def _timesteps(t, n: int, dev) -> torch.Tensor:
+    """The scheduler's timestep `t` for a batch of n: integer for DDIM, the flow's sigma T as is."""
+    if torch.is_floating_point(torch.as_tensor(t)):
+        return torch.full((n,), float(t), dtype=torch.float32, device=dev)
+    return torch.full((n,), int(t), dtype=torch.long, device=dev)
 
 
 @torch.no_grad()
@@ -57,13 +85,12 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
     """
     sched = _scheduler(model.cfg, steps)
     shape = sample_shape(tuple(conds.shape), model.cfg) if conds is not None else tuple(shape)
-    x, timesteps = _start(sched, shape, generator, strength, init)
+    x, timesteps = _start(sched, shape, generator, strength, init, model.cfg.flow_noise)
     dev = device_of(model)
     x = x.to(dev)
     c = conds.to(dev) if conds is not None else None
     for t in timesteps:
-        tt = torch.full((shape[0],), int(t), dtype=torch.long, device=dev)
-        x = sched.step(model(x, tt, c).float(), t, x, eta=0.0).prev_sample
+        x = _step(sched, model(x, _timesteps(t, shape[0], dev), c).float(), t, x)
     return x.cpu()
 
 
@@ -107,15 +134,15 @@ def ddim_clip(model: ControlledUNet, conds: torch.Tensor, first: torch.Tensor, *
     the F - 1 new frames [F - 1, C, h, w]."""
     sched = _scheduler(model.cfg, steps)
     f = len(conds)
-    x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None)
+    x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None, model.cfg.flow_noise)
     dev = device_of(model)
     x, first, c = x.to(dev), first.to(dev), conds.to(dev)
     with clip_frames(model, f):
         for t in timesteps:
             # 1. the clean first frame enters at timestep 0, the others at t; 2. predict the
             # clip's noise; 3. step only the frames being generated.
-            tt = torch.full((f,), int(t), dtype=torch.long, device=dev)
+            tt = _timesteps(t, f, dev)
             tt[0] = 0
-            eps = model(torch.cat([first[None], x]), tt, c)[1:].float()
-            x = sched.step(eps, t, x, eta=0.0).prev_sample
+            out = model(torch.cat([first[None], x]), tt, c)[1:].float()
+            x = _step(sched, out, t, x)
     return x.cpu()

@@ -32,14 +32,25 @@ def target(scheduler, x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) ->
         return noise
     if kind == "v_prediction":
         return scheduler.get_velocity(x0, noise, t)
-    raise ValueError(f"prediction type {kind!r}: expected 'epsilon' or 'v_prediction'")
+    if kind == "flow":
+        return scheduler.velocity(x0, noise)
+    raise ValueError(f"prediction type {kind!r}: expected 'epsilon', 'v_prediction' or 'flow'")
+
+
+def draw_timesteps(scheduler, b: int, g: torch.Generator) -> torch.Tensor:
+    """b training timesteps from `g`: uniform over 0..T-1 (DDPM), over 1..T for the flow (its
+    t = 0 is the clean sample, t = T the pure start)."""
+    n = scheduler.config.num_train_timesteps
+    lo = 1 if scheduler.config.prediction_type == "flow" else 0
+    return torch.randint(lo, n + lo, (b,), generator=g)
 
 
 def loss_weight(scheduler, t: torch.Tensor, snr_gamma: float | None) -> torch.Tensor:
     """Per-sample loss weights [B]: 1, or min-SNR-gamma (Hang et al. 2023, "Efficient Diffusion
     Training via Min-SNR Weighting Strategy"): min(SNR_t, gamma) / SNR_t for an epsilon target and
     min(SNR_t, gamma) / (SNR_t + 1) for a v target, SNR_t = ab_t / (1 - ab_t)."""
-    if not snr_gamma:
+    if not snr_gamma or scheduler.config.prediction_type == "flow":
+        # the flow's velocity loss is unweighted (rectified flow; SD3's uniform-time variant)
         return torch.ones(t.shape, dtype=torch.float32)
     ab = scheduler.alphas_cumprod.to(torch.float64)[t]
     snr = ab / (1.0 - ab)
@@ -69,7 +80,7 @@ def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
     equal share, so data-parallel processes average to the one-process loss at the whole batch.
     """
     b = x0.shape[0]
-    t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=g)
+    t = draw_timesteps(scheduler, b, g)
     noise = torch.randn(x0.shape, generator=g)
     s = _part(b, part)
     x0, noise, t = x0[s], noise[s], t[s]
@@ -94,7 +105,7 @@ def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
     `clip_frames(model, F)`.
     """
     b, f = x0.shape[:2]
-    t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=g)
+    t = draw_timesteps(scheduler, b, g)
     noise = torch.randn(x0.shape, generator=g)
     s = _part(b, part)
     x0, noise, t, cond = x0[s], noise[s], t[s], cond[s]

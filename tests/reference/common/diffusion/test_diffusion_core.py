@@ -450,3 +450,75 @@ def test_coordinate_channels_locate_a_crop_in_the_frame():
         m(z, t, c[:, :3])
     with pytest.raises(ValueError, match="coordinate"):
         core.replace_config(TINY, coords=True)
+
+
+# --------------------------------------------------------------------------- rectified flow
+
+TINY_FLOW = core.replace_config(TINY, prediction="flow", flow_noise=0.3)
+
+
+class FlowOracle(torch.nn.Module):
+    """The exact velocity of the straight path from `target` through x_t: (x_t - target) / tau,
+    tau = t / T (so Euler steps on the flow's schedule must land on `target` exactly)."""
+
+    def __init__(self, target, cfg=TINY_FLOW):
+        super().__init__()
+        self.cfg, self.target = cfg, target
+        self._vcm_context = vcm.ClipContext()
+        self.calls = []
+
+    def forward(self, x_t, t, cond=None):
+        self.calls.append((x_t.clone(), t.clone()))
+        tau = (t.double() / self.cfg.train_timesteps).view(-1, 1, 1, 1)
+        tgt = self.target[:x_t.shape[0]].double()
+        v = torch.where(tau > 0, (x_t.double() - tgt) / tau.clamp(min=1e-12), torch.zeros_like(tgt))
+        return v.float()
+
+
+def test_flow_training_pair_closed_form():
+    """z_tau = (1 - tau) z0 + tau s eps and the velocity s eps - z0, tau = t / T; t drawn in 1..T."""
+    s = core.train_scheduler(TINY_FLOW)
+    g = torch.Generator().manual_seed(0)
+    x0, eps = torch.randn(4, 3, 4, 4, generator=g), torch.randn(4, 3, 4, 4, generator=g)
+    t = torch.tensor([0, 1, 500, 1000])
+    tau = np.array([0.0, 0.001, 0.5, 1.0]).reshape(-1, 1, 1, 1)
+    z = s.add_noise(x0, eps, t).double().numpy()
+    np.testing.assert_allclose(z, (1 - tau) * x0.double().numpy() + tau * 0.3 * eps.double().numpy(), atol=1e-6)
+    np.testing.assert_array_equal(z[0], x0[0].numpy())  # t = 0: the clean sample (a clip's first frame)
+    np.testing.assert_allclose(train.target(s, x0, eps, t).numpy(), (0.3 * eps - x0).numpy(), atol=1e-6)
+    drawn = train.draw_timesteps(s, 20000, torch.Generator().manual_seed(1))
+    assert int(drawn.min()) == 1 and int(drawn.max()) == TINY.train_timesteps
+    assert torch.equal(train.loss_weight(s, t, 5.0), torch.ones(4))  # min-SNR is a DDPM weighting
+    with pytest.raises(ValueError, match="prediction"):
+        core.replace_config(TINY, prediction="x0")
+    with pytest.raises(ValueError, match="flow_noise"):
+        core.replace_config(TINY, prediction="flow", flow_noise=0.0)
+
+
+@pytest.mark.parametrize("steps", [1, 7, 10])
+def test_flow_sampler_lands_on_oracle_target_from_scaled_noise(steps):
+    target = torch.rand(3, 3, 8, 8) * 1.6 - 0.8
+    m = FlowOracle(target)
+    out = sample.ddim(m, torch.zeros(3, 3, 8, 8), steps=steps, generator=torch.Generator().manual_seed(1))
+    np.testing.assert_allclose(out.numpy(), target.numpy(), atol=1e-4)
+    noise = torch.randn((3, 3, 8, 8), generator=torch.Generator().manual_seed(1))
+    x_first, t_first = m.calls[0]
+    np.testing.assert_allclose(x_first.numpy(), (0.3 * noise).numpy(), atol=1e-6)  # tau = 1: noise of std 0.3
+    assert float(t_first[0]) == TINY.train_timesteps and len(m.calls) == steps
+    ts = [float(t[0]) for _, t in m.calls]
+    assert all(a > b for a, b in zip(ts, ts[1:]))
+
+
+def test_flow_sdedit_start_and_clip_first_frame():
+    target = torch.rand(4, 3, 8, 8) * 1.6 - 0.8
+    sched = sample._scheduler(TINY_FLOW, 10)
+    x, steps = sample._start(sched, (2, 3, 8, 8), torch.Generator().manual_seed(3), 0.5, target[:2], 0.3)
+    tau = float(steps[0]) / TINY.train_timesteps
+    assert 0.4 < tau < 0.5 and len(steps) == 5
+    noise = torch.randn((2, 3, 8, 8), generator=torch.Generator().manual_seed(3))
+    np.testing.assert_allclose(x.numpy(), ((1 - tau) * target[:2] + tau * 0.3 * noise).numpy(), atol=1e-6)
+    m = FlowOracle(target)
+    out = sample.ddim_clip(m, torch.zeros(4, 3, 8, 8), target[0], steps=5, generator=torch.Generator().manual_seed(0))
+    for x_t, t in m.calls:
+        assert float(t[0]) == 0 and torch.equal(x_t[0], target[0]) and (t[1:] > 0).all()
+    np.testing.assert_allclose(out.numpy(), target[1:].numpy(), atol=1e-4)

@@ -108,14 +108,15 @@ def mark_best(t: Table) -> None:
         vals = [(i, r.values.get(m)) for i, r in enumerate(t.rows) if r.values.get(m) is not None]
         if not vals:
             continue
+        if len(vals) < 2:  # a lone value is best of nothing: no bold, no dagger
+            if not t.reported:
+                t.rules[m] = RULE_ONE_ROW
+            continue
         hib = stats.higher_is_better(m)
         order = sorted(vals, key=lambda iv: -iv[1] if hib else iv[1])
         best_v = order[0][1]
         t.best[m] = [i for i, v in vals if v == best_v]
         if t.reported:
-            continue
-        if len(order) < 2:
-            t.rules[m] = RULE_ONE_ROW
             continue
         credible, t.rules[m] = _credible(t.rows[order[0][0]], t.rows[order[1][0]], m)
         if len(t.best[m]) == 1 and not credible:  # an exact tie: both bold, nothing to flag

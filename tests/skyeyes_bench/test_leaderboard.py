@@ -328,3 +328,14 @@ def test_identical_methods_get_the_not_credible_mark(board, tmp_path):
     t = measured[0]
     assert "psnr" in t.not_credible and len(t.best["psnr"]) == 1
     assert len(t.best["ssim"]) == 2 and "ssim" not in t.not_credible
+
+
+def test_a_lone_row_is_not_bold(board, tmp_path):
+    """One measured row: nothing to compare, so no cell is marked best (the page said "one row:
+    nothing to compare" and still bolded every cell)."""
+    lb = _fresh(board, tmp_path, names=("blurry",))
+    measured, _ = leaderboard.load_tables(lb)
+    t = measured[0]
+    assert len(t.rows) == 1 and t.metrics
+    assert t.best == {} and not t.not_credible
+    assert all(t.rules[m] == marks.RULE_ONE_ROW for m in t.metrics if t.rows[0].values.get(m) is not None)

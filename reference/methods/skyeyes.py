@@ -236,7 +236,7 @@ class Skyeyes(Method):
         model = core.build_model(cfg, control=False, seed=self.seed)
         # Stage keys hold everything a stage depends on except its own step count, plus the
         # full identity (with steps) of the stage it starts from.
-        base_key = {"core": dataclasses.asdict(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
+        base_key = {"core": core.stage_key(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
                     "data": data_hash, "ema": c.ema_decay, "snr_gamma": c.snr_gamma}
         has_base = cfg.conditioning == "controlnet" and not cfg.pretrained
         if has_base:

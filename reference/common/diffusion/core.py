@@ -116,6 +116,16 @@ class CoreConfig:
         return self.resolution // (8 if self.pretrained else self.patch)
 
 
+def stage_key(cfg: CoreConfig) -> dict:
+    """The fields a trained stage depends on, for its cache key: every field, except
+    `flow_noise` when the objective is not the flow (it changes nothing then, and leaving it out
+    keeps the keys of stages trained before the field existed)."""
+    d = dataclasses.asdict(cfg)
+    if cfg.prediction != "flow":
+        d.pop("flow_noise")
+    return d
+
+
 def core_config_from_dict(d: dict) -> CoreConfig:
     d = dict(d)
     for k in ("channels", "attention"):

@@ -30,13 +30,18 @@ TEXT_SCALE = 7.5
 DROP = 0.05
 
 
+def check_drops(p_image: float, p_text: float, p_both: float) -> None:
+    """ValueError unless the three drop probabilities are >= 0 and sum to at most 1."""
+    if min(p_image, p_text, p_both) < 0 or p_image + p_text + p_both > 1:
+        raise ValueError(f"drop probabilities {p_image}, {p_text}, {p_both}: expected >= 0, summing to <= 1")
+
+
 def draw_drops(b: int, g: torch.Generator, p_image: float, p_text: float,
                p_both: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Which of b examples lose their image condition and which their text: (drop_image [b],
     drop_text [b]) bool. One uniform draw per example from `g` picks one of four exclusive cases:
     image only (p_image), text only (p_text), both (p_both), neither (the rest)."""
-    if min(p_image, p_text, p_both) < 0 or p_image + p_text + p_both > 1:
-        raise ValueError(f"drop probabilities {p_image}, {p_text}, {p_both}: expected >= 0, summing to <= 1")
+    check_drops(p_image, p_text, p_both)
     u = torch.rand(b, generator=g, dtype=torch.float64)
     image_only = u < p_image
     text_only = (u >= p_image) & (u < p_image + p_text)

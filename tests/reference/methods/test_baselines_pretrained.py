@@ -1,7 +1,8 @@
-"""`ip2p --pretrained DIR`: InstructPix2Pix's own path on a Stable Diffusion 1.5-layout folder (a
-tiny random one, `builders.tiny_sd`): the UNet's conv_in widened with zero-initialised inputs
+"""`ip2p` and `gvg` with `--pretrained DIR`, on a Stable Diffusion 1.5-layout folder (a tiny
+random one, `builders.tiny_sd`). ip2p: the UNet's conv_in widened with zero-initialised inputs
 for the aerial view's latent (the pretrained UNet's output unchanged at initialisation), the
-instruction and the empty prompt encoded by the frozen CLIP text encoder, end to end."""
+instruction and the empty prompt encoded by the frozen CLIP text encoder, end to end. gvg: the
+projected colour's latent and the depth and mask averaged onto the latent grid, end to end."""
 
 from __future__ import annotations
 
@@ -15,9 +16,10 @@ import torch
 import diffusers  # noqa: F401  (a hard dependency of reference: a broken install fails here, never skips)
 import transformers  # noqa: F401
 
-from builders.skyeyes import SIZE, make_tiny_dataset  # noqa: E402
+from builders.skyeyes import SIZE, StandInGeometryPrior, make_tiny_dataset  # noqa: E402
 from builders.tiny_sd import RES, make_tiny_sd  # noqa: E402
 from reference.common.diffusion import core  # noqa: E402
+from reference.methods import gvg  # noqa: E402
 from reference.methods.ip2p import INSTRUCTION, PRESETS, InstructPix2Pix  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 
@@ -82,3 +84,31 @@ def test_pretrained_ip2p_end_to_end(sd, tmp_path):
         frames = np.stack(list(m.render_sequence(scene, seq)))
         assert frames.shape == (len(seq), SIZE, SIZE, 3) and np.isfinite(frames).all()
         assert frames.min() >= 0 and frames.max() <= 1
+
+
+def test_pretrained_gvg_condition_on_the_latent_grid_end_to_end(sd, tmp_path):
+    from diffusers import AutoencoderKL
+
+    cfg = dataclasses.replace(gvg.PRESETS["small"], core=dataclasses.replace(gvg.PRESETS["small"].core, resolution=RES),
+                              pretrained=str(sd), acm_steps=1, acm_batch=2, sample_steps=2, ckpt_every=1,
+                              figure_frames=2, device="cpu", threads=1)
+    m = gvg.GVG(cfg, tmp_path / "w", prior_method=StandInGeometryPrior(tmp_path / "p"), progress=False)
+    c = m.config.core
+    assert (c.conditioning, c.residual, c.coords, c.cond_extra, c.in_channels) == ("concat", False, False, 2, 4 + 4 + 2)
+    # the colour's VAE latent, then depth and mask averaged over each latent cell (8 x 8 pixels), in [-1, 1]
+    img = torch.rand(1, 5, RES, RES, generator=torch.Generator().manual_seed(3))
+    cond = core.encode_cond(img, c)
+    vae = AutoencoderKL.from_pretrained(sd / "vae")
+    with torch.no_grad():
+        latent = vae.encode(img[:, :3] * 2 - 1).latent_dist.mean * vae.config.scaling_factor
+    torch.testing.assert_close(cond[:, :4], latent)
+    cells = (img[:, 3:] * 2 - 1).reshape(1, 2, RES // 8, 8, RES // 8, 8).mean((3, 5))
+    torch.testing.assert_close(cond[:, 4:], cells)
+    ds = open_dataset(make_tiny_dataset(tmp_path / "ds", frames=3, seqs=1))
+    m.fit_train(ds)
+    assert m.acm.unet.conv_in.in_channels == 10
+    scene = ds.split("test")[0]
+    m.fit_scene(scene)
+    for seq in scene.sequences.values():
+        frames = np.stack(list(m.render_sequence(scene, seq)))
+        assert frames.shape == (len(seq), SIZE, SIZE, 3) and np.isfinite(frames).all()

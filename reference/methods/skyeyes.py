@@ -155,7 +155,8 @@ class Skyeyes(Method):
                  progress: bool = True):
         if config.pretrained:
             # SD1.5's UNet was trained on the epsilon objective and its condition enters through
-            # a ControlNet branch (the paper's ACM); its fine-tuning keeps both. Its ControlNet
+            # a ControlNet branch (the paper's ACM; the concatenating baselines widen conv_in
+            # instead, `pretrained_conditioning`); its fine-tuning keeps both. Its ControlNet
             # takes pixels 8x the latent's size, so no training crops (they would not align).
             core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, prediction="epsilon",
                                            conditioning=self.pretrained_conditioning, residual=False, coords=False)

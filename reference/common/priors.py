@@ -45,7 +45,9 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
     time in worker processes (`reference.parallel.fit_scenes`), then rendered here.
 
     Returns:
-        ({"<scene>/<frame file>": float32 [H, W, 3] in [0, 1]} for every ground frame, the
+        ({"<scene>/<frame file>": float32 [H, W, C]} for every ground frame (C = 3: colour in
+        [0, 1], quantised to 8 bits as a PNG would be; renders with more channels are kept as
+        float32), the
         original seconds of the work taken from caches: entries of this cache, and prior fits
         resumed from their checkpoints).
     """
@@ -69,21 +71,33 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
         if path.is_file():
             with np.load(path) as z:
                 for f in scene.ground:
-                    out[frame_key(scene, f)] = z[f.file].astype(np.float32) / 255.0
+                    out[frame_key(scene, f)] = _from_stored(z[f.file])
                 cached_s += float(z[_SECONDS]) if _SECONDS in z.files else 0.0  # older caches: unknown
             continue
         t0 = time.perf_counter()
         rendered: dict[str, np.ndarray] = {}
         for seq in scene.sequences.values():
             for frame, img in zip(seq.frames, prior_method.render_sequence(scene, seq), strict=True):
-                rendered[frame.file] = fileio.to_uint8(np.asarray(img))
+                rendered[frame.file] = _to_stored(np.asarray(img))
         fit_s = float(prior_method.scene_stats.get(scene.name, {}).get("fit_seconds", 0.0))
         seconds = np.float64(fit_s + time.perf_counter() - t0)  # what producing this entry cost
         with fileio.atomic_path(path, suffix=".npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})
-        out.update({f"{scene.name}/{k}": v.astype(np.float32) / 255.0 for k, v in rendered.items()})
+        out.update({f"{scene.name}/{k}": _from_stored(v) for k, v in rendered.items()})
     return out, cached_s
+
+
+def _to_stored(img: np.ndarray) -> np.ndarray:
+    """A render as its cache entry stores it: 8-bit for colour images [H, W, 3] (what a PNG
+    would hold), float32 for renders with more channels (gvg's depth and coverage beside the
+    colour), which 8 bits would quantise."""
+    return fileio.to_uint8(img) if img.shape[-1] == 3 else img.astype(np.float32)
+
+
+def _from_stored(a: np.ndarray) -> np.ndarray:
+    """Inverse of `_to_stored`: float32 [H, W, C]."""
+    return a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
 
 
 def nearest_aerial(scene: Scene, frame: Frame) -> Frame:

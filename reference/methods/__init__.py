@@ -11,6 +11,8 @@ METHODS: dict[str, str] = {
     "skyeyes": "reference.methods.skyeyes:Skyeyes",
     "skyeyes-no-vcm": "reference.methods.skyeyes:SkyeyesNoVCM",
     "controlnet": "reference.methods.controlnet:ControlNetBaseline",
+    "ip2p": "reference.methods.ip2p:InstructPix2Pix",
+    "gvg": "reference.methods.gvg:GVG",
 }
 
 

@@ -147,15 +147,19 @@ class Skyeyes(Method):
     name = "skyeyes"
     version = "0.1"
     presets = PRESETS
+    #: How the condition enters a pretrained SD1.5 UNet (`--pretrained`): the paper's ACM is a
+    #: ControlNet branch; the baselines that concatenate their condition (ip2p, gvg) widen conv_in.
+    pretrained_conditioning = "controlnet"
 
     def __init__(self, config: SkyeyesConfig, workdir: Path, *, seed: int = 0, prior_method: Method | None = None,
                  progress: bool = True):
         if config.pretrained:
             # SD1.5's UNet was trained on the epsilon objective and its condition enters through
-            # a ControlNet branch (the paper's ACM); its fine-tuning keeps both. Its ControlNet
+            # a ControlNet branch (the paper's ACM; the concatenating baselines widen conv_in
+            # instead, `pretrained_conditioning`); its fine-tuning keeps both. Its ControlNet
             # takes pixels 8x the latent's size, so no training crops (they would not align).
             core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, prediction="epsilon",
-                                           conditioning="controlnet", residual=False, coords=False)
+                                           conditioning=self.pretrained_conditioning, residual=False, coords=False)
             config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0)
         if config.sample_strength < 1.0 and not config.core.residual:
             raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
@@ -175,8 +179,26 @@ class Skyeyes(Method):
     @property
     def prior(self) -> Method:
         if self._prior is None:
-            self._prior = make_prior_method(self.config, self.workdir / "prior", self.seed, self.device)
+            self._prior = self._make_prior()
         return self._prior
+
+    def _make_prior(self) -> Method:
+        """The method whose renders are the conditions (stage 0)."""
+        return make_prior_method(self.config, self.workdir / "prior", self.seed, self.device)
+
+    # ---------------------------------------------------------------- hooks of the baselines
+    def _drop_conditions(self, cond, g):
+        """Training conditions [B, C, h, w] as the model sees them, and the text mask [B] (None:
+        the prompt everywhere). Skyeyes drops nothing; ip2p drops conditions for guidance."""
+        return cond, None
+
+    def _acm_key_extra(self) -> dict:
+        """What else the ACM stage depends on (a baseline's own training settings)."""
+        return {}
+
+    def _sampling_model(self, model):
+        """The model the sampler calls (ip2p: its classifier-free guided combination)."""
+        return model
 
     def config_dict(self) -> dict:
         d = dataclasses.asdict(self.config)
@@ -236,7 +258,7 @@ class Skyeyes(Method):
         model = core.build_model(cfg, control=False, seed=self.seed)
         # Stage keys hold everything a stage depends on except its own step count, plus the
         # full identity (with steps) of the stage it starts from.
-        base_key = {"core": core.stage_key(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
+        base_key = {"core": core.core_key(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
                     "data": data_hash, "ema": c.ema_decay, "snr_gamma": c.snr_gamma}
         has_base = cfg.conditioning == "controlnet" and not cfg.pretrained
         if has_base:
@@ -255,13 +277,17 @@ class Skyeyes(Method):
             torch.manual_seed(self.seed + 1)
             model.add_control()
         acm_key = {"base": base_id, "batch": c.acm_batch, "lr": c.acm_lr, "condition": c.condition,
-                   "cond": cond_hash}
-        params = core.trainable(model, ["controlnet."] if cfg.conditioning == "controlnet" else ["unet.", "prompt"])
+                   "cond": cond_hash, **self._acm_key_extra()}
+        # A concat UNet is trained whole, with its learned text embeddings (a pretrained one's
+        # CLIP encodings stay frozen).
+        texts = [] if cfg.pretrained else ["prompt"] + (["null_prompt"] if cfg.null_prompt else [])
+        params = core.trainable(model, ["controlnet."] if cfg.conditioning == "controlnet" else ["unet.", *texts])
 
         def acm_loss(net, g, part):
             idx = torch.randint(0, n, (c.acm_batch,), generator=g)
             z, k = train.crops(g, c.train_crop, z0[idx], cc[idx])
-            return train.denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma)
+            k, text = self._drop_conditions(k, g)
+            return train.denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma, text=text)
 
         self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
         core.trainable(model, [])
@@ -333,10 +359,11 @@ class Skyeyes(Method):
         from ..common.diffusion import sample
 
         seed, c = self._seq_seed, self.config
+        acm = self._sampling_model(self.acm)
         if c.vcm:
-            return sample.sample_sequence(self.acm, self.vcm, conds, steps=c.sample_steps, seed=seed,
+            return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed,
                                           clip=c.clip_frames, strength=c.sample_strength)
-        return sample.sample_frames(self.acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
+        return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         from ..common.diffusion import core
@@ -380,7 +407,7 @@ def write_figure(path: Path, scene: Scene, sequence: Sequence, conds: list[np.nd
 
     idx = np.unique(np.linspace(0, len(sequence) - 1, min(n, len(sequence))).round().astype(int))
     rows = [("aerial (nearest)", [nearest_aerial(scene, sequence.frames[i]).image() for i in idx]),
-            (condition, [conds[i] for i in idx]),
+            (condition, [conds[i][..., :3] for i in idx]),  # the colour of a condition with more channels
             ("generated", [generated[i] for i in idx]),
             ("ground truth", [sequence.frames[i].image() for i in idx])]
     fig, axes = plt.subplots(len(rows), len(idx), figsize=(1.6 * len(idx), 1.7 * len(rows)), squeeze=False)

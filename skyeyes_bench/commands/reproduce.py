@@ -27,10 +27,10 @@ def register(sub) -> None:
                         "the diffusion methods CUDA when available). For several GPUs run the diffusion stages "
                         "data-parallel: accelerate launch --multi_gpu --num_processes N -m skyeyes_bench.cli reproduce ...")
     p.add_argument("--pretrained", default=None, metavar="DIR",
-                   help="diffusion methods (skyeyes, skyeyes-no-vcm, controlnet): a local Stable Diffusion 1.5 "
-                        "diffusers folder (unet/, vae/, text_encoder/, tokenizer/, optional controlnet/); its UNet, "
-                        "VAE and text encoder replace the from-scratch model, with the paper's ControlNet branch and "
-                        "epsilon objective. Nothing is downloaded.")
+                   help="diffusion methods (skyeyes, skyeyes-no-vcm, controlnet, ip2p, gvg): a local Stable Diffusion "
+                        "1.5 diffusers folder (unet/, vae/, text_encoder/, tokenizer/, optional controlnet/); its UNet, "
+                        "VAE and text encoder replace the from-scratch model, with the paper's ControlNet branch (ip2p, "
+                        "gvg: the condition concatenated, conv_in widened) and epsilon objective. Nothing is downloaded.")
     p.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="worker processes fitting scenes (lanes) at once; results are identical for any N, only the "
                         "run time changes (default: every core for the CPU geometry methods and Skyeyes' prior, "

@@ -60,3 +60,19 @@ class StandInPrior(Method):
         for f in sequence.frames:
             img = uniform_filter(f.image(), size=(3, 3, 1))
             yield np.clip(img + rng.normal(0, 0.1, img.shape), 0, 1).astype(np.float32)
+
+
+class StandInGeometryPrior(StandInPrior):
+    """TEST-ONLY stand-in for gvg's `mvs` geometry: per frame [H, W, 5] = the stand-in colour, a
+    depth of 4 m and coverage 1 below the image's top quarter, depth 0 and coverage 0 above it
+    (the colour is then the sky's grey)."""
+
+    name = "stand-in-geometry"
+
+    def render_sequence(self, scene, sequence):
+        for img in super().render_sequence(scene, sequence):
+            h = img.shape[0]
+            alpha = np.ones(img.shape[:2], np.float32)
+            alpha[: h // 4] = 0.0
+            img = np.where(alpha[..., None] > 0, img, 0.5).astype(np.float32)
+            yield np.concatenate([img, (4.0 * alpha)[..., None], alpha[..., None]], -1)

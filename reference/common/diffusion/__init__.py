@@ -5,6 +5,7 @@
 - `vcm`: the view consistency module as a diffusers attention processor.
 - `train`: denoising losses (epsilon or v) (frames, first-frame-conditioned clips), resumable training loop.
 - `sample`: DDIM sampling frame by frame and autoregressively clip by clip.
+- `guidance`: classifier-free guidance on image and text (InstructPix2Pix): condition dropout, guided predictions.
 """
 
 from .core import CoreConfig, ControlledUNet, build_model, decode, encode, encode_cond, sample_scheduler, train_scheduler

@@ -78,6 +78,17 @@ class CoreConfig:
     # lies (Patch Diffusion, Wang et al., NeurIPS 2023). Measured on SynthTown small: without
     # them a crop-trained model samples whole frames as a collage (docs/skyeyes.md).
     coords: bool = False
+    # Extra condition channels beyond the condition image's 3 colours, in image space, each in
+    # [0, 1] (gvg: the projected depth and the mask of what the aerial views saw). They follow
+    # the colour channels, folded like them (`patch`); with `pretrained`, area-averaged onto the
+    # latent grid. Concat only.
+    cond_extra: int = 0
+    # A second text embedding, the unconditional one, beside the prompt: a learned "null"
+    # embedding (or, with `pretrained`, the CLIP encoding of the empty prompt), so that
+    # classifier-free guidance on the text has an unconditional branch (InstructPix2Pix).
+    null_prompt: bool = False
+    # The text the prompt embedding stands for (encoded with `pretrained`; a label otherwise).
+    prompt_text: str = PROMPT
 
     def __post_init__(self):
         if self.prediction not in ("epsilon", "v_prediction", "flow"):
@@ -90,6 +101,9 @@ class CoreConfig:
             raise ValueError("residual diffusion needs conditioning='concat'")
         if self.coords and self.conditioning != "concat":
             raise ValueError("coordinate channels need conditioning='concat'")
+        if self.cond_extra < 0 or (self.cond_extra and self.conditioning != "concat"):
+            raise ValueError(f"cond_extra {self.cond_extra}: extra condition channels need "
+                             "conditioning='concat' and a count >= 0")
 
     @property
     def sample_channels(self) -> int:
@@ -97,9 +111,22 @@ class CoreConfig:
         return 4 if self.pretrained else 3 * self.patch**2
 
     @property
+    def extra_channels(self) -> int:
+        """Model-space channels of the `cond_extra` image channels (folded p x p, or one each on
+        the latent grid)."""
+        return self.cond_extra * (1 if self.pretrained else self.patch**2)
+
+    @property
     def cond_channels(self) -> int:
-        """Channels of the condition in model space: the sample's, plus 2 with `coords`."""
-        return self.sample_channels + (2 if self.coords else 0)
+        """Channels of the condition in model space: the sample's (the colour image), the extra
+        channels', plus 2 with `coords`."""
+        return self.sample_channels + self.extra_channels + (2 if self.coords else 0)
+
+    @property
+    def image_cond_channels(self) -> int:
+        """The condition's channels that carry the conditioning images (all but the coordinates):
+        what a dropped condition sets to zero."""
+        return self.sample_channels + self.extra_channels
 
     @property
     def in_channels(self) -> int:
@@ -116,13 +143,22 @@ class CoreConfig:
         return self.resolution // (8 if self.pretrained else self.patch)
 
 
-def stage_key(cfg: CoreConfig) -> dict:
-    """The fields a trained stage depends on, for its cache key: every field, except
-    `flow_noise` when the objective is not the flow (it changes nothing then, and leaving it out
-    keeps the keys of stages trained before the field existed)."""
+#: Fields added after stage checkpoints were first cached: left out of `core_key` while at their
+#: defaults, so the stages cached before they existed keep their keys.
+_KEY_OMITTED_AT_DEFAULT = ("cond_extra", "null_prompt", "prompt_text")
+
+
+def core_key(cfg: CoreConfig) -> dict:
+    """The config as a stage cache key (`dataclasses.asdict`, without the later fields that are
+    at their defaults, and without `flow_noise` unless the objective is the flow: it changes
+    nothing then)."""
     d = dataclasses.asdict(cfg)
+    defaults = CoreConfig()
+    for k in _KEY_OMITTED_AT_DEFAULT:
+        if d[k] == getattr(defaults, k):
+            del d[k]
     if cfg.prediction != "flow":
-        d.pop("flow_noise")
+        del d["flow_noise"]
     return d
 
 
@@ -198,7 +234,7 @@ def sample_scheduler(cfg: CoreConfig):
 
 
 def resize(images: torch.Tensor, size: int) -> torch.Tensor:
-    """[N, 3, H, W] -> [N, 3, size, size], antialiased bilinear (identity if already that size)."""
+    """[N, C, H, W] -> [N, C, size, size], antialiased bilinear (identity if already that size)."""
     if images.shape[-2:] == (size, size):
         return images
     return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
@@ -217,12 +253,22 @@ def encode(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
 
 
 def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
-    """Control images [N, 3, res, res] in [0, 1] -> what the ControlNet branch takes: the same
-    unshuffled pixels as the sample (plus the x, y coordinate channels with `cfg.coords`), or raw
-    [0, 1] pixels for a pretrained ControlNet."""
-    if cfg.pretrained:
+    """Condition images [N, 3 + cfg.cond_extra, res, res] in [0, 1] -> the condition in model
+    space: the colour image encoded as the sample is (unshuffled pixels, or the VAE latent of a
+    pretrained folder), then the extra channels (mapped to [-1, 1] and folded alike, or
+    area-averaged onto the latent grid), then the x, y coordinate channels with `cfg.coords`.
+    A pretrained ControlNet branch takes the raw [0, 1] pixels instead."""
+    assert images.ndim == 4 and images.shape[1] == 3 + cfg.cond_extra, (images.shape, cfg.cond_extra)
+    if cfg.pretrained and cfg.conditioning == "controlnet":
         return images
-    c = encode(images, cfg)
+    c = encode(images[:, :3], cfg)
+    if cfg.cond_extra:
+        extra = images[:, 3:] * 2.0 - 1.0
+        if cfg.pretrained:
+            extra = F.interpolate(extra, size=tuple(c.shape[-2:]), mode="area")
+        elif cfg.patch > 1:
+            extra = F.pixel_unshuffle(extra, cfg.patch)
+        c = torch.cat([c, extra.to(c.dtype)], dim=1)
     if not cfg.coords:
         return c
     n, _, h, w = c.shape
@@ -234,10 +280,10 @@ def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
 
 def sample_shape(cond_shape: tuple[int, ...], cfg: CoreConfig) -> tuple[int, ...]:
     """Shape of the diffused samples for conditions of `cond_shape` [N, C, H, W]: the same in
-    pixel space; with a pretrained ControlNet the condition is [0, 1] pixels and the sample is
-    the VAE latent, 8x smaller with 4 channels."""
+    pixel space (and for a concatenated latent condition); with a pretrained ControlNet the
+    condition is [0, 1] pixels and the sample is the VAE latent, 8x smaller with 4 channels."""
     n, _, h, w = cond_shape
-    if cfg.pretrained:
+    if cfg.pretrained and cfg.conditioning == "controlnet":
         return (n, cfg.sample_channels, h // 8, w // 8)
     return (n, cfg.sample_channels, h, w)
 
@@ -265,9 +311,10 @@ def _vae(root: str):
 
 
 def images_to_tensor(images) -> torch.Tensor:
-    """numpy float32 [N, H, W, 3] in [0, 1] -> torch [N, 3, H, W]."""
+    """numpy float32 [N, H, W, C] in [0, 1] -> torch [N, C, H, W] (C = 3, or more for a
+    condition with extra channels)."""
     t = torch.as_tensor(images, dtype=torch.float32)
-    assert t.ndim == 4 and t.shape[-1] == 3, t.shape
+    assert t.ndim == 4 and t.shape[-1] >= 3, t.shape
     return t.permute(0, 3, 1, 2).contiguous()
 
 
@@ -312,6 +359,9 @@ class ControlledUNet(nn.Module):
         # Learned null embedding standing in for the text-encoded prompt. Small init so the
         # cross-attention starts near a constant bias.
         self.prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02)
+        # The unconditional text (classifier-free guidance on the text): a second learned
+        # embedding, created after the others so models without it initialise as before.
+        self.null_prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02) if cfg.null_prompt else None
 
     def add_control(self) -> None:
         """Give the model its condition input: a ControlNet branch (`conditioning="controlnet"`);
@@ -334,12 +384,24 @@ class ControlledUNet(nn.Module):
     def conditioned(self) -> bool:
         return self.cfg.conditioning == "concat" or self.controlnet is not None
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
-        """x_t [B, C, h, w] noisy, t [B] integer timesteps, cond [B, C, h, w] (model space) ->
-        the prediction [B, C, h, w] (epsilon or v, per `cfg.prediction`)."""
+    def text_embedding(self, b: int, text: torch.Tensor | None = None) -> torch.Tensor:
+        """The cross-attention input [b, L, C]: the prompt for every row, or, where `text` [b]
+        (bool) is False, the unconditional embedding (`cfg.null_prompt`)."""
+        if text is None:
+            return self.prompt.expand(b, -1, -1)
+        assert self.null_prompt is not None, "text dropout needs cfg.null_prompt (the unconditional embedding)"
+        assert text.shape == (b,) and text.dtype == torch.bool, (text.shape, text.dtype)
+        on = text.to(self.prompt.device)[:, None, None]
+        return torch.where(on, self.prompt.expand(b, -1, -1), self.null_prompt.expand(b, -1, -1))
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | None = None,
+                text: torch.Tensor | None = None) -> torch.Tensor:
+        """x_t [B, C, h, w] noisy, t [B] integer timesteps, cond [B, C, h, w] (model space),
+        text [B] bool or None (rows given the prompt; None: all) -> the prediction [B, C, h, w]
+        (epsilon, v or the flow's velocity, per `cfg.prediction`)."""
         b = x_t.shape[0]
         assert t.shape == (b,), (t.shape, b)
-        emb = self.prompt.expand(b, -1, -1)
+        emb = self.text_embedding(b, text)
         if self.cfg.conditioning == "concat":
             assert cond is not None and cond.shape == (b, self.cfg.cond_channels, *x_t.shape[2:]), \
                 "a concat-conditioned model needs a condition of cfg.cond_channels"
@@ -387,7 +449,10 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
     NOTE: this path cannot be exercised offline (no checkpoint, no `transformers`); it follows
     the diffusers folder layout (unet/, text_encoder/, tokenizer/, vae/, optional controlnet/).
     The VAE latent space (8x downsampling, 4 channels) replaces the pixel codec (`encode`,
-    `decode`); the prompt is encoded once by the frozen CLIP text encoder.
+    `decode`); the prompt (`cfg.prompt_text`, and the empty prompt with `cfg.null_prompt`) is
+    encoded once by the frozen CLIP text encoder. With `conditioning="concat"` the condition's
+    latent (and extra channels) enter through the UNet's first convolution, widened with
+    zero-initialised inputs (`widen_conv_in`, as InstructPix2Pix does).
     """
     from skyeyes_bench.errors import UserError
 
@@ -404,19 +469,45 @@ def load_pretrained(cfg: CoreConfig, *, control: bool) -> ControlledUNet:
     nn.Module.__init__(model)
     model.cfg = cfg
     model.unet = UNet2DConditionModel.from_pretrained(root / "unet", local_files_only=True)
+    if cfg.conditioning == "concat":
+        widen_conv_in(model.unet, cfg.in_channels)
     tok = CLIPTokenizer.from_pretrained(root / "tokenizer", local_files_only=True)
     enc = CLIPTextModel.from_pretrained(root / "text_encoder", local_files_only=True)
     with torch.no_grad():
         # CLIP's context is 77 tokens (its position table); some tokenizer folders leave
         # model_max_length unset (a huge sentinel), so the encoder's length is the one to pad to.
         length = min(tok.model_max_length, enc.config.max_position_embeddings)
-        ids = tok([PROMPT], padding="max_length", max_length=length, truncation=True, return_tensors="pt").input_ids
-        emb = enc(ids)[0]  # [1, 77, 768]
-    model.prompt = nn.Parameter(emb, requires_grad=False)
+        texts = [cfg.prompt_text] + ([""] if cfg.null_prompt else [])
+        ids = tok(texts, padding="max_length", max_length=length, truncation=True, return_tensors="pt").input_ids
+        emb = enc(ids)[0]  # [1 or 2, 77, 768]
+    model.prompt = nn.Parameter(emb[:1], requires_grad=False)
+    # NOTE: the unconditional text of SD and InstructPix2Pix is the encoded empty prompt.
+    model.null_prompt = nn.Parameter(emb[1:2], requires_grad=False) if cfg.null_prompt else None
     model.controlnet = None
     if control:
         model.add_control()
     return model
+
+
+def widen_conv_in(unet, in_channels: int) -> None:
+    """Give a pretrained UNet's first convolution `in_channels` inputs, the new ones with zero
+    weights, so the widened UNet computes exactly what it did on its old inputs whatever the new
+    channels hold (InstructPix2Pix, Brooks et al. 2023, Sec. 3.2: the image conditioning's
+    extra input channels of the first layer start at zero)."""
+    old = unet.conv_in
+    if old.in_channels == in_channels:
+        return
+    if old.in_channels > in_channels:
+        raise ValueError(f"conv_in has {old.in_channels} inputs, more than the {in_channels} asked for")
+    new = nn.Conv2d(in_channels, old.out_channels, old.kernel_size, stride=old.stride, padding=old.padding,
+                    bias=old.bias is not None).to(old.weight.device, old.weight.dtype)
+    with torch.no_grad():
+        new.weight.zero_()
+        new.weight[:, :old.in_channels] = old.weight
+        if old.bias is not None:
+            new.bias.copy_(old.bias)
+    unet.conv_in = new
+    unet.register_to_config(in_channels=in_channels)
 
 
 def device_of(model: nn.Module) -> torch.device:

@@ -70,11 +70,13 @@ def _part(n: int, part: tuple[int, int]) -> slice:
 
 def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
                  g: torch.Generator, *, part: tuple[int, int] = (0, 1),
-                 snr_gamma: float | None = None) -> torch.Tensor:
+                 snr_gamma: float | None = None, text: torch.Tensor | None = None) -> torch.Tensor:
     """Single-frame DDPM loss: E w_t ||target - f_theta(x_t, t, c)||^2 (target: `target`,
     w_t: `loss_weight`).
 
-    x0 [B, C, h, w] clean model-space images (the *global* batch); cond [B, C, h, w] or None.
+    x0 [B, C, h, w] clean model-space images (the *global* batch); cond [B, C, h, w] or None;
+    text [B] bool or None: rows given the prompt (False: the unconditional embedding, for
+    classifier-free guidance; None: the prompt everywhere, and the model is called as before).
     Timesteps and noise are drawn for the whole batch from `g` on the CPU (so every device and
     every process draws the same numbers); process `rank` of `world` (`part`) then takes its
     equal share, so data-parallel processes average to the one-process loss at the whole batch.
@@ -89,7 +91,8 @@ def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
     want = target(scheduler, x0, noise, t)
     w = loss_weight(scheduler, t, snr_gamma)
     dev = device_of(model)
-    pred = model(x_t.to(dev), t.to(dev), cond.to(dev) if cond is not None else None)
+    extra = {} if text is None else {"text": text[s].to(dev)}
+    pred = model(x_t.to(dev), t.to(dev), cond.to(dev) if cond is not None else None, **extra)
     err = ((pred.float() - want.to(dev)) ** 2).flatten(1).mean(1)  # [b]
     return (err * w.to(dev)).mean()
 

@@ -85,12 +85,15 @@ def ground_colour(cloud: PointCloud, *, layer_m: float = 0.5) -> np.ndarray | No
 
 
 @torch.no_grad()
-def render_cloud(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float = 0.98, near: float = 0.5,
-                 device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Render surfels (`surfels(...)`, tensors on `device`) from `cam`.
+def render_surfels(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float = 0.98, near: float = 0.5,
+                   device: str | torch.device = "cpu") -> dict[str, np.ndarray]:
+    """Render surfels (`surfels(...)`, tensors on `device`) from `cam`: colour, coverage and depth.
 
-    Returns (colour float32 [H, W, 3] in [0, 1], the discs' own colour where alpha > 0 and 0
-    elsewhere; alpha float32 [H, W], the coverage). Composite with `over`.
+    Returns float32 arrays: "colour" [H, W, 3] in [0, 1] (the discs' own colour where alpha > 0,
+    0 elsewhere), "alpha" [H, W] (the coverage), "depth" [H, W] (the discs' planar depth in
+    metres, averaged with their compositing weights; 0 where alpha is 0). A disc's depth is its
+    centre's, so on a plane facing the camera the depth is exact and elsewhere off by at most a
+    disc's depth extent.
     """
     from reference.common.gaussians.model import rgb_to_sh0
     from reference.common.gaussians.render import rasterize
@@ -98,7 +101,8 @@ def render_cloud(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float
     means = params["means"]
     n = means.shape[0]
     if n == 0:
-        return np.zeros((cam.height, cam.width, 3), np.float32), np.zeros((cam.height, cam.width), np.float32)
+        zeros = np.zeros((cam.height, cam.width), np.float32)
+        return {"colour": np.zeros((cam.height, cam.width, 3), np.float32), "alpha": zeros, "depth": zeros.copy()}
     sh = rgb_to_sh0(params["colors"])[:, None, :]
     w2c = torch.tensor(cam.w2c, dtype=torch.float32, device=device)
     K = torch.tensor(cam.K, dtype=torch.float32, device=device)
@@ -106,7 +110,21 @@ def render_cloud(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float
                     cam.width, cam.height, near=near, sh_degree=0)
     alpha = out["alpha"]
     colour = out["rgb"] / alpha.clamp_min(1e-6)[..., None] * (alpha[..., None] > 0)  # composited over black
-    return colour.clamp(0, 1).cpu().numpy().astype(np.float32), alpha.cpu().numpy().astype(np.float32)
+    return {"colour": colour.clamp(0, 1).cpu().numpy().astype(np.float32),
+            "alpha": alpha.cpu().numpy().astype(np.float32),
+            "depth": out["depth"].cpu().numpy().astype(np.float32)}
+
+
+def render_cloud(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float = 0.98, near: float = 0.5,
+                 device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """Render surfels (`surfels(...)`, tensors on `device`) from `cam`.
+
+    Returns (colour float32 [H, W, 3] in [0, 1], the discs' own colour where alpha > 0 and 0
+    elsewhere; alpha float32 [H, W], the coverage). Composite with `over`. Depth as well:
+    `render_surfels`.
+    """
+    out = render_surfels(params, cam, opacity=opacity, near=near, device=device)
+    return out["colour"], out["alpha"]
 
 
 def over(colour: np.ndarray, alpha: np.ndarray, background: np.ndarray) -> np.ndarray:

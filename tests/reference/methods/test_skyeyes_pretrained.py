@@ -1,13 +1,12 @@
 """`--pretrained DIR` (issue 13): a Stable Diffusion 1.5-layout diffusers folder, here a tiny
-randomly initialised one the test builds itself (UNet, VAE, CLIP text encoder and tokenizer,
-saved with `save_pretrained`), drives Skyeyes end to end: its UNet replaces the base stage, its
+randomly initialised one the test builds itself (`builders.tiny_sd`: UNet, VAE, CLIP text
+encoder and tokenizer, saved with `save_pretrained`), drives Skyeyes end to end: its UNet replaces the base stage, its
 VAE the pixel codec, its text encoder the learned prompt, with a ControlNet branch and the
 epsilon objective (the paper's ACM)."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -22,48 +21,7 @@ from reference.methods.skyeyes import PRESETS, Skyeyes  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 from skyeyes_bench.errors import UserError  # noqa: E402
 from builders.skyeyes import SIZE, StandInPrior, make_tiny_dataset  # noqa: E402
-
-RES = 32  # model input: the SD VAE downsamples 8x, so latents are 4x4
-
-
-def _bytes_to_unicode() -> list[str]:
-    """GPT-2 / CLIP byte-level alphabet (Radford et al. 2019): the 256 symbols BPE starts from."""
-    bs = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
-    cs, n = bs[:], 0
-    for b in range(256):
-        if b not in bs:
-            bs.append(b)
-            cs.append(256 + n)
-            n += 1
-    return [chr(c) for c in cs]
-
-
-def make_tiny_sd(root: Path) -> Path:
-    """unet/, vae/, text_encoder/, tokenizer/ of a tiny random SD1.5-layout pipeline."""
-    from diffusers import AutoencoderKL, UNet2DConditionModel
-    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
-
-    torch.manual_seed(0)
-    UNet2DConditionModel(sample_size=RES // 8, in_channels=4, out_channels=4, layers_per_block=1,
-                         block_out_channels=(8, 16), down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-                         up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"), cross_attention_dim=16,
-                         attention_head_dim=2, norm_num_groups=4).save_pretrained(root / "unet")
-    AutoencoderKL(in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(4, 4, 4, 4),
-                  down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
-                  layers_per_block=1, norm_num_groups=2, sample_size=RES).save_pretrained(root / "vae")
-    # No merges: every word is spelt letter by letter ("</w>" marks a word's last letter).
-    alphabet = _bytes_to_unicode()
-    vocab = {s: i for i, s in enumerate(alphabet + [a + "</w>" for a in alphabet] + ["<|startoftext|>", "<|endoftext|>"])}
-    (root / "tok").mkdir(parents=True)
-    (root / "tok" / "vocab.json").write_text(json.dumps(vocab))
-    (root / "tok" / "merges.txt").write_text("#version: 0.2\n")
-    CLIPTokenizer(str(root / "tok" / "vocab.json"), str(root / "tok" / "merges.txt"),
-                  model_max_length=77).save_pretrained(root / "tokenizer")
-    CLIPTextModel(CLIPTextConfig(vocab_size=len(vocab), hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                                 num_attention_heads=2, max_position_embeddings=77, projection_dim=16,
-                                 bos_token_id=vocab["<|startoftext|>"], eos_token_id=vocab["<|endoftext|>"],
-                                 pad_token_id=vocab["<|endoftext|>"])).save_pretrained(root / "text_encoder")
-    return root
+from builders.tiny_sd import RES, make_tiny_sd  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +43,8 @@ def test_pretrained_folder_drives_the_whole_method(sd, tiny, tmp_path):
 
     cfg = dataclasses.replace(PRESETS["small"], core=dataclasses.replace(PRESETS["small"].core, resolution=RES),
                               pretrained=str(sd), acm_steps=2, acm_batch=2, vcm_steps=1, clip_frames=3,
-                              sample_steps=2, ckpt_every=1, figure_frames=2, device="cpu")
+                              sample_steps=2, ckpt_every=1, figure_frames=2, device="cpu",
+                              threads=1)  # a second thread spins on a shared 2-core machine
     m = Skyeyes(cfg, tmp_path / "w", prior_method=StandInPrior(tmp_path / "p"), progress=False)
     # the paper's formulation: ControlNet branch, epsilon, frames (no residual), whole frames
     c = m.config.core

@@ -524,10 +524,10 @@ def test_flow_sdedit_start_and_clip_first_frame():
     np.testing.assert_allclose(out.numpy(), target[1:].numpy(), atol=1e-4)
 
 
-def test_stage_key_holds_flow_noise_only_for_the_flow():
+def test_core_key_holds_flow_noise_only_for_the_flow():
     """A DDPM stage's key does not change with flow_noise (no effect on it; keeps the keys of
     stages trained before the field existed); a flow stage's key does."""
     a, b = core.replace_config(TINY_V, flow_noise=0.3), core.replace_config(TINY_V, flow_noise=1.0)
-    assert core.stage_key(a) == core.stage_key(b) and "flow_noise" not in core.stage_key(a)
-    assert core.stage_key(TINY_FLOW) != core.stage_key(core.replace_config(TINY_FLOW, flow_noise=1.0))
-    assert core.stage_key(TINY_V) != core.stage_key(TINY)  # every other field counts
+    assert core.core_key(a) == core.core_key(b) and "flow_noise" not in core.core_key(a)
+    assert core.core_key(TINY_FLOW) != core.core_key(core.replace_config(TINY_FLOW, flow_noise=1.0))
+    assert core.core_key(TINY_V) != core.core_key(TINY)  # every other field counts

@@ -12,6 +12,10 @@ empty field and Instant-NGP's warm-up of the grid. The field and grid are checkp
 Ground renders: the field over black, the colour map learned on the train split (as `mvs` and
 `gaussians3d`: aerial haze -> ground colours) on what it covers, over the background above / below
 the horizon. No aerial view sees the sky the ground cameras look at, so the NeRF cannot know it.
+With `renderer="baked"` (the default) the fit ends by baking the field on a grid over the box
+(`reference.common.nerf.bake`; colour seen from the nearest ground camera), and the ground frames
+are rendered from that grid: the field renderer evaluates the hash grid and MLP at every sample
+of every ground ray (nothing is pruned), ~2.5k rays/s on one thread, hours for a `small` split.
 """
 
 from __future__ import annotations
@@ -26,8 +30,9 @@ import numpy as np
 import torch
 
 from reference.common.geometry import region, splat
-from reference.common.nerf import Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, camera_rays
-from reference.common.nerf import pretrain_density, render_camera, train
+from reference.common.nerf import BakedField, Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, bake_field
+from reference.common.nerf import camera_rays, pretrain_density, render_baked_camera, render_camera, train
+from reference.common.nerf.bake import VIEWS
 from reference.common.nerf.render import to_unit
 from reference.methods.gaussians3d import Gaussians3D
 from skyeyes_bench.data.layout import Frame, Scene, Sequence
@@ -59,6 +64,14 @@ class NeRFMethodConfig(NeRFConfig):
             ground cameras look through there is untrained (opaque: a fresh field's small density
             over kilometres; measured on the smoke lane: opacity 1.00 in every ground pixel and
             ground PSNR 8-12 dB); the learned backgrounds stand in for it, as for `gaussians3d`.
+        renderer: "baked" (ground frames from the field baked on a grid over the box, at the end
+            of the fit) or "field" (the field at every sample: the reference, ~50x slower).
+        bake_voxel_m: the baked grid's largest vertex spacing (m).
+        bake_view: the baked colour's view direction: "camera" (from the nearest ground camera
+            centre to the vertex), "horizontal" or "aerial" (the mean over 8 directions level or
+            45 deg down; `reference.common.nerf.bake`).
+        bake_samples: samples per ground ray through the baked box (0: n_inner, the field
+            renderer's).
         threads: torch intra-op threads (1: see `gaussians3d`).
     """
 
@@ -73,6 +86,10 @@ class NeRFMethodConfig(NeRFConfig):
     holdout_every: int = 0
     render_near_m: float = 1.0
     ground_far_field: bool = False
+    renderer: str = "baked"
+    bake_voxel_m: float = 0.5
+    bake_view: str = "camera"
+    bake_samples: int = 0
     device: str = "cpu"
     threads: int = 1
 
@@ -125,6 +142,10 @@ class NeRF(Gaussians3D):
         model = self._new_model(scene)
         # 1. The start: empty, or the MVS cloud in the occupancy grid and the density.
         stats: dict = {"init": cfg.init, "held_out": [f.file for f in held]}
+        if cfg.renderer not in ("baked", "field"):
+            raise UserError(f"nerf renderer={cfg.renderer!r}: expected 'baked' or 'field'")
+        if cfg.bake_view not in VIEWS:
+            raise UserError(f"nerf bake_view={cfg.bake_view!r}: expected one of {', '.join(VIEWS)}")
         if cfg.init == "mvs":
             stats.update(self._mvs_start(scene, model, frames))
         elif cfg.init != "none":
@@ -136,7 +157,23 @@ class NeRF(Gaussians3D):
         stats["box"] = [model.box.lo.tolist(), model.box.hi.tolist()]
         log.info("%s: %d iterations in %.0f s (%.0f rays/s), loss %.4f, occupied %.2f", scene.name, cfg.iterations,
                  stats["train_seconds"], stats["train_rays_per_s"], stats["final_loss"], stats["occupied_fraction"])
+        # 3. Bake the field for the ground renders (in the fit: the fits run in parallel, the renders do not).
+        if cfg.renderer == "baked":
+            import time
+
+            t0 = time.perf_counter()
+            model.baked = self._bake(scene, model)
+            stats.update({"bake_seconds": time.perf_counter() - t0, "bake_shape": list(model.baked.shape)})
+            log.info("%s: baked %s vertices in %.1f s", scene.name, "x".join(map(str, model.baked.shape)),
+                     stats["bake_seconds"])
         return model, stats
+
+    def _bake(self, scene: Scene, model: Model) -> BakedField:
+        cfg = self.config
+        centres = torch.tensor(np.unique(np.array([f.c2w[:3, 3] for f in scene.ground]), axis=0),
+                               dtype=torch.float32, device=model.background.device)
+        return bake_field(model.field, model.box, voxel_m=cfg.bake_voxel_m, view=cfg.bake_view, centres=centres,
+                          grid=model.grid)
 
     def _mvs_start(self, scene: Scene, model: Model, frames: list[Frame]) -> dict:
         import time
@@ -164,7 +201,8 @@ class NeRF(Gaussians3D):
     def save_scene_model(self, model: Model, path: Path) -> None:
         torch.save({"field": {k: v.cpu() for k, v in model.field.state_dict().items()},
                     "grid": model.grid.state_dict(), "box": [model.box.lo.tolist(), model.box.hi.tolist()],
-                    "background": model.background.cpu(), "config": dataclasses.asdict(self.config)}, path)
+                    "background": model.background.cpu(), "config": dataclasses.asdict(self.config),
+                    "baked": None if model.baked is None else model.baked.state_dict()}, path)
 
     def load_scene_model(self, path: Path) -> Model:
         sd = torch.load(path, weights_only=True)
@@ -175,16 +213,23 @@ class NeRF(Gaussians3D):
         grid = OccupancyGrid(sd["grid"]["res"], step_m=self.config.inner_step(box), alpha=sd["grid"]["alpha"],
                              decay=sd["grid"]["decay"], device=dev)
         grid.load(sd["grid"])
-        return Model(fld.to(dev), grid, box, sd["background"].to(dev))
+        baked = None if sd.get("baked") is None else BakedField.from_state_dict(sd["baked"], dev)
+        return Model(fld.to(dev), grid, box, sd["background"].to(dev), baked)
 
     # ---------------------------------------------------------------- rendering
     def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True, model: Model | None = None) -> np.ndarray:
         """As `gaussians3d.render_frame`: ground=False renders as the aerial views were fitted."""
+        cfg = self.config
         model = self.scene_model(scene) if model is None else model
         cam = frame.camera()
-        near = self.config.render_near_m if ground else self.config.near_m
-        rgb, alpha = render_camera(model, cam, self.config, near=near,
-                                   far_field=self.config.ground_far_field or not ground)
+        near = cfg.render_near_m if ground else cfg.near_m
+        if ground and cfg.renderer == "baked" and not cfg.ground_far_field:
+            if model.baked is None:  # a model in training (bench/nerf.py's curves)
+                model.baked = self._bake(scene, model)
+            rgb, alpha = render_baked_camera(model.baked, cam, n_samples=cfg.bake_samples or cfg.n_inner, near=near,
+                                             colour_eps=cfg.colour_eps)
+        else:
+            rgb, alpha = render_camera(model, cam, cfg, near=near, far_field=cfg.ground_far_field or not ground)
         colour = np.clip(rgb / np.maximum(alpha, 1e-6)[..., None], 0, 1)
         if not ground:
             return splat.over(colour, alpha, np.broadcast_to(model.background.cpu().numpy(), colour.shape))

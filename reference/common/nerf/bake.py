@@ -119,7 +119,7 @@ def view_directions(view: str, dtype=torch.float32) -> torch.Tensor:
 
 
 @torch.no_grad()
-def bake(field, box: SceneBox, *, voxel_m: float, view: str = "camera", centres: torch.Tensor | None = None,
+def bake_field(field, box: SceneBox, *, voxel_m: float, view: str = "camera", centres: torch.Tensor | None = None,
          grid=None, chunk: int = 65536) -> BakedField:
     """Evaluate `field` (a `NeRFField`) on a grid of spacing <= voxel_m over the box.
 
@@ -181,28 +181,41 @@ def render_baked_rays(baked: BakedField, o: torch.Tensor, d: torch.Tensor, *, n_
     R = len(o)
     t = sample_intervals(o, d, baked.box, n_inner=n_samples, n_outer=0, near=near, far=near)
     mids, deltas = (t[:, 1:] + t[:, :-1]) / 2, t[:, 1:] - t[:, :-1]  # [R, S]
-    ys = baked.box.normalise(o[:, None] + d[:, None] * mids[..., None])  # [R, S, 3] box units
+    centre, half = baked.box.centre.to(o), baked.box.half.to(o)
+    o_box, d_box = (o - centre) / half, d / half  # rays in box units: y = o_box + t d_box
+
     sigmas = torch.zeros(mids.shape, dtype=o.dtype, device=o.device)
+    ys_all = torch.zeros(*mids.shape, 3, dtype=o.dtype, device=o.device)  # sample positions, box units
     tau = torch.zeros(R, dtype=o.dtype, device=o.device)
-    live_rays = (deltas > 0).any(1).nonzero()[:, 0]  # rays that miss the box look nothing up
+    live = (deltas > 0).any(1).nonzero()[:, 0]  # rays that miss the box look nothing up
     lookups = 0
     # 1. Densities in blocks of samples, only on rays with light left (early termination).
     for s0 in range(0, mids.shape[1], block):
-        if len(live_rays) == 0:
+        if len(live) == 0:
             break
         s1 = min(s0 + block, mids.shape[1])
-        sig = baked.lookup_sigma(ys[live_rays, s0:s1].reshape(-1, 3)).reshape(len(live_rays), s1 - s0)
+        every = len(live) == R  # no ray stopped yet: slices instead of gathers (a foggy field)
+        rows = slice(None) if every else live
+        ys = o_box[rows, None] + d_box[rows, None] * mids[rows, s0:s1, None]  # [r, s, 3]
+        sig = baked.lookup_sigma(ys.reshape(-1, 3)).reshape(len(live), s1 - s0)
         lookups += sig.numel()
-        sigmas[live_rays, s0:s1] = sig
-        tau[live_rays] += (sig * deltas[live_rays, s0:s1]).sum(1)
-        live_rays = live_rays[tau[live_rays] < T_STOP]
+        sigmas[rows, s0:s1] = sig
+        ys_all[rows, s0:s1] = ys
+        tau[rows] += (sig * deltas[rows, s0:s1]).sum(1)
+        live = live[tau[live] < T_STOP]
     # 2. The field renderer's weights; colours only where a sample carries light.
     weights, _ = render_weights(sigmas, deltas)
-    ray, smp = (weights > colour_eps).nonzero(as_tuple=True)
-    cols = baked.lookup_rgb(ys[ray, smp], sigmas[ray, smp])
-    rgb = torch.zeros(R, 3, dtype=o.dtype, device=o.device).index_add(0, ray, weights[ray, smp, None] * cols)
+    lit = weights > colour_eps
+    n_lit = int(lit.sum())
+    if n_lit > lit.numel() // 2:  # most samples carry light (fog): look up all, no gathers
+        cols = baked.lookup_rgb(ys_all.reshape(-1, 3), sigmas.reshape(-1)).reshape(R, -1, 3)
+        rgb = ((weights * lit)[..., None] * cols).sum(1)
+    else:
+        ray, smp = lit.nonzero(as_tuple=True)
+        cols = baked.lookup_rgb(ys_all[ray, smp], sigmas[ray, smp])
+        rgb = torch.zeros(R, 3, dtype=o.dtype, device=o.device).index_add(0, ray, weights[ray, smp, None] * cols)
     return {"rgb": rgb, "acc": weights.sum(1), "depth": (weights * mids).sum(1), "lookups": lookups,
-            "coloured": int(len(ray))}
+            "coloured": n_lit}
 
 
 @torch.no_grad()
@@ -222,5 +235,5 @@ def render_baked_camera(baked: BakedField, cam, *, n_samples: int, near: float, 
     return rgb.cpu().numpy(), torch.cat(accs).reshape(cam.height, cam.width).clamp(0, 1).cpu().numpy()
 
 
-__all__ = ["BakedField", "VIEWS", "bake", "grid_shape", "render_baked_camera", "render_baked_rays",
+__all__ = ["BakedField", "VIEWS", "bake_field", "grid_shape", "render_baked_camera", "render_baked_rays",
            "view_directions"]

@@ -74,12 +74,14 @@ class NeRFConfig:
 
 @dataclass
 class Model:
-    """A fitted scene: the field, its occupancy grid, the box and the training background [3]."""
+    """A fitted scene: the field, its occupancy grid, the box, the training background [3] and,
+    once baked for the ground renders, the field on a grid over the box (`bake.BakedField`)."""
 
     field: NeRFField
     grid: OccupancyGrid
     box: SceneBox
     background: torch.Tensor
+    baked: object | None = None
 
     def far(self, cfg: NeRFConfig) -> float:
         """Where the far field's samples end (m)."""

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from reference.common.nerf import Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, render_camera
-from reference.common.nerf.bake import BakedField, bake, render_baked_camera, render_baked_rays
+from reference.common.nerf.bake import BakedField, bake_field, render_baked_camera, render_baked_rays
 from reference.common.nerf.encoding import HashGridConfig
 from reference.common.nerf.field import FieldConfig
 from skyeyes_bench.cameras import Camera
@@ -48,8 +48,8 @@ def test_baked_render_matches_the_field_render_and_converges_with_the_grid(smoot
     model, cam, centres, rgb, acc = smooth
     # view="camera" with the camera as the only centre: each vertex's colour is seen along the
     # ray that camera casts through it, so even view-dependent colour must match.
-    coarse = bake(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
-    fine = bake(model.field, BOX, voxel_m=0.25, view="camera", centres=centres, grid=model.grid)
+    coarse = bake_field(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
+    fine = bake_field(model.field, BOX, voxel_m=0.25, view="camera", centres=centres, grid=model.grid)
     assert fine.shape == (33, 65, 65)
     e_rgb, e_acc = _errors(fine, cam, rgb, acc)
     # NOTE: measured 6.2e-4 and 8.1e-4 (float32, torch 2.13 CPU); the tolerance is ~3x that.
@@ -61,7 +61,7 @@ def test_baked_render_matches_the_field_render_and_converges_with_the_grid(smoot
 
 def test_a_bake_with_swapped_axes_fails_the_same_comparison(smooth):
     model, cam, centres, rgb, acc = smooth
-    good = bake(model.field, BOX, voxel_m=0.25, view="camera", centres=centres, grid=model.grid)
+    good = bake_field(model.field, BOX, voxel_m=0.25, view="camera", centres=centres, grid=model.grid)
     swapped = BakedField(good.sigma.transpose(3, 4).contiguous(), good.sigma_rgb.transpose(3, 4).contiguous(), BOX)
     e_rgb, e_acc = _errors(swapped, cam, rgb, acc)
     assert e_acc > 0.05 and e_rgb > 0.02, (e_rgb, e_acc)  # measured 0.14 and 0.065: far outside 2e-3
@@ -72,7 +72,7 @@ def test_averaged_views_do_not_reproduce_view_dependent_colour(smooth):
     the field's, their colour is not (the test above is not passing by accident of a flat MLP)."""
     model, cam, centres, rgb, acc = smooth
     for view in ("horizontal", "aerial"):
-        baked = bake(model.field, BOX, voxel_m=0.25, view=view, grid=model.grid)
+        baked = bake_field(model.field, BOX, voxel_m=0.25, view=view, grid=model.grid)
         e_rgb, e_acc = _errors(baked, cam, rgb, acc)
         assert e_acc < 2e-3 and e_rgb > 5e-3, (view, e_rgb, e_acc)
 
@@ -81,7 +81,7 @@ def test_vertices_in_empty_occupancy_cells_are_baked_empty(smooth):
     model, _, centres, _, _ = smooth
     grid = OccupancyGrid(CFG.occ_res, step_m=CFG.inner_step(BOX))
     grid.occupied = torch.zeros_like(grid.occupied)
-    baked = bake(model.field, BOX, voxel_m=1.0, view="camera", centres=centres, grid=grid)
+    baked = bake_field(model.field, BOX, voxel_m=1.0, view="camera", centres=centres, grid=grid)
     assert torch.count_nonzero(baked.sigma) == 0 and torch.count_nonzero(baked.sigma_rgb) == 0
 
 
@@ -135,8 +135,8 @@ def test_an_empty_grid_and_rays_that_miss_the_box_give_opacity_zero():
 
 def test_bake_and_render_are_deterministic_and_round_trip(smooth):
     model, cam, centres, _, _ = smooth
-    a = bake(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
-    b = bake(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
+    a = bake_field(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
+    b = bake_field(model.field, BOX, voxel_m=0.5, view="camera", centres=centres, grid=model.grid)
     assert torch.equal(a.sigma, b.sigma) and torch.equal(a.sigma_rgb, b.sigma_rgb)
     c = BakedField.from_state_dict(a.state_dict())
     frames = [render_baked_camera(x, cam, n_samples=CFG.n_inner, near=NEAR) for x in (a, a, c)]
@@ -147,6 +147,6 @@ def test_bake_and_render_are_deterministic_and_round_trip(smooth):
 def test_bad_bake_arguments_are_errors(smooth):
     model = smooth[0]
     with pytest.raises(ValueError, match="expected one of"):
-        bake(model.field, BOX, voxel_m=1.0, view="sideways")
+        bake_field(model.field, BOX, voxel_m=1.0, view="sideways")
     with pytest.raises(ValueError, match="ground camera centres"):
-        bake(model.field, BOX, voxel_m=1.0, view="camera")
+        bake_field(model.field, BOX, voxel_m=1.0, view="camera")

@@ -179,7 +179,8 @@ def fit(args) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    ds, scene, m = _method(args, ["holdout_every=4"], Path(args.work))  # fits are not saved: only the appearance is reused
+    # the fit is not saved: only the appearance (fit_train) is reused from --work
+    ds, scene, m = _method(args, ["holdout_every=4"], Path(args.work))
     held = [f for i, f in enumerate(scene.aerial) if i % 4 == 3][:: args.aerial_stride]
     ground = _ground_frames(scene, args.per_sequence)
     gts = [f.image() for f in ground]
@@ -188,17 +189,27 @@ def fit(args) -> None:
                       "floor_ground_psnr": round(np.mean([_psnr(floor, g) for g in gts]), 2),
                       "floor_ground_lpips": _lpips([floor] * len(gts), gts)}), flush=True)
 
+    clock = {"start": time.process_time(), "eval": 0.0}  # CPU seconds: wall time lies under load
+
     def callback(it, seconds, model):
+        c0 = time.process_time()
+        cpu = c0 - clock["start"] - clock["eval"]
         m._scene_models[scene.name] = model
         model.baked = None  # bake this state of the field (renderer="baked")
         with torch.no_grad():
             aer = np.mean([_psnr(m.render_frame(scene, f, ground=False), f.image()) for f in held])
             preds = [m.render_frame(scene, f) for f in ground]
+        sig = model.baked.sigma.flatten()  # the haze a young field spreads through the box, 1/m
         model.baked = None
-        print(json.dumps({"iteration": it, "train_s": round(seconds, 1), "heldout_aerial_psnr": round(aer, 2),
+        clock["eval"] += time.process_time() - c0
+        print(json.dumps({"iteration": it, "train_s": round(seconds, 1), "train_cpu_s": round(cpu, 1),
+                          "heldout_aerial_psnr": round(aer, 2),
                           "ground_psnr": round(np.mean([_psnr(p, g) for p, g in zip(preds, gts)]), 2),
-                          "ground_lpips": _lpips(preds, gts), "occupied": round(float(model.grid.occupied.float().mean()), 3),
-                          "load": _load()}), flush=True)
+                          "ground_lpips": _lpips(preds, gts),
+                          "occupied": round(float(model.grid.occupied.float().mean()), 3),
+                          "sigma_median": round(float(sig.median()), 4),
+                          "sigma_below_1e-3": round(float((sig < 1e-3).float().mean()), 3), "load": _load()}),
+              flush=True)
 
     _, stats = m.fit_scene_model(scene, progress=False, callback=callback)
     print(json.dumps({k: v for k, v in stats.items() if not isinstance(v, list)}), flush=True)

@@ -217,7 +217,8 @@ class NeRF(Gaussians3D):
         return Model(fld.to(dev), grid, box, sd["background"].to(dev), baked)
 
     # ---------------------------------------------------------------- rendering
-    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True, model: Model | None = None) -> np.ndarray:
+    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True,
+                     model: Model | None = None) -> np.ndarray:
         """As `gaussians3d.render_frame`: ground=False renders as the aerial views were fitted."""
         cfg = self.config
         model = self.scene_model(scene) if model is None else model

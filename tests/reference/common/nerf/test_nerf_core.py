@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from reference.common.nerf import HashEncoding, HashGridConfig, level_resolutions, render_weights
-from reference.common.nerf.render import SceneBox, composite, contract, sample_intervals
+from reference.common.nerf.render import SceneBox, composite, contract, distortion_loss, sample_intervals
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -165,3 +165,27 @@ def test_samples_cover_the_box_then_the_far_field():
     assert float(t[1, 0]) == pytest.approx(0.5) and float(t[1, 8]) == pytest.approx(10.0)
     assert float(t[2, 0]) == float(t[2, 8]) == pytest.approx(0.5)  # a miss: empty inner part
     assert float(t[:, -1].min()) == pytest.approx(1000.0)
+
+
+def test_distortion_loss_matches_the_double_sum_and_prefers_a_surface_to_fog():
+    g = torch.Generator().manual_seed(0)
+    w = torch.rand(5, 7, generator=g, dtype=torch.float64) / 7
+    S = w.shape[1]
+    s = (torch.arange(S, dtype=torch.float64) + 0.5) / S
+
+    def double_sum(w):  # the definition, O(S^2)
+        return (w[:, :, None] * w[:, None, :] * (s[:, None] - s[None, :]).abs()).sum((1, 2)) + (w ** 2).sum(1) / (3 * S)
+
+    torch.testing.assert_close(distortion_loss(w), double_sum(w), rtol=1e-12, atol=1e-15)
+    wa = w.clone().requires_grad_()
+    wb = w.clone().requires_grad_()
+    g_out = torch.rand(5, generator=g, dtype=torch.float64)
+    (ga,) = torch.autograd.grad(distortion_loss(wa), wa, g_out)
+    (gb,) = torch.autograd.grad(double_sum(wb), wb, g_out)
+    torch.testing.assert_close(ga, gb, rtol=1e-12, atol=1e-15)
+    # the same total weight: one sample (a surface) against spread evenly (fog)
+    surface = torch.zeros(1, 16)
+    surface[0, 5] = 0.9
+    fog = torch.full((1, 16), 0.9 / 16)
+    assert float(distortion_loss(surface)) < 0.1 * float(distortion_loss(fog))
+    assert distortion_loss(torch.zeros(3, 0)).shape == (3,)

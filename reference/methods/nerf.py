@@ -128,7 +128,8 @@ class NeRF(Gaussians3D):
         cfg, dev = self.config, torch.device(self.device)
         box = self._box(scene)
         fld = NeRFField(cfg.field_config(), seed=self.seed).to(dev)
-        grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha, device=dev)
+        grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha,
+                             mean_clamp=cfg.occ_mean_clamp, device=dev)
         bg = torch.tensor(self._backgrounds(scene).sky, dtype=torch.float32, device=dev)
         return Model(fld, grid, box, bg)
 
@@ -211,7 +212,7 @@ class NeRF(Gaussians3D):
         fld = NeRFField(self.config.field_config(), seed=self.seed)
         fld.load_state_dict(sd["field"])
         grid = OccupancyGrid(sd["grid"]["res"], step_m=self.config.inner_step(box), alpha=sd["grid"]["alpha"],
-                             decay=sd["grid"]["decay"], device=dev)
+                             decay=sd["grid"]["decay"], mean_clamp=sd["grid"].get("mean_clamp", False), device=dev)
         grid.load(sd["grid"])
         baked = None if sd.get("baked") is None else BakedField.from_state_dict(sd["baked"], dev)
         return Model(fld.to(dev), grid, box, sd["background"].to(dev), baked)

@@ -36,6 +36,8 @@ class NeRFConfig:
         occ_res, occ_every, occ_alpha: occupancy grid cells per axis, update period (steps),
             opacity threshold of an occupied cell.
         occ_warmup: steps during which an update re-evaluates every cell (later: a quarter).
+        occ_mean_clamp: the box's cells are occupied above min(occ_alpha, their mean opacity)
+            (Instant-NGP's and nerfacc's rule; `field.OccupancyGrid`).
         colour_eps: samples with a smaller weight get no colour evaluation.
         march_block: samples per ray evaluated at once before rays with no light left stop.
         lr, lr_final: Adam rate of the tables and MLPs, decayed exponentially to lr * lr_final.
@@ -60,6 +62,7 @@ class NeRFConfig:
     occ_every: int = 16
     occ_warmup: int = 128
     occ_alpha: float = 0.01
+    occ_mean_clamp: bool = False
     colour_eps: float = 1e-4
     march_block: int = 16
     lr: float = 1e-2

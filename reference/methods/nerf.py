@@ -98,16 +98,21 @@ PRESETS = {
     # Seconds per scene at 48x48 (tests, CI).
     "smoke": NeRFMethodConfig(iterations=150, batch_rays=1024, levels=6, log2_T=14, n_max=256, hidden=32,
                               n_inner=64, n_outer=16, occ_res=32, occ_warmup=32, init_steps=40, mvs_preset="smoke",
-                              train_lanes=1),
-    # The CPU default at 128x128: about 60-90 CPU seconds of training per lane, extrapolated from
-    # the smoke lane (1850-3800 rays/s with 6 levels at load 3.5-6; 8 levels cost ~4/3 per sample)
-    # to 120 x 1024 rays; not yet measured on small (docs/reproduce.md).
-    "small": NeRFMethodConfig(iterations=120, batch_rays=1024, hidden=32, n_inner=64, n_outer=16, occ_res=48,
-                              occ_warmup=32, mvs_preset="fast"),
-    # Instant-NGP's own scale (GPU users, 512x512).
+                              train_lanes=1, bake_voxel_m=1.0),
+    # The CPU default at 128x128 (docs/reproduce.md, "Method `nerf`": measured on test-0-lane00).
+    # 32 + 16 samples per ray: half the cost of 64 + 16 at the same held-out aerial and ground
+    # PSNR after 100 steps (21.83 / 15.93 against 21.64 / 16.01 dB). 400 steps: ground PSNR rose
+    # from 16.01 (100 steps) to 16.57 (300, at 64 samples) and still rises; ~0.25 CPU-s a step,
+    # so 8 lanes on 2 workers plus the renders fit 15 minutes on a free machine. A 1 m bake
+    # renders what the field renders (47 dB apart, ground PSNR 16.04 against 16.02), 0.5 m costs
+    # 10x the bake seconds for 49.6 dB.
+    "small": NeRFMethodConfig(iterations=400, batch_rays=1024, hidden=32, n_inner=32, n_outer=16, occ_res=48,
+                              occ_warmup=32, mvs_preset="fast", bake_voxel_m=1.0),
+    # Instant-NGP's own scale (GPU users, 512x512): the field renders the ground frames itself
+    # (a bake at 0.5 m would be coarser than its 4096-cell finest level).
     "paper": NeRFMethodConfig(iterations=20_000, batch_rays=8192, levels=16, log2_T=19, n_max=4096, n_inner=256,
                               n_outer=64, occ_res=128, occ_warmup=256, init_steps=500, mvs_preset="paper",
-                              chunk=16384),
+                              chunk=16384, renderer="field"),
 }
 
 

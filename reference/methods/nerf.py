@@ -12,6 +12,10 @@ empty field and Instant-NGP's warm-up of the grid. The field and grid are checkp
 Ground renders: the field over black, the colour map learned on the train split (as `mvs` and
 `gaussians3d`: aerial haze -> ground colours) on what it covers, over the background above / below
 the horizon. No aerial view sees the sky the ground cameras look at, so the NeRF cannot know it.
+With `renderer="baked"` (the default) the fit ends by baking the field on a grid over the box
+(`reference.common.nerf.bake`; colour seen from the nearest ground camera), and the ground frames
+are rendered from that grid: the field renderer evaluates the hash grid and MLP at every sample
+of every ground ray (nothing is pruned), ~2.5k rays/s on one thread, hours for a `small` split.
 """
 
 from __future__ import annotations
@@ -26,8 +30,9 @@ import numpy as np
 import torch
 
 from reference.common.geometry import region, splat
-from reference.common.nerf import Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, camera_rays
-from reference.common.nerf import pretrain_density, render_camera, train
+from reference.common.nerf import BakedField, Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, bake_field
+from reference.common.nerf import camera_rays, pretrain_density, render_baked_camera, render_camera, train
+from reference.common.nerf.bake import VIEWS
 from reference.common.nerf.render import to_unit
 from reference.methods.gaussians3d import Gaussians3D
 from skyeyes_bench.data.layout import Frame, Scene, Sequence
@@ -59,6 +64,14 @@ class NeRFMethodConfig(NeRFConfig):
             ground cameras look through there is untrained (opaque: a fresh field's small density
             over kilometres; measured on the smoke lane: opacity 1.00 in every ground pixel and
             ground PSNR 8-12 dB); the learned backgrounds stand in for it, as for `gaussians3d`.
+        renderer: "baked" (ground frames from the field baked on a grid over the box, at the end
+            of the fit) or "field" (the field at every sample: the reference, ~50x slower).
+        bake_voxel_m: the baked grid's largest vertex spacing (m).
+        bake_view: the baked colour's view direction: "camera" (from the nearest ground camera
+            centre to the vertex), "horizontal" or "aerial" (the mean over 8 directions level or
+            45 deg down; `reference.common.nerf.bake`).
+        bake_samples: samples per ground ray through the baked box (0: n_inner, the field
+            renderer's).
         threads: torch intra-op threads (1: see `gaussians3d`).
     """
 
@@ -73,6 +86,10 @@ class NeRFMethodConfig(NeRFConfig):
     holdout_every: int = 0
     render_near_m: float = 1.0
     ground_far_field: bool = False
+    renderer: str = "baked"
+    bake_voxel_m: float = 0.5
+    bake_view: str = "camera"
+    bake_samples: int = 0
     device: str = "cpu"
     threads: int = 1
 
@@ -81,16 +98,21 @@ PRESETS = {
     # Seconds per scene at 48x48 (tests, CI).
     "smoke": NeRFMethodConfig(iterations=150, batch_rays=1024, levels=6, log2_T=14, n_max=256, hidden=32,
                               n_inner=64, n_outer=16, occ_res=32, occ_warmup=32, init_steps=40, mvs_preset="smoke",
-                              train_lanes=1),
-    # The CPU default at 128x128: about 60-90 CPU seconds of training per lane, extrapolated from
-    # the smoke lane (1850-3800 rays/s with 6 levels at load 3.5-6; 8 levels cost ~4/3 per sample)
-    # to 120 x 1024 rays; not yet measured on small (docs/reproduce.md).
-    "small": NeRFMethodConfig(iterations=120, batch_rays=1024, hidden=32, n_inner=64, n_outer=16, occ_res=48,
-                              occ_warmup=32, mvs_preset="fast"),
-    # Instant-NGP's own scale (GPU users, 512x512).
+                              train_lanes=1, bake_voxel_m=1.0),
+    # The CPU default at 128x128 (docs/reproduce.md, "Method `nerf`": measured on test-0-lane00).
+    # 32 + 16 samples per ray: half the cost of 64 + 16 at the same held-out aerial and ground
+    # PSNR after 100 steps (21.83 / 15.93 against 21.64 / 16.01 dB). 400 steps: ground PSNR rose
+    # from 16.01 (100 steps) to 16.57 (300, at 64 samples) and still rises; ~0.25 CPU-s a step,
+    # so 8 lanes on 2 workers plus the renders fit 15 minutes on a free machine. A 1 m bake
+    # renders what the field renders (47 dB apart, ground PSNR 16.04 against 16.02), 0.5 m costs
+    # 10x the bake seconds for 49.6 dB.
+    "small": NeRFMethodConfig(iterations=400, batch_rays=1024, hidden=32, n_inner=32, n_outer=16, occ_res=48,
+                              occ_warmup=32, mvs_preset="fast", bake_voxel_m=1.0),
+    # Instant-NGP's own scale (GPU users, 512x512): the field renders the ground frames itself
+    # (a bake at 0.5 m would be coarser than its 4096-cell finest level).
     "paper": NeRFMethodConfig(iterations=20_000, batch_rays=8192, levels=16, log2_T=19, n_max=4096, n_inner=256,
                               n_outer=64, occ_res=128, occ_warmup=256, init_steps=500, mvs_preset="paper",
-                              chunk=16384),
+                              chunk=16384, renderer="field"),
 }
 
 
@@ -111,7 +133,8 @@ class NeRF(Gaussians3D):
         cfg, dev = self.config, torch.device(self.device)
         box = self._box(scene)
         fld = NeRFField(cfg.field_config(), seed=self.seed).to(dev)
-        grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha, device=dev)
+        grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha,
+                             mean_clamp=cfg.occ_mean_clamp, device=dev)
         bg = torch.tensor(self._backgrounds(scene).sky, dtype=torch.float32, device=dev)
         return Model(fld, grid, box, bg)
 
@@ -125,6 +148,10 @@ class NeRF(Gaussians3D):
         model = self._new_model(scene)
         # 1. The start: empty, or the MVS cloud in the occupancy grid and the density.
         stats: dict = {"init": cfg.init, "held_out": [f.file for f in held]}
+        if cfg.renderer not in ("baked", "field"):
+            raise UserError(f"nerf renderer={cfg.renderer!r}: expected 'baked' or 'field'")
+        if cfg.bake_view not in VIEWS:
+            raise UserError(f"nerf bake_view={cfg.bake_view!r}: expected one of {', '.join(VIEWS)}")
         if cfg.init == "mvs":
             stats.update(self._mvs_start(scene, model, frames))
         elif cfg.init != "none":
@@ -136,7 +163,23 @@ class NeRF(Gaussians3D):
         stats["box"] = [model.box.lo.tolist(), model.box.hi.tolist()]
         log.info("%s: %d iterations in %.0f s (%.0f rays/s), loss %.4f, occupied %.2f", scene.name, cfg.iterations,
                  stats["train_seconds"], stats["train_rays_per_s"], stats["final_loss"], stats["occupied_fraction"])
+        # 3. Bake the field for the ground renders (in the fit: the fits run in parallel, the renders do not).
+        if cfg.renderer == "baked":
+            import time
+
+            t0 = time.perf_counter()
+            model.baked = self._bake(scene, model)
+            stats.update({"bake_seconds": time.perf_counter() - t0, "bake_shape": list(model.baked.shape)})
+            log.info("%s: baked %s vertices in %.1f s", scene.name, "x".join(map(str, model.baked.shape)),
+                     stats["bake_seconds"])
         return model, stats
+
+    def _bake(self, scene: Scene, model: Model) -> BakedField:
+        cfg = self.config
+        centres = torch.tensor(np.unique(np.array([f.c2w[:3, 3] for f in scene.ground]), axis=0),
+                               dtype=torch.float32, device=model.background.device)
+        return bake_field(model.field, model.box, voxel_m=cfg.bake_voxel_m, view=cfg.bake_view, centres=centres,
+                          grid=model.grid)
 
     def _mvs_start(self, scene: Scene, model: Model, frames: list[Frame]) -> dict:
         import time
@@ -164,7 +207,8 @@ class NeRF(Gaussians3D):
     def save_scene_model(self, model: Model, path: Path) -> None:
         torch.save({"field": {k: v.cpu() for k, v in model.field.state_dict().items()},
                     "grid": model.grid.state_dict(), "box": [model.box.lo.tolist(), model.box.hi.tolist()],
-                    "background": model.background.cpu(), "config": dataclasses.asdict(self.config)}, path)
+                    "background": model.background.cpu(), "config": dataclasses.asdict(self.config),
+                    "baked": None if model.baked is None else model.baked.state_dict()}, path)
 
     def load_scene_model(self, path: Path) -> Model:
         sd = torch.load(path, weights_only=True)
@@ -173,18 +217,26 @@ class NeRF(Gaussians3D):
         fld = NeRFField(self.config.field_config(), seed=self.seed)
         fld.load_state_dict(sd["field"])
         grid = OccupancyGrid(sd["grid"]["res"], step_m=self.config.inner_step(box), alpha=sd["grid"]["alpha"],
-                             decay=sd["grid"]["decay"], device=dev)
+                             decay=sd["grid"]["decay"], mean_clamp=sd["grid"].get("mean_clamp", False), device=dev)
         grid.load(sd["grid"])
-        return Model(fld.to(dev), grid, box, sd["background"].to(dev))
+        baked = None if sd.get("baked") is None else BakedField.from_state_dict(sd["baked"], dev)
+        return Model(fld.to(dev), grid, box, sd["background"].to(dev), baked)
 
     # ---------------------------------------------------------------- rendering
-    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True, model: Model | None = None) -> np.ndarray:
+    def render_frame(self, scene: Scene, frame: Frame, *, ground: bool = True,
+                     model: Model | None = None) -> np.ndarray:
         """As `gaussians3d.render_frame`: ground=False renders as the aerial views were fitted."""
+        cfg = self.config
         model = self.scene_model(scene) if model is None else model
         cam = frame.camera()
-        near = self.config.render_near_m if ground else self.config.near_m
-        rgb, alpha = render_camera(model, cam, self.config, near=near,
-                                   far_field=self.config.ground_far_field or not ground)
+        near = cfg.render_near_m if ground else cfg.near_m
+        if ground and cfg.renderer == "baked" and not cfg.ground_far_field:
+            if model.baked is None:  # a model in training (bench/nerf.py's curves)
+                model.baked = self._bake(scene, model)
+            rgb, alpha = render_baked_camera(model.baked, cam, n_samples=cfg.bake_samples or cfg.n_inner, near=near,
+                                             colour_eps=cfg.colour_eps)
+        else:
+            rgb, alpha = render_camera(model, cam, cfg, near=near, far_field=cfg.ground_far_field or not ground)
         colour = np.clip(rgb / np.maximum(alpha, 1e-6)[..., None], 0, 1)
         if not ground:
             return splat.over(colour, alpha, np.broadcast_to(model.background.cpu().numpy(), colour.shape))

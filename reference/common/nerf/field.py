@@ -74,11 +74,22 @@ class OccupancyGrid:
     would take more than `alpha` of the light (1 - exp(-sigma * step) > alpha), with sigma a
     running max decayed by `decay` per update (Instant-NGP, sec. 5.4 / its testbed: 0.95, and 1e-2
     opacity over its minimal step). The step is `step_m` (the inner sample spacing, m) stretched
-    as the contraction stretches a cell (far-field samples are long), so one threshold serves both."""
+    as the contraction stretches a cell (far-field samples are long), so one threshold serves both.
+
+    mean_clamp: the threshold of the inner cube's cells is min(alpha, their mean opacity), as
+    Instant-NGP's testbed (min of its optical-thickness threshold and the grid's mean density) and
+    nerfacc's `OccGridEstimator` (clamp(mean occupancy, max=occ_thre)) binarise. The clamp only
+    ever lowers the threshold: a field thinner than `alpha` everywhere (a fresh one) keeps its
+    denser half instead of losing every cell, which is what lets `alpha` be as high as
+    Instant-NGP's. (Its 1e-2 over a step of sqrt(3)/1024 of the grid's cube is a density of
+    ~0.024 / m over SynthTown's 244 m cube, 1 - exp(-0.024 * step_m) over our step: ~0.09 at 32
+    samples across a 122 m box. With alpha = 0.01 over that step, a density of 0.003 / m, the
+    haze of a young field kept every cell occupied after 120-300 steps.) The far field's shell
+    keeps the plain threshold (its stretched cells would set the mean)."""
 
     def __init__(self, res: int, *, step_m: float = 1.0, alpha: float = 0.01,
-                 decay: float = 0.95, device: str | torch.device = "cpu"):
-        self.res, self.alpha, self.decay = res, alpha, decay
+                 decay: float = 0.95, mean_clamp: bool = False, device: str | torch.device = "cpu"):
+        self.res, self.alpha, self.decay, self.mean_clamp = res, alpha, decay, mean_clamp
         self.sigma = torch.zeros(res ** 3, device=device)  # no density seen yet ...
         self.occupied = torch.ones(res ** 3, dtype=torch.bool, device=device)  # ... so nothing skipped
         idx = torch.arange(res, device=device, dtype=torch.float32)
@@ -90,6 +101,9 @@ class OccupancyGrid:
         ii, jj, kk = torch.meshgrid(jac, jac, jac, indexing="ij")
         # the largest stretch of the cell's axes: conservative (a far-field step along it)
         self.step_m = step_m * torch.stack([ii, jj, kk], -1).amax(-1).reshape(-1)
+        inner = (c.abs() <= 1)
+        ii, jj, kk = torch.meshgrid(inner, inner, inner, indexing="ij")
+        self.inner = (ii & jj & kk).reshape(-1)  # [res^3] cells of the box (not the far field's shell)
 
     def index(self, u: torch.Tensor) -> torch.Tensor:
         """Unit-cube points [..., 3] -> flat cell indices [...] (x-major: i * res^2 + j * res + k)."""
@@ -125,7 +139,11 @@ class OccupancyGrid:
         self.refresh()
 
     def refresh(self) -> None:
-        self.occupied = -torch.expm1(-self.sigma * self.step_m) > self.alpha
+        opacity = -torch.expm1(-self.sigma * self.step_m)
+        thr = torch.full_like(opacity, self.alpha)
+        if self.mean_clamp and bool(self.inner.any()):
+            thr[self.inner] = torch.clamp(opacity[self.inner].mean(), max=self.alpha)
+        self.occupied = opacity > thr
 
     def mark_points(self, u: torch.Tensor, *, dilate: int = 1, sigma_empty: float = 0.0,
                     sigma_full: float = 1e3) -> None:
@@ -138,16 +156,14 @@ class OccupancyGrid:
         if dilate:
             hit = torch.nn.functional.max_pool3d(hit, 2 * dilate + 1, stride=1, padding=dilate)
         hit = hit.reshape(-1) > 0
-        idx = torch.arange(r, device=hit.device)
-        inner = ((idx + 0.5) / r * 4 - 2).abs() <= 1
-        ii, jj, kk = torch.meshgrid(inner, inner, inner, indexing="ij")
-        shell = ~(ii & jj & kk).reshape(-1)
+        shell = ~self.inner
         self.sigma = torch.where(hit | shell, torch.full_like(self.sigma, sigma_full),
                                  torch.full_like(self.sigma, sigma_empty))
         self.refresh()
 
     def state_dict(self) -> dict:
-        return {"sigma": self.sigma.cpu(), "res": self.res, "alpha": self.alpha, "decay": self.decay}
+        return {"sigma": self.sigma.cpu(), "res": self.res, "alpha": self.alpha, "decay": self.decay,
+                "mean_clamp": self.mean_clamp}
 
     def load(self, sd: dict) -> None:
         self.sigma = sd["sigma"].to(self.sigma.device)

@@ -108,3 +108,20 @@ def composite(weights: torch.Tensor, colours: torch.Tensor, background: torch.Te
     if background is not None:
         rgb = rgb + (1 - acc)[:, None] * background
     return rgb, acc
+
+
+def distortion_loss(weights: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360's distortion loss (Barron et al. 2022, eq. 15) per ray [R], from weights
+    [R, S] of samples spaced evenly in s-space (index / S: our inner samples are uniform in the
+    box, the outer ones uniform in disparity, as mip-NeRF 360's s):
+    sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 (s_i+1 - s_i). Small when a ray's weight sits in
+    one short stretch (a surface), large for weight spread along it (fog, floaters). O(S) with
+    exclusive cumulative sums: sum_ij w_i w_j |s_i - s_j| = 2 sum_i w_i (s_i W_<i - (w s)_<i)."""
+    assert weights.ndim == 2, weights.shape
+    S = weights.shape[1]
+    s = (torch.arange(S, dtype=weights.dtype, device=weights.device) + 0.5) / max(S, 1)  # [S] midpoints
+    w_before = torch.cumsum(weights, 1) - weights  # [R, S]
+    ws_before = torch.cumsum(weights * s, 1) - weights * s
+    inter = 2 * (weights * (s * w_before - ws_before)).sum(1)
+    intra = (weights ** 2).sum(1) / (3 * max(S, 1))
+    return inter + intra

@@ -17,7 +17,7 @@ import torch
 
 from reference.common.nerf.encoding import HashGridConfig
 from reference.common.nerf.field import FieldConfig, NeRFField, OccupancyGrid
-from reference.common.nerf.render import SceneBox, render_weights, sample_intervals, to_unit
+from reference.common.nerf.render import SceneBox, distortion_loss, render_weights, sample_intervals, to_unit
 
 
 #: Rays stop where the transmittance falls below exp(-T_STOP) = 1e-4 (Instant-NGP's cut-off).
@@ -36,9 +36,14 @@ class NeRFConfig:
         occ_res, occ_every, occ_alpha: occupancy grid cells per axis, update period (steps),
             opacity threshold of an occupied cell.
         occ_warmup: steps during which an update re-evaluates every cell (later: a quarter).
+        occ_mean_clamp: the box's cells are occupied above min(occ_alpha, their mean opacity)
+            (Instant-NGP's and nerfacc's rule; `field.OccupancyGrid`).
         colour_eps: samples with a smaller weight get no colour evaluation.
         march_block: samples per ray evaluated at once before rays with no light left stop.
         lr, lr_final: Adam rate of the tables and MLPs, decayed exponentially to lr * lr_final.
+        distortion: weight of mip-NeRF 360's distortion loss (`render.distortion_loss`, mean over
+            the batch's rays; 0: off). It gathers each ray's weight into a short stretch, so the
+            thin haze a young field spreads through the whole box gives way to surfaces.
     """
 
     levels: int = 8
@@ -57,10 +62,12 @@ class NeRFConfig:
     occ_every: int = 16
     occ_warmup: int = 128
     occ_alpha: float = 0.01
+    occ_mean_clamp: bool = False
     colour_eps: float = 1e-4
     march_block: int = 16
     lr: float = 1e-2
     lr_final: float = 0.1
+    distortion: float = 0.0
     chunk: int = 4096
 
     def field_config(self) -> FieldConfig:
@@ -74,12 +81,14 @@ class NeRFConfig:
 
 @dataclass
 class Model:
-    """A fitted scene: the field, its occupancy grid, the box and the training background [3]."""
+    """A fitted scene: the field, its occupancy grid, the box, the training background [3] and,
+    once baked for the ground renders, the field on a grid over the box (`bake.BakedField`)."""
 
     field: NeRFField
     grid: OccupancyGrid
     box: SceneBox
     background: torch.Tensor
+    baked: object | None = None
 
     def far(self, cfg: NeRFConfig) -> float:
         """Where the far field's samples end (m)."""
@@ -114,15 +123,16 @@ def render_rays(model: Model, o: torch.Tensor, d: torch.Tensor, cfg: NeRFConfig,
             tau = tau + (sigmas[:, s0:s0 + cfg.march_block] * deltas[:, s0:s0 + cfg.march_block]).detach().sum(1)
     if not rays_k:  # nothing to evaluate: every ray is empty
         return {"rgb": torch.zeros(len(o), 3, device=o.device), "acc": torch.zeros(len(o), device=o.device),
-                "depth": torch.zeros(len(o), device=o.device), "samples": 0, "coloured": 0}
+                "depth": torch.zeros(len(o), device=o.device), "weights": torch.zeros(mids.shape, device=o.device),
+                "samples": 0, "coloured": 0}
     ray, smp, geo_k = torch.cat(rays_k), torch.cat(smps_k), torch.cat(geos)
     weights, _ = render_weights(sigmas, deltas)
     w_k = weights[ray, smp]
     live = w_k.detach() > cfg.colour_eps
     cols = model.field.colour(geo_k[live], d[ray[live]])
     rgb = torch.zeros(len(o), 3, dtype=cols.dtype, device=o.device).index_add(0, ray[live], w_k[live, None] * cols)
-    return {"rgb": rgb, "acc": weights.sum(1), "depth": (weights * mids).sum(1), "samples": int(len(ray)),
-            "coloured": int(live.sum())}
+    return {"rgb": rgb, "acc": weights.sum(1), "depth": (weights * mids).sum(1), "weights": weights,
+            "samples": int(len(ray)), "coloured": int(live.sum())}
 
 
 @torch.no_grad()
@@ -197,10 +207,10 @@ def train(model: Model, rays: tuple[torch.Tensor, torch.Tensor, torch.Tensor], c
     opt = torch.optim.Adam([{"params": table, "weight_decay": 0.0}, {"params": mlps, "weight_decay": 1e-6}],
                            lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     density_fn = lambda p: fld.density(p)[0]  # noqa: E731
-    losses, samples, t_train = [], [], 0.0
+    losses, samples, t_train, cpu_train = [], [], 0.0, 0.0
     bar = tqdm(range(1, cfg.iterations + 1), desc="fit", disable=None if progress else True, leave=False)
     for it in bar:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         # 1. The learning rate's exponential decay.
         for g in opt.param_groups:
             g["lr"] = cfg.lr * cfg.lr_final ** ((it - 1) / max(cfg.iterations - 1, 1))
@@ -213,18 +223,23 @@ def train(model: Model, rays: tuple[torch.Tensor, torch.Tensor, torch.Tensor], c
         out = render_rays(model, o_all[idx], d_all[idx], cfg, near=cfg.near_m, generator=gen)
         rgb = out["rgb"] + (1 - out["acc"])[:, None] * model.background
         loss = torch.nn.functional.mse_loss(rgb, c_all[idx])
+        if cfg.distortion > 0:
+            loss = loss + cfg.distortion * distortion_loss(out["weights"]).mean()
         # 4. Step.
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         t_train += time.perf_counter() - t0
+        cpu_train += time.process_time() - c0
         losses.append(float(loss.detach()))
         samples.append(out["samples"])
         if it % 25 == 0:
             bar.set_postfix(loss=f"{np.mean(losses[-25:]):.4f}", occ=f"{float(grid.occupied.float().mean()):.2f}")
         if callback is not None and (it % callback_every == 0 or it == cfg.iterations):
             callback(it, t_train, model)
-    return {"iterations": cfg.iterations, "train_seconds": t_train, "final_loss": float(np.mean(losses[-25:])),
+    # train_cpu_seconds: this process's CPU time (one thread: the seconds it would take on a free core)
+    return {"iterations": cfg.iterations, "train_seconds": t_train, "train_cpu_seconds": cpu_train,
+            "final_loss": float(np.mean(losses[-25:])),
             "loss_every_25": [float(np.mean(losses[i:i + 25])) for i in range(0, len(losses), 25)],
             "samples_per_ray": float(np.mean(samples)) / cfg.batch_rays,
             "occupied_fraction": float(grid.occupied.float().mean()),

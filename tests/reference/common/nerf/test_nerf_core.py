@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from reference.common.nerf import HashEncoding, HashGridConfig, level_resolutions, render_weights
-from reference.common.nerf.render import SceneBox, composite, contract, sample_intervals
+from reference.common.nerf import (HashEncoding, HashGridConfig, OccupancyGrid, level_resolutions,
+                                   render_weights)
+from reference.common.nerf.render import SceneBox, composite, contract, distortion_loss, sample_intervals
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -165,3 +166,53 @@ def test_samples_cover_the_box_then_the_far_field():
     assert float(t[1, 0]) == pytest.approx(0.5) and float(t[1, 8]) == pytest.approx(10.0)
     assert float(t[2, 0]) == float(t[2, 8]) == pytest.approx(0.5)  # a miss: empty inner part
     assert float(t[:, -1].min()) == pytest.approx(1000.0)
+
+
+def test_distortion_loss_matches_the_double_sum_and_prefers_a_surface_to_fog():
+    g = torch.Generator().manual_seed(0)
+    w = torch.rand(5, 7, generator=g, dtype=torch.float64) / 7
+    S = w.shape[1]
+    s = (torch.arange(S, dtype=torch.float64) + 0.5) / S
+
+    def double_sum(w):  # the definition, O(S^2)
+        return (w[:, :, None] * w[:, None, :] * (s[:, None] - s[None, :]).abs()).sum((1, 2)) + (w ** 2).sum(1) / (3 * S)
+
+    torch.testing.assert_close(distortion_loss(w), double_sum(w), rtol=1e-12, atol=1e-15)
+    wa = w.clone().requires_grad_()
+    wb = w.clone().requires_grad_()
+    g_out = torch.rand(5, generator=g, dtype=torch.float64)
+    (ga,) = torch.autograd.grad(distortion_loss(wa), wa, g_out)
+    (gb,) = torch.autograd.grad(double_sum(wb), wb, g_out)
+    torch.testing.assert_close(ga, gb, rtol=1e-12, atol=1e-15)
+    # the same total weight: one sample (a surface) against spread evenly (fog)
+    surface = torch.zeros(1, 16)
+    surface[0, 5] = 0.9
+    fog = torch.full((1, 16), 0.9 / 16)
+    assert float(distortion_loss(surface)) < 0.1 * float(distortion_loss(fog))
+    assert distortion_loss(torch.zeros(3, 0)).shape == (3,)
+
+
+def test_the_mean_clamp_keeps_the_denser_half_of_a_field_thinner_than_alpha_everywhere():
+    g = torch.Generator().manual_seed(0)
+    grid = OccupancyGrid(8, step_m=2.0, alpha=0.1)
+    assert int(grid.inner.sum()) == 4 ** 3  # the middle half of each axis is the box
+    grid.sigma = 0.018 + 1e-3 * torch.rand(8 ** 3, generator=g)  # a fresh field's haze: opacity ~0.036 < 0.1
+    grid.refresh()
+    assert not grid.occupied[grid.inner].any()  # alpha alone: every box cell skipped, nothing left to train
+    clamped = OccupancyGrid(8, step_m=2.0, alpha=0.1, mean_clamp=True)
+    clamped.sigma = grid.sigma.clone()
+    clamped.refresh()
+    opacity = -torch.expm1(-clamped.sigma * 2.0)[clamped.inner]
+    assert torch.equal(clamped.occupied[clamped.inner], opacity > opacity.mean())  # the denser ~half
+    assert 0.3 < float(clamped.occupied[clamped.inner].float().mean()) < 0.7
+    shell_opacity = -torch.expm1(-clamped.sigma * clamped.step_m)[~clamped.inner]
+    assert torch.equal(clamped.occupied[~clamped.inner], shell_opacity > 0.1)  # the shell: plain alpha
+    # a surface above alpha: the clamp changes nothing (min(alpha, mean) = alpha)
+    clamped.sigma = torch.full((8 ** 3,), 1e-4)
+    clamped.sigma[clamped.inner.nonzero()[:5, 0]] = 5.0
+    clamped.refresh()
+    assert int(clamped.occupied[clamped.inner].sum()) == 5
+    # the state survives a checkpoint
+    again = OccupancyGrid(8, step_m=2.0, alpha=0.1, mean_clamp=True)
+    again.load(clamped.state_dict())
+    assert torch.equal(again.occupied, clamped.occupied)

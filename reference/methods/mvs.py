@@ -31,7 +31,7 @@ import torch
 from reference.common.appearance import AppearanceFit, Backgrounds, ColourMap, sky_colour
 from reference.common.geometry import mvs as gmvs
 from reference.common.geometry import region, splat
-from reference.common.geometry.cloud import PointCloud, ground_height, snap_to_plane
+from reference.common.geometry.cloud import PointCloud, ground_height, snap_to_plane, street_ceiling
 from reference.method import Method
 from skyeyes_bench import fileio
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
@@ -104,8 +104,10 @@ def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, device: str, aerial: list
     cloud, _, stats = gmvs.run_mvs([f.image() for f in aerial], [f.camera() for f in aerial], box, stereo,
                                    device=device, progress=progress, max_stretch=cfg.max_stretch)
     stats["box"] = box.tolist()
-    z0 = ground_height(cloud)
+    z0 = ground_height(cloud, below=street_ceiling([f.camera().center[2] for f in scene.ground]))
     stats["street_height_m"] = z0
+    if z0 is None and len(cloud):
+        log.warning("%s: no street in the fused cloud under the ground cameras: the street prior is off", scene.name)
     if z0 is not None and cfg.ground_snap_m > 0:
         cloud = snap_to_plane(cloud, (np.array([0.0, 0.0, 1.0]), z0), cfg.ground_snap_m)
     stats["points"] = len(cloud)

@@ -332,3 +332,25 @@ def test_street_height_and_snap_against_closed_forms():
     np.testing.assert_allclose(sx[on, :2], src[on, :2])
     np.testing.assert_array_equal(sx[~on], src[~on])
     np.testing.assert_allclose(snapped.normals[on], np.tile([0, 0, 1.0], (on.sum(), 1)))
+
+
+def test_street_height_lies_under_the_ground_cameras():
+    """A sparse cloud whose densest low layer is at the cameras' eye level (SynthTown smoke's
+    stereo): the street is the mode under the cameras, or none when nothing lies under them."""
+    rng = np.random.default_rng(7)
+
+    def cloud_of(*parts):
+        xyz = np.concatenate(parts).astype(np.float32)
+        n = len(xyz)
+        return C.PointCloud(xyz, np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32), np.ones(n, np.float32))
+
+    street = np.c_[rng.uniform(0, 40, (200, 2)), rng.normal(0.3, 0.1, 200)]
+    eye = np.c_[rng.uniform(0, 40, (800, 2)), rng.normal(1.9, 0.05, 800)]
+    roofs = np.c_[rng.uniform(0, 40, (1000, 2)), rng.choice([8.0, 14.0], 1000)]
+    ceiling = C.street_ceiling([2.0, 2.0, 2.4])
+    assert ceiling == 1.5
+    assert abs(C.ground_height(cloud_of(street, eye, roofs)) - 1.9) < 0.15  # the failure it guards against
+    assert abs(C.ground_height(cloud_of(street, eye, roofs), below=ceiling) - 0.3) < 0.15
+    assert C.ground_height(cloud_of(eye, roofs), below=ceiling) is None  # no street found: no prior
+    assert C.ground_height(cloud_of(street[:5], eye), below=ceiling) is None  # 5 points are not a street
+    assert C.street_ceiling([]) is None

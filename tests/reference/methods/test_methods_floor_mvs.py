@@ -76,6 +76,10 @@ def test_mvs_smoke_end_to_end_and_resume(synthtown_smoke, tmp_path):
     box = np.array(fit["box"])
     with np.load(clouds[0]) as z:
         assert np.all((z["xyz"] >= box[0] - 1e-4) & (z["xyz"] <= box[1] + 1e-4))
+    # The street prior found SynthTown's street (z = 0, the cameras 2 m above it) in every lane,
+    # not a layer at the cameras' eye level (the smoke test lane's estimate was 1.99 m once).
+    heights = {c.parent.name: json.loads((c.parent / "fit.json").read_text())["street_height_m"] for c in clouds}
+    assert all(h is not None and abs(h) < 0.75 for h in heights.values()), heights
     appearance = next(work.rglob("appearance.json"))
     assert {"colour_map", "backgrounds"} <= set(json.loads(appearance.read_text()))
     assert len(json.loads((appearance.parent / "fit.json").read_text())["train_lanes"]) == 1

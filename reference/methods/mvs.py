@@ -104,7 +104,7 @@ def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, device: str, aerial: list
     cloud, _, stats = gmvs.run_mvs([f.image() for f in aerial], [f.camera() for f in aerial], box, stereo,
                                    device=device, progress=progress, max_stretch=cfg.max_stretch)
     stats["box"] = box.tolist()
-    z0 = ground_height(cloud, below=street_ceiling([f.camera().center[2] for f in scene.ground]))
+    z0 = ground_height(cloud, below=street_ceiling([f.c2w[2, 3] for f in scene.ground]))
     stats["street_height_m"] = z0
     if z0 is None and len(cloud):
         log.warning("%s: no street in the fused cloud under the ground cameras: the street prior is off", scene.name)

@@ -51,10 +51,10 @@ def ground_height(cloud: PointCloud, *, below: float | None = None, bin_m: float
 
     The street is the one surface every lane's views share and the most common height among the
     lower half of the points (roofs are many heights, facades spread over all of them). `below`:
-    the street lies under the ground cameras that drive on it (`street_ceiling`); without it a
-    sparse cloud whose street the stereo missed gave its most common low height at the cameras'
-    eye level (SynthTown smoke, 48x48: 483 of 1744 points at 1.5-2.0 m, the cameras at 2.0 m),
-    and snapping to that put the street through the cameras."""
+    the street lies under the ground cameras that drive on it (`street_ceiling`); without it the
+    sparse SynthTown smoke cloud (48x48) of one lane gave 1.99 m, the cameras' eye level (they
+    are 2.0 m above the street), and snapping to that put the street through the cameras; with
+    it, 0.09 m."""
     z = np.sort(cloud.xyz[:, 2].astype(np.float64))
     if below is not None:
         z = z[z < below]

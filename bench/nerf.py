@@ -94,7 +94,9 @@ def _method(args, extra: list[str], work: Path):
 def _psnr(a, b) -> float:
     import numpy as np
 
-    return float(10 * np.log10(1 / np.mean((np.asarray(a, np.float64) - b) ** 2)))
+    from skyeyes_bench.metrics.image import psnr
+
+    return float(psnr(np.asarray(a, np.float32), np.asarray(b, np.float32)))
 
 
 def _lpips(preds, gts) -> float | None:

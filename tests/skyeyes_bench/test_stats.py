@@ -380,3 +380,59 @@ def test_compare_per_sequence_reports_its_inputs():
     assert out["bayes"]["fitted"] and out["bayes"]["clusters"] == 6 and "per-scene" in out["bayes"]["estimand"]
     nan = stats.compare_per_sequence(a, np.where(np.arange(6) == 2, np.nan, b), "lpips", **_FAST)
     assert math.isnan(nan["advantage_mean"]) and nan["bootstrap_interval"] is None
+
+
+def _neighbours(sorted_samples: np.ndarray, value: float) -> tuple[float, float]:
+    """The order statistics on either side of `value` (interpolation conventions differ by less)."""
+    i = int(np.searchsorted(sorted_samples, value))
+    return sorted_samples[max(i - 2, 0)], sorted_samples[min(i + 1, len(sorted_samples) - 1)]
+
+
+@pytest.mark.parametrize("level", [0.8, 0.9, 0.95])
+def test_bca_and_basic_intervals_match_scipy_on_the_same_bootstrap_distribution(level):
+    """bench/coverage.py's alternatives to half-sampling, against scipy.stats.bootstrap fed our
+    replicates (`bootstrap_result`, no new resamples): scipy computes BCa's bias correction and
+    its jackknife acceleration itself, from the data (Efron & Tibshirani 1993, 14.3)."""
+    rng = np.random.default_rng(3)
+    x = rng.exponential(size=15)  # skewed: z0 and the acceleration are both far from 0
+    boots = x[stats.resample_indices(len(x), 20000, seed=1)].mean(axis=1)
+    jackknife = np.array([np.delete(x, i).mean() for i in range(len(x))])
+    s = np.sort(boots)
+
+    class Previous:
+        bootstrap_distribution = boots
+
+    for method, ours in [("BCa", stats.bca_interval(x.mean(), boots, jackknife, level)),
+                         ("basic", stats.basic_interval(x.mean(), boots, level))]:
+        ref = scipy.stats.bootstrap((x,), np.mean, n_resamples=0, bootstrap_result=Previous, method=method,
+                                    confidence_level=level).confidence_interval
+        for got, want in zip(ours, (ref.low, ref.high)):
+            if method == "basic":  # reflected: compare the order statistics it came from
+                got, want = 2 * x.mean() - got, 2 * x.mean() - want
+            lo, hi = _neighbours(s, want)
+            assert lo <= got <= hi, (method, got, want)
+    # BCa moves a skewed statistic's interval right of the percentile interval, by a visible amount.
+    pct = stats.percentile_interval(boots, level)
+    bca = stats.bca_interval(x.mean(), boots, jackknife, level)
+    assert bca[0] > pct[0] + 0.02 and bca[1] > pct[1] + 0.02
+
+
+def test_bca_reduces_to_the_percentile_interval_without_bias_or_skew():
+    """z0 = 0 (estimate at the replicates' median) and a = 0 (symmetric jackknife): BCa's
+    quantile levels are the percentile interval's."""
+    boots = np.linspace(-1.0, 1.0, 2001)
+    jackknife = np.array([-1.0, 0.0, 1.0])
+    assert stats.bca_interval(0.0, boots, jackknife, 0.9) == pytest.approx(stats.percentile_interval(boots, 0.9))
+    # A point estimate below every replicate: bias correction clipped, the interval stays finite
+    # and at the low end of the replicates.
+    lo, hi = stats.bca_interval(-5.0, boots, jackknife, 0.9)
+    assert np.isfinite([lo, hi]).all() and -1.0 <= lo <= hi < -0.9
+
+
+def test_subsample_interval_by_hand():
+    """Politis & Romano: [est - s (q_hi - est), est - s (q_lo - est)]; replicates 1..99 (q at
+    level 0.9 by inverted cdf: 5 and 95), est 60, s 0.5 -> [60 - 17.5, 60 + 27.5]."""
+    samples = np.arange(1.0, 100.0)[::-1]
+    assert stats.subsample_interval(60.0, samples, 0.9, 0.5) == pytest.approx((42.5, 87.5))
+    assert stats.basic_interval(60.0, samples, 0.9) == pytest.approx((25.0, 115.0))
+    assert stats.percentile_interval(samples, 0.9) == pytest.approx((5.0, 95.0))

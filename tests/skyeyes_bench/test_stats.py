@@ -436,3 +436,25 @@ def test_subsample_interval_by_hand():
     assert stats.subsample_interval(60.0, samples, 0.9, 0.5) == pytest.approx((42.5, 87.5))
     assert stats.basic_interval(60.0, samples, 0.9) == pytest.approx((25.0, 115.0))
     assert stats.percentile_interval(samples, 0.9) == pytest.approx((5.0, 95.0))
+
+
+def test_compare_per_sequence_defaults_to_sequences_and_is_seeded():
+    """Without `unit` the clusters are sequences (the notes say so), and the Student-t fit is
+    seeded: two calls give the same posterior to the last digit."""
+    a, b = np.array([0.30, 0.32, 0.35, 0.31, 0.29, 0.33]), np.array([0.40, 0.41, 0.37, 0.45, 0.38, 0.42])
+    one = stats.compare_per_sequence(a, b, "lpips", **_FAST)
+    two = stats.compare_per_sequence(a, b, "lpips", **_FAST)
+    assert "per-sequence" in one["bayes"]["estimand"] and "per-scene" not in one["bayes"]["estimand"]
+    assert one["bayes"]["fitted"] and one["bayes"]["hdi"] == two["bayes"]["hdi"]
+    assert one["bayes"]["mu_mean"] == two["bayes"]["mu_mean"]
+    few = stats.compare_per_sequence(a[:3], b[:3], "lpips", **_FAST)
+    assert few["interval_note"] == "too few sequences (K=3)" and few["bayes"]["note"] == "too few sequences (K=3)"
+
+
+def test_scene_of_and_resample_indices_edges():
+    assert stats.scene_of("test-0-lane01/yaw045") == "test-0-lane01"
+    assert stats.scene_of("town/test-0-lane01/yaw045") == "town/test-0-lane01"  # the last '/' splits
+    assert stats.resample_indices(3, 1, seed=0).shape == (1, 3)
+    for k, r in [(0, 5), (3, 0)]:
+        with pytest.raises(AssertionError):
+            stats.resample_indices(k, r, seed=0)

@@ -458,3 +458,22 @@ def test_scene_of_and_resample_indices_edges():
     for k, r in [(0, 5), (3, 0)]:
         with pytest.raises(AssertionError):
             stats.resample_indices(k, r, seed=0)
+
+
+def test_stored_replicates_are_used_only_when_made_the_way_compare_resamples():
+    """A results file's replicates stand in for recomputation only if every resampling setting
+    matches (interval method, resamples, seed, cluster unit, cluster count) and there is one per
+    resample; any single difference means recomputing."""
+    from types import SimpleNamespace
+
+    st = SimpleNamespace(bootstrap_resamples=4, seed=7)
+    good = {"interval": stats.INTERVAL_METHOD, "resamples": 4, "seed": 7, "cluster": "scene", "clusters": 8}
+    reps = [1.0, 2.0, 3.0, 4.0]
+    assert stats._usable_replicates({"statistics": good}, {"replicates": reps}, st, "scene", 8) == reps
+    for key, other in [("interval", "bootstrap"), ("resamples", 5), ("seed", 8), ("cluster", "sequence"),
+                       ("clusters", 9)]:
+        doc = {"statistics": {**good, key: other}}
+        assert stats._usable_replicates(doc, {"replicates": reps}, st, "scene", 8) is None, key
+    assert stats._usable_replicates({"statistics": good}, {"replicates": reps[:3]}, st, "scene", 8) is None
+    assert stats._usable_replicates({"statistics": good}, {"replicates": tuple(reps)}, st, "scene", 8) is None
+    assert stats._usable_replicates({}, {"replicates": reps}, st, "scene", 8) is None

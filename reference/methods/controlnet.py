@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from .skyeyes import PRESETS, SkyeyesNoVCM
+from .skyeyes import SkyeyesNoVCM, baseline_presets
 
 
 class ControlNetBaseline(SkyeyesNoVCM):
     name = "controlnet"
-    presets = {k: dataclasses.replace(v, vcm=False, condition="aerial") for k, v in PRESETS.items()}
+    presets = baseline_presets(lambda k, v: dataclasses.replace(v, vcm=False, condition="aerial"))

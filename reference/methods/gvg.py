@@ -51,7 +51,7 @@ from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 from .mvs import MVS
-from .skyeyes import PRESETS as SKYEYES_PRESETS
+from .skyeyes import baseline_presets
 from .skyeyes import SkyeyesConfig, SkyeyesNoVCM
 
 #: Channels of a raw geometry render (`geometry_render`) and of a condition (`condition_channels`).
@@ -118,8 +118,7 @@ def gvg_config(base: SkyeyesConfig, mvs_preset: str) -> GVGConfig:
 
 #: NOTE: the stereo presets as the splatting methods start from them (gaussians3d's `mvs_preset`):
 #: `fast` at small halves `small`'s stereo cost for the same depth accuracy (bench/mvs.py).
-PRESETS = {k: gvg_config(v, {"smoke": "smoke", "small": "fast", "paper": "paper"}[k])
-           for k, v in SKYEYES_PRESETS.items()}
+PRESETS = baseline_presets(lambda k, v: gvg_config(v, {"smoke": "smoke", "small": "fast", "paper": "paper"}[k]))
 
 
 class GVG(SkyeyesNoVCM):

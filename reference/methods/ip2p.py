@@ -21,7 +21,8 @@ diffused, not their residual from the condition (the CPU presets' residual is tu
 `controlnet` does). No VCM: every frame is generated on its own.
 
 Everything else (architecture, objective, schedule, steps, crops, EMA) is the Skyeyes CPU
-presets' (`skyeyes.PRESETS`), so the baseline follows them when they change.
+presets' (`skyeyes.PRESETS`), so the baseline follows them when they change; only the ACM steps of
+`small` are held where its measured row has them (`skyeyes.BASELINE_ACM_STEPS`).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 
 from reference.common.diffusion import guidance
 
-from .skyeyes import PRESETS as SKYEYES_PRESETS
+from .skyeyes import baseline_presets
 from .skyeyes import SkyeyesConfig, SkyeyesNoVCM
 
 #: The fixed edit instruction. IP2P's instructions are imperative edits; the Skyeyes paper names
@@ -62,7 +63,7 @@ def ip2p_config(base: SkyeyesConfig) -> IP2PConfig:
     return IP2PConfig(**fields)
 
 
-PRESETS = {k: ip2p_config(v) for k, v in SKYEYES_PRESETS.items()}
+PRESETS = baseline_presets(lambda k, v: ip2p_config(v))
 
 
 class InstructPix2Pix(SkyeyesNoVCM):

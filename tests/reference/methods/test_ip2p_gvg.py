@@ -55,11 +55,16 @@ def test_registry_and_presets_follow_skyeyes():
         p = ip2p.presets[k]
         assert p.core == dataclasses.replace(sk.core, conditioning="concat", null_prompt=True,
                                              prompt_text=ip2p_mod.INSTRUCTION)
-        assert (p.condition, p.vcm, p.acm_steps, p.sample_steps) == ("aerial", False, sk.acm_steps, sk.sample_steps)
+        budget = {"small": 3000}.get(k, sk.acm_steps)  # the rows' steps (skyeyes.BASELINE_ACM_STEPS)
+        assert (p.condition, p.vcm, p.acm_steps, p.sample_steps) == ("aerial", False, budget, sk.sample_steps)
         assert (p.drop_image, p.drop_text, p.drop_both, p.image_guidance, p.text_guidance) == (0.05, 0.05, 0.05, 1.5, 7.5)
         g = gvg.presets[k]
         assert g.core == dataclasses.replace(sk.core, conditioning="concat", cond_extra=2)
-        assert (g.condition, g.vcm, g.prior_method, g.acm_steps) == ("prior", False, "mvs", sk.acm_steps)
+        assert (g.condition, g.vcm, g.prior_method, g.acm_steps) == ("prior", False, "mvs", budget)
+        c = get_method_class("controlnet").presets[k]
+        assert (c.condition, c.vcm, c.acm_steps) == ("aerial", False, budget)
+        assert dataclasses.replace(c, condition=sk.condition, vcm=sk.vcm, acm_steps=sk.acm_steps) == sk
+    assert SKYEYES["small"].acm_steps > 3000  # Skyeyes trains longer than the baselines' filed rows
     assert [gvg.presets[k].prior_preset for k in ("smoke", "small", "paper")] == ["smoke", "fast", "paper"]
     assert SKYEYES["small"].core.conditioning == "concat"  # the CPU presets already concatenate
     # --device is a config field of both

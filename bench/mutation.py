@@ -177,8 +177,12 @@ def survivors(workdir: Path, modules: list[str], only: dict[str, list[str]] | No
             if table[c] in ("survived", "no tests") and (only is None or k in only[m])]
 
 
-def report(counts: dict[str, Counter], sampled: bool = False) -> list[dict]:
-    """Print and return the figures per module; a sampled campaign's rates get their 95% interval."""
+def report(counts: dict[str, Counter], population: dict[str, int] | None = None) -> list[dict]:
+    """Print and return the figures per module. With `population` (the module's mutant count, for
+    a sampled campaign) the counts are the sample's and each rate gets its 95% interval."""
+    sampled = population is not None
+    if sampled:
+        print("a uniform random sample of each module's mutants (its size: 'mutants'; of how many: 'of')")
     rows = []
     print(f"{'module':<42} {'mutants':>7} {'checked':>7} {'killed':>6} {'t/out':>5} {'surv.':>5} {'no test':>7} "
           f"{'kill rate':>9}" + ("  95% interval (exact binomial)" if sampled else ""))
@@ -190,7 +194,9 @@ def report(counts: dict[str, Counter], sampled: bool = False) -> list[dict]:
         row = {"module": m, "mutants": total, "checked": checked, "killed": killed, "timeout": c["timeout"],
                "survived": c["survived"], "no_tests": c["no tests"], "suspicious": c["suspicious"],
                "kill_rate": rate}
-        line = f"{m:<42} {total:>7} {checked:>7} {killed:>6} {c['timeout']:>5} {c['survived']:>5} {c['no tests']:>7} "
+        if sampled:
+            row["population"] = population[m]
+        line = f"{m:<42} {total:>7}{f' of {population[m]}' if sampled else ''} {checked:>7} {killed:>6} {c['timeout']:>5} {c['survived']:>5} {c['no tests']:>7} "
         if checked:
             line += f"{rate:>8.1%}"
             if sampled:
@@ -252,7 +258,8 @@ def main() -> int:
         drawn = f"; a sample of {args.sample} mutants per module (seed {args.seed})" if args.sample else ""
         print(f"\nmutmut on {head}, tests: {' '.join(args.tests) or 'tests/ (default tier)'}; "
               f"{seconds:.0f} s{stopped}{drawn}")
-        rows = report(collect(workdir, modules, only), sampled=only is not None)
+        rows = report(collect(workdir, modules, only),
+                      None if only is None else {m: len(ks) for m, ks in names.items()})
         if args.show:
             names = survivors(workdir, modules, only)
             print(f"\n{len(names)} surviving mutants" + (f"; the first {args.show}:" if names else ""))

@@ -62,6 +62,6 @@ def test_collect_counts_only_the_sample(mutation, tmp_path):
     assert sum(part.values()) == 2 and (part["killed"], part["no tests"]) == (1, 1)
     assert mutation.survivors(tmp_path, ["pkg"], only) == ["pkg.m.f__mutmut_3"]
     assert sorted(mutation.survivors(tmp_path, ["pkg"])) == ["pkg.m.f__mutmut_2", "pkg.m.f__mutmut_3"]
-    rows = mutation.report({"pkg": part}, sampled=True)
-    assert rows[0]["checked"] == 2 and rows[0]["kill_rate"] == 0.5
+    rows = mutation.report({"pkg": part}, {"pkg": 5})
+    assert rows[0]["checked"] == 2 and rows[0]["kill_rate"] == 0.5 and rows[0]["population"] == 5
     assert rows[0]["interval_95"] == pytest.approx(mutation.rate_interval(1, 2))

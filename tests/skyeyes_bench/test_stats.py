@@ -429,6 +429,22 @@ def test_bca_reduces_to_the_percentile_interval_without_bias_or_skew():
     assert np.isfinite([lo, hi]).all() and -1.0 <= lo <= hi < -0.9
 
 
+def test_bca_clips_the_bias_correction_at_half_a_replicate_by_hand():
+    """An estimate above all r replicates: p = 1 is clipped to 1 - 0.5 / r, so z0 = Phi^-1(1 -
+    0.5 / r); with a = 0 the quantile levels are Phi(2 z0 + z_alpha) (Efron 1987). A constant
+    jackknife (no spread: acceleration 0 by the guard, not 0 / 0) gives the same interval."""
+    from scipy.stats import norm
+
+    r = 20
+    boots = np.arange(1.0, r + 1.0)[::-1]
+    z0 = norm.ppf(1 - 0.5 / r)
+    levels = [norm.cdf(2 * z0 + norm.ppf(q)) for q in (0.05, 0.95)]
+    want = np.quantile(np.sort(boots), levels, method="inverted_cdf")
+    got = stats.bca_interval(100.0, boots, np.array([-1.0, 0.0, 1.0]), 0.9)
+    assert got == pytest.approx(tuple(want)) and got != pytest.approx(stats.percentile_interval(boots, 0.9))
+    assert stats.bca_interval(100.0, boots, np.full(4, 3.0), 0.9) == pytest.approx(got)
+
+
 def test_subsample_interval_by_hand():
     """Politis & Romano: [est - s (q_hi - est), est - s (q_lo - est)]; replicates 1..99 (q at
     level 0.9 by inverted cdf: 5 and 95), est 60, s 0.5 -> [60 - 17.5, 60 + 27.5]."""

@@ -245,10 +245,10 @@ def main() -> int:
         if args.sample:
             # 1. generate the mutants and map tests to functions (kept for 2.); 2. test the sample.
             pre_rc, pre_s = run_mutmut(workdir, args.max_children, args.time_limit, [NO_MUTANT])
-            names = {m: list(codes) for m, codes in mutant_codes(workdir, modules).items()}
-            if pre_rc is None or not any(names.values()):
+            by_module = {m: list(codes) for m, codes in mutant_codes(workdir, modules).items()}
+            if pre_rc is None or not any(by_module.values()):
                 raise SystemExit(f"mutmut did not generate mutants (rc {pre_rc}, {pre_s:.0f} s); see its output above")
-            only = sample_mutants(names, args.sample, args.seed)
+            only = sample_mutants(by_module, args.sample, args.seed)
             left = None if args.time_limit is None else max(1.0, args.time_limit - pre_s)
             rc, seconds = run_mutmut(workdir, args.max_children, left, [k for ks in only.values() for k in ks])
             seconds += pre_s
@@ -259,7 +259,7 @@ def main() -> int:
         print(f"\nmutmut on {head}, tests: {' '.join(args.tests) or 'tests/ (default tier)'}; "
               f"{seconds:.0f} s{stopped}{drawn}")
         rows = report(collect(workdir, modules, only),
-                      None if only is None else {m: len(ks) for m, ks in names.items()})
+                      None if only is None else {m: len(ks) for m, ks in by_module.items()})
         if args.show:
             names = survivors(workdir, modules, only)
             print(f"\n{len(names)} surviving mutants" + (f"; the first {args.show}:" if names else ""))

@@ -51,8 +51,7 @@ from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 from .mvs import MVS
-from .skyeyes import baseline_presets
-from .skyeyes import SkyeyesConfig, SkyeyesNoVCM
+from .skyeyes import SkyeyesConfig, SkyeyesNoVCM, baseline_presets
 
 #: Channels of a raw geometry render (`geometry_render`) and of a condition (`condition_channels`).
 RAW_CHANNELS = ("r", "g", "b", "depth_m", "alpha")

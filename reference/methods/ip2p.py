@@ -32,8 +32,7 @@ from dataclasses import dataclass
 
 from reference.common.diffusion import guidance
 
-from .skyeyes import baseline_presets
-from .skyeyes import SkyeyesConfig, SkyeyesNoVCM
+from .skyeyes import SkyeyesConfig, SkyeyesNoVCM, baseline_presets
 
 #: The fixed edit instruction. IP2P's instructions are imperative edits; the Skyeyes paper names
 #: none for its baseline, so this one asks for what the task wants, in the words of Skyeyes'

@@ -88,6 +88,42 @@ def test_mmd_bootstrap_matches_explicit_u_statistic():
     assert mb(c, c) == pytest.approx(_slow_mmd(xr, yr), rel=1e-10)
 
 
+@pytest.mark.parametrize("n, d, gram", [(12, 40, True), (40, 40, True), (41, 40, False), (60, 6, False)])
+def test_frechet_bootstrap_route_follows_shape(n, d, gram):
+    """Frame space (N x N Gram matrices) exactly when no set has more frames than dimensions:
+    the covariance route at N << D is a D x D eigenproblem per resample (2048^2 for Inception)."""
+    rng = np.random.default_rng(4)
+    fb = stats.FrechetBootstrap(rng.normal(size=(n, d)), rng.normal(size=(max(n - 3, 1), d)))
+    assert fb.gram is gram and hasattr(fb, "g12") is gram
+
+
+@pytest.mark.filterwarnings("ignore::scipy.linalg.LinAlgWarning")  # singular rank-1 covariances
+@pytest.mark.parametrize("d", [3, 30])  # covariance and Gram routes
+def test_frechet_bootstrap_at_two_samples_and_below(d):
+    """Two rows a side is the smallest defined sample (covariance with n - 1 = 1); one is NaN."""
+    rng = np.random.default_rng(5)
+    x, y = rng.normal(size=(4, d)), rng.normal(1.0, size=(4, d))
+    fb = stats.FrechetBootstrap(x, y)
+    w2 = np.array([1.0, 1.0, 0.0, 0.0])
+    want = _slow_fid(x[:2], y[:2])  # rank-1 covariances: sqrtm is exact here
+    assert np.isfinite(want) and fb(w2, w2) == pytest.approx(want, rel=1e-6)
+    assert fb(np.array([2.0, 0, 0, 0]), w2) == pytest.approx(_slow_fid(x[[0, 0]], y[:2]), rel=1e-6, abs=1e-9)
+    one = np.array([0.0, 1.0, 0.0, 0.0])
+    assert math.isnan(fb(one, w2)) and math.isnan(fb(w2, one))
+
+
+def test_mmd_bootstrap_at_two_samples_and_below():
+    """The U-statistic needs two rows a side: exact at two, NaN at one, on either side."""
+    rng = np.random.default_rng(6)
+    x, y = rng.normal(size=(3, 5)), rng.normal(0.5, size=(3, 5))
+    cl = np.array([0, 1, 2])
+    mb = stats.MMDBootstrap(x, y, cl, cl, 3)
+    two, one = np.array([1.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    assert mb(two, two) == pytest.approx(_slow_mmd(x[:2], y[:2]), rel=1e-10)
+    assert mb(two, np.array([0.0, 2.0, 0.0])) == pytest.approx(_slow_mmd(x[:2], y[[1, 1]]), rel=1e-10)
+    assert math.isnan(mb(one, two)) and math.isnan(mb(two, one))
+
+
 def test_hdi_of_normal_samples():
     s = np.random.default_rng(0).normal(size=200_000)
     lo, hi = stats.hdi(s, 0.95)

@@ -60,6 +60,10 @@ class SkyeyesConfig:
     acm_steps: int = 200
     acm_batch: int = 8
     acm_lr: float = 1e-3
+    # The last `acm_anneal` of the `acm_steps` decay the learning rate linearly to 0 (the decay
+    # phase of a warmup-stable-decay schedule, Hägele et al. 2024; 0: constant throughout). The
+    # constant-rate steps are their own stage, so runs of any length share them in the cache.
+    acm_anneal: int = 0
     vcm: bool = True
     vcm_steps: int = 40
     vcm_batch: int = 1
@@ -307,7 +311,21 @@ class Skyeyes(Method):
             k, text = self._drop_conditions(k, g)
             return train.denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma, text=text)
 
-        self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
+        if not c.acm_anneal:
+            self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
+        else:
+            # constant-rate steps (a stage any longer run shares), then the decay phase from them
+            stable = c.acm_steps - c.acm_anneal
+            if not 0 < c.acm_anneal <= c.acm_steps:
+                raise ValueError(f"acm_anneal {c.acm_anneal}: expected 0 < acm_anneal <= acm_steps ({c.acm_steps})")
+            const_key, acm_key = acm_key, {"acm": {**acm_key, "steps": stable}, "anneal": c.acm_anneal}
+            final = self._stage_ckpt("acm-anneal", acm_key, c.acm_steps)
+            if not final.is_file():
+                const = self._run("acm", model, params, acm_loss, stable, c.acm_lr, const_key, run)
+                self.cached_s -= const["seconds"]  # the decay stage's checkpoint carries them on
+                train.seed_stage(final.parent, Path(const["checkpoint"]))
+            self.training["acm"] = self._run("acm-anneal", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key,
+                                             {**run, "anneal_from": stable}, entry="acm")
         core.trainable(model, [])
         self.acm = model
 
@@ -339,7 +357,10 @@ class Skyeyes(Method):
         core.trainable(vmodel, [])
         self.vcm = vmodel
 
-    def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict, run: dict) -> dict:
+    def _run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict, run: dict,
+             entry: str | None = None) -> dict:
+        """Train (or resume) one stage into its cache checkpoint; its summary goes to training.json
+        under `entry` (default: the stage's name)."""
         from ..common.diffusion import train
 
         ckpt = self._stage_ckpt(stage, key, steps)
@@ -356,9 +377,11 @@ class Skyeyes(Method):
                    "trainable_parameters": sum(p.numel() for p in params),
                    "device": str(acc.device), "processes": acc.num_processes,
                    "mixed_precision": acc.mixed_precision}
+        if run.get("anneal_from") is not None:
+            summary["anneal_steps"] = steps - run["anneal_from"]
         self.cached_s += res["resumed_seconds"]
         if acc.is_main_process:
-            fileio.write_json(self.workdir / "training.json", {**self.training, stage: summary})
+            fileio.write_json(self.workdir / "training.json", {**self.training, entry or stage: summary})
             fileio.write_json(self.workdir / "config.json", self.config_dict())
         return summary
 

@@ -134,6 +134,14 @@ def load_checkpoint(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
+def anneal_factor(step: int, start: int, end: int) -> float:
+    """Learning-rate factor of 0-based `step` under a linear decay over steps start..end - 1: 1
+    before `start`, then (end - step) / (end - start), so the last step still moves (1 / n)."""
+    if step < start:
+        return 1.0
+    return (end - step) / (end - start)
+
+
 def stage_checkpoint(folder: Path, steps: int) -> Path:
     """`folder/train-<steps>.pt`: the checkpoint a stage asked for `steps` steps trains into.
 
@@ -157,6 +165,19 @@ def stage_checkpoint(folder: Path, steps: int) -> Path:
             with fileio.atomic_path(ckpt) as tmp:
                 shutil.copyfile(done[-1][1], tmp)
     return ckpt
+
+
+def seed_stage(folder: Path, source: Path) -> None:
+    """Start a stage that continues another one's run (a decay phase after its constant-rate
+    steps): `source` copied into `folder` under its own step count, unless `folder` already
+    holds a checkpoint (then `stage_checkpoint` resumes from that)."""
+    import shutil
+
+    if folder.is_dir() and any(folder.glob("train-*.pt")):
+        return
+    dst = folder / f"train-{int(load_checkpoint(source)['step'])}.pt"
+    with fileio.atomic_path(dst) as tmp:
+        shutil.copyfile(source, tmp)
 
 
 def crops(g, size: int, *tensors):
@@ -210,7 +231,7 @@ def precision_for(device: torch.device | str, requested: str, *, cuda: bool, bf1
 def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                loss_fn: Callable[..., torch.Tensor], *, steps: int, lr: float,
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
-               ema_decay: float = 0.0, accelerator=None,
+               ema_decay: float = 0.0, accelerator=None, anneal_from: int | None = None,
                stop_after: int | None = None, progress: bool = True, desc: str = "train") -> dict:
     """Run `steps` optimisation steps of `loss_fn` over `params`, resuming from `ckpt`.
 
@@ -224,6 +245,9 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
             kept, checkpointed, and copied into the model when training ends.
         accelerator: from `make_accelerator` (default: one CPU process). The model is moved to
             its device.
+        anneal_from: the learning rate is `lr` before this step and decays linearly from there,
+            reaching 0 after step `steps` (the decay phase of a warmup-stable-decay schedule).
+            None: constant. The rate of a step depends only on its index, so resuming is exact.
         stop_after: stop after this many steps *of this call* (simulates a killed run).
 
     Returns:
@@ -272,6 +296,9 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     for step in bar:
         # 1. batch + noise from the step's own generator; 2. loss (this process's share);
         # 3. gradients averaged over processes, clipped, AdamW update; 4. EMA.
+        if anneal_from is not None:
+            for group in opt.param_groups:
+                group["lr"] = lr * anneal_factor(step, anneal_from, steps)
         loss = loss_fn(net, step_generator(seed, step), part)
         opt.zero_grad(set_to_none=True)
         acc.backward(loss)

@@ -158,6 +158,43 @@ def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
     assert m2.cached_s == pytest.approx(stages + priors, abs=0.01 * len(m2.training))
 
 
+def test_annealed_acm_shares_the_constant_steps_and_reports_their_seconds_once(tiny, tmp_path):
+    """`acm_anneal`: the constant-rate steps are the plain ACM stage (cached for runs of any
+    length), the decay phase its own stage started from it; cached seconds are not counted twice."""
+    import torch
+
+    from reference.common.diffusion import train
+
+    m0, _, _ = _run(SkyeyesNoVCM, tiny, tmp_path / "c", acm_steps=4)  # a constant 4-step run
+    const = Path(m0.training["acm"]["checkpoint"])
+    m1, prior, a = _run(SkyeyesNoVCM, tiny, tmp_path / "a", acm_steps=6, acm_anneal=2)
+    assert prior.fitted == []  # the priors' recorded seconds, as the test above
+    priors = 0.0
+    for f in (cache_dir() / "reference" / "priors").glob("*.npz"):
+        with np.load(f) as z:
+            priors += float(z["_seconds"])
+    acm = m1.training["acm"]
+    assert acm["steps"] == 6 and acm["anneal_steps"] == 2
+    assert Path(acm["checkpoint"]).parent.name.startswith("acm-anneal-")
+    assert sorted(p.name for p in const.parent.glob("train-*.pt")) == ["train-4.pt"]  # untouched
+    # (a checkpoint's clock stops at its last save, a little before the stage's)
+    assert acm["cached_seconds"] == pytest.approx(m0.training["acm"]["seconds"], rel=0.2, abs=0.03)
+    assert acm["cached_seconds"] > 0.05
+    # the constant steps counted once (twice would add acm["cached_seconds"] again); TINY has a
+    # base stage too, from the cache
+    assert m1.cached_s == pytest.approx(priors + sum(s["cached_seconds"] for s in m1.training.values()), abs=0.03)
+    m2, _, b = _run(SkyeyesNoVCM, tiny, tmp_path / "b", acm_steps=6, acm_anneal=2)  # all cached now
+    assert m2.cached_s == pytest.approx(priors + m1.training["base"]["seconds"] + acm["seconds"], rel=0.2, abs=0.03)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    m3, _, _ = _run(SkyeyesNoVCM, tiny, tmp_path / "d", acm_steps=6)  # constant: other weights
+    w3, w1 = m3.acm.state_dict(), m1.acm.state_dict()
+    assert any(not torch.equal(w3[k], w1[k]) for k in w1)
+    assert train.load_checkpoint(Path(m3.training["acm"]["checkpoint"]))["step"] == 6
+    with pytest.raises(ValueError, match="acm_anneal"):
+        _run(SkyeyesNoVCM, tiny, tmp_path / "e", acm_steps=2, acm_anneal=3)
+
+
 def test_cpu_formulation_end_to_end(tiny, tmp_path):
     """The CPU presets' formulation (issue 13): concat conditioning, residual diffusion, training
     crops, an SDEdit start, EMA and min-SNR weights, through fit and render (VCM included)."""

@@ -284,6 +284,52 @@ def test_killed_training_resumes_to_identical_weights(tmp_path):
     assert sorted(p.name for p in (tmp_path / "killed").iterdir()) == ["c.pt"]  # no temp files left
 
 
+def test_anneal_factor_closed_form():
+    assert [train.anneal_factor(s, 3, 7) for s in range(7)] == [1, 1, 1, 1.0, 0.75, 0.5, 0.25]
+    assert train.anneal_factor(0, 0, 1) == 1.0  # a one-step decay still takes its step
+
+
+def test_annealed_training_is_adamw_under_torch_linear_lr(tmp_path):
+    """The decay phase equals a hand-written loop: AdamW, gradient clipping at 1 and torch's own
+    LinearLR from factor 1 to 1/n over the n decay steps; and a killed annealed run resumes to
+    the same weights."""
+    steps, start = 6, 2
+    m = core.build_model(TINY, control=False, seed=0)
+    sched = core.train_scheduler(TINY)
+    data = torch.rand(6, 3, 16, 16, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def loss_fn(net, g, part=(0, 1)):
+        idx = torch.randint(0, 6, (2,), generator=g)
+        return train.denoise_loss(net, sched, data[idx], None, g, part=part)
+
+    ref = core.build_model(TINY, control=False, seed=0)
+    params = core.trainable(ref)
+    opt = torch.optim.AdamW(params, lr=1e-2, weight_decay=0.0)
+    lin = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0, end_factor=1 / (steps - start),
+                                            total_iters=steps - start - 1)
+    for step in range(steps):
+        loss = loss_fn(ref, train.step_generator(0, step))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        if step >= start:
+            lin.step()
+    run = dict(steps=steps, lr=1e-2, seed=0, anneal_from=start, progress=False, ckpt_every=2)
+    train.train_loop(m, core.trainable(m), loss_fn, ckpt=tmp_path / "a.pt", **run)
+    a, b = m.state_dict(), ref.state_dict()
+    assert all(torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7) for k in a)
+    const = core.build_model(TINY, control=False, seed=0)  # the decay matters: constant differs
+    train.train_loop(const, core.trainable(const), loss_fn, ckpt=tmp_path / "c.pt", **{**run, "anneal_from": None})
+    assert any((const.state_dict()[k] - a[k]).abs().max() > 1e-6 for k in a)
+    killed = core.build_model(TINY, control=False, seed=0)
+    train.train_loop(killed, core.trainable(killed), loss_fn, ckpt=tmp_path / "k.pt", stop_after=5, **run)
+    assert train.load_checkpoint(tmp_path / "k.pt")["step"] == 4  # mid-decay
+    resumed = core.build_model(TINY, control=False, seed=0)
+    train.train_loop(resumed, core.trainable(resumed), loss_fn, ckpt=tmp_path / "k.pt", **run)
+    assert all(torch.equal(resumed.state_dict()[k], a[k]) for k in a)
+
+
 # --------------------------------------------------------------------------- CPU formulation (issue 13)
 
 CONCAT = core.replace_config(TINY_V, conditioning="concat", residual=True, residual_scale=2.0)

@@ -1,6 +1,7 @@
 """Tile rasterizer vs its dense reference (forward, backward, gradcheck), projection and SH
 against independent computations, and stiff cases (no NaN/Inf anywhere)."""
 
+import importlib
 import math
 
 import numpy as np
@@ -248,3 +249,60 @@ def test_sh_degree_beyond_the_coefficients_is_refused():
         with pytest.raises(AssertionError, match="sh_degree 1 needs 4 SH bases, sh has 1"):
             fn(*params, view, K, 24, 24, sh_degree=1)
     assert rasterize(*params, view, K, 24, 24, sh_degree=0)["rgb"].shape == (24, 24, 3)
+
+
+# --------------------------------------------------------------------------- units the image tests pass through
+
+P = importlib.import_module("reference.common.gaussians.project")  # the package exports `project` the function
+
+def test_sh_basis_counts():
+    assert [P.num_sh_bases(d) for d in range(4)] == [1, 4, 9, 16]
+    assert [P.degree_for(n) for n in (1, 4, 9, 16)] == [0, 1, 2, 3]
+
+
+def test_quat_to_rotmat_matches_scipy_for_any_norm():
+    from scipy.spatial.transform import Rotation
+
+    g = torch.Generator().manual_seed(3)
+    q = torch.randn(10, 4, generator=g, dtype=torch.float64) * 3.0  # wxyz, not normalised
+    got = P.quat_to_rotmat(q)
+    assert got.shape == (10, 3, 3)
+    want = Rotation.from_quat(q[:, [1, 2, 3, 0]].numpy()).as_matrix()  # scipy: scalar last, normalises
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-12)
+
+
+def test_outputs_keep_the_dtype_of_the_means():
+    """Cameras usually come in float64, Gaussians in float32: the projection works in float64
+    and hands back the Gaussians' dtype (the rasterizer's buffers follow it)."""
+    means, quats, scales, _, _ = (t.detach() for t in _scene(30))
+    view, K = _cam(dtype=torch.float64)
+    out = P.project(means, quats, scales, view, K, 24, 20)
+    assert {k: v.dtype for k, v in out.items() if k != "valid"} == dict.fromkeys(
+        ("means2d", "conics", "depths", "radii"), torch.float32)
+    assert P.view_dirs(means, view).dtype == torch.float32
+    out64 = P.project(means.double(), quats, scales, view, K, 24, 20)
+    assert out64["conics"].dtype == torch.float64
+    torch.testing.assert_close(out64["conics"].float(), out["conics"])
+
+
+@pytest.mark.parametrize("at", [(4.0, 4.0), (20.0, 12.0)])  # centres of the first tile and the last column's
+def test_a_gaussian_that_touches_one_tile(at):
+    """One small Gaussian inside one 8x8 tile: the only non-empty tile is still composited."""
+    view, K = _cam(dtype=torch.float64)
+    x, y = at
+    z = 5.0
+    means = torch.tensor([[(x - K[0, 2].item()) * z / K[0, 0].item(), (y - K[1, 2].item()) * z / K[1, 1].item(), z]],
+                         dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    scales = torch.full((1, 3), 0.02, dtype=torch.float64)  # 0.06 px; with the blur, radius 1.7 px
+    opac = torch.tensor([0.9], dtype=torch.float64)
+    sh = torch.ones(1, 1, 3, dtype=torch.float64)
+    proj = P.project(means, quats, scales, view, K, 24, 20)
+    assert 1.0 < proj["radii"].item() < 2.0
+    starts = raster.bin_tiles(*(proj[k] for k in ("means2d", "radii", "depths", "valid")), 24, 20, tile=8)[1]
+    assert int(((starts[1:] - starts[:-1]) > 0).sum()) == 1
+    fast = rasterize(means, quats, scales, opac, sh, view, K, 24, 20, tile=8)
+    slow = rasterize_dense(means, quats, scales, opac, sh, view, K, 24, 20)
+    assert slow["alpha"].max() > 0.05
+    for k in ("rgb", "depth", "alpha"):
+        torch.testing.assert_close(fast[k], slow[k], rtol=1e-9, atol=1e-9)

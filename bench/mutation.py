@@ -114,7 +114,8 @@ NO_MUTANT = "skyeyes-bench-generate-only"
 def run_mutmut(workdir: Path, max_children: int, time_limit: float | None,
                names: list[str] | None = None) -> tuple[int | None, float]:
     """`mutmut run [names]` in workdir (its own process group), stopped after time_limit seconds."""
-    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
+    # SKYEYES_MUTATION: tests/conftest.py reloads extractor networks per test (complete mapping)
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1", SKYEYES_MUTATION="1")
     env.pop("SKYEYES_CACHE", None)
     t0 = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children),

@@ -18,6 +18,18 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
     yield
 
 
+@pytest.fixture(autouse=True)
+def _fresh_extractors_under_mutation():
+    """Under bench/mutation.py (SKYEYES_MUTATION=1) every test loads its extractors' networks
+    itself: mutmut maps a mutant to the tests that ran its function, and a network loaded by an
+    earlier test in the same process would hide its constructor from the later ones."""
+    if os.environ.get("SKYEYES_MUTATION"):
+        from skyeyes_bench.metrics import extractors
+
+        extractors._INSTANCES.clear()
+    yield
+
+
 class _TTYStringIO(io.StringIO):
     def isatty(self) -> bool:
         return True

@@ -247,3 +247,47 @@ def test_kernel_mmd_gram_path_equals_subset_path(monkeypatch):
     monkeypatch.setattr(sets, "_GRAM_LIMIT", 0)
     slow = kernel_mmd(x, y, subset_size=20, num_subsets=7, seed=3)
     assert fast == pytest.approx(slow, rel=1e-10)
+
+
+def test_kernel_mmd_at_two_samples_and_unequal_sets():
+    """Two rows a side is enough for the unbiased estimate; subsets never exceed the smaller set
+    (5 rows against 12 with subset_size 8: every subset of x is all of x)."""
+    rng = np.random.default_rng(14)
+    x, y = rng.normal(size=(5, 3)), rng.normal(0.4, size=(12, 3))
+    assert kernel_mmd(x[:2], y[:2]) == pytest.approx(_mmd_loops(x[:2], y[:2]), rel=1e-10)
+    with pytest.raises(ValueError, match="at least 2"):
+        kernel_mmd(x[:2], y[:1])
+    got = kernel_mmd(x, y, subset_size=8, num_subsets=4, seed=3)
+    r = np.random.default_rng(3)
+    vals = []
+    for _ in range(4):
+        xi = x[r.choice(5, 5, replace=False)]
+        vals.append(_mmd_loops(xi, y[r.choice(12, 5, replace=False)]))
+    assert got == pytest.approx(np.mean(vals), rel=1e-10)
+    with pytest.raises(AssertionError):
+        kernel_mmd(x, rng.normal(size=(6, 4)))  # feature dimensions differ
+
+
+def test_random_extractors_take_any_float_or_8bit_input():
+    """The test-only extractors cast what they are given (float64, uint8 in [0, 1]) to float32."""
+    from skyeyes_bench.metrics.extractors import get_extractor
+
+    rng = np.random.default_rng(15)
+    img = rng.random((2, 64, 64, 3))
+    clip = rng.random((1, 4, 64, 64, 3))
+    for ex_id, a in (("random-image-64", img), ("random-video-64", clip)):
+        ex = get_extractor(ex_id)
+        f32 = ex.features(a.astype(np.float32))
+        np.testing.assert_allclose(ex.features(a), f32, rtol=1e-6)
+        np.testing.assert_allclose(ex.features((a > 0.5).astype(np.uint8)), ex.features((a > 0.5).astype(np.float32)))
+
+
+def test_assert_official_names_unknown_and_test_only_extractors():
+    from skyeyes_bench.errors import UserError
+    from skyeyes_bench.metrics.extractors import assert_official
+
+    with pytest.raises(UserError, match="unknown extractor .nope.; known: i3d"):
+        assert_official("nope")
+    with pytest.raises(UserError, match="test-only"):
+        assert_official("random-image-64")
+    assert_official("inception-tf-2015") is None

@@ -205,3 +205,20 @@ def test_evaluate_reports_lpips_ok(tmp_path, monkeypatch):
         assert ex["status"] == "ok" and ex["weights_sha256"] == get_extractor("lpips-alex-v0.1").weights_sha256
     assert perfect["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
     assert blurred["metrics"]["lpips"]["value"] > 0.01  # 0.040 here (small blurred frames)
+
+
+@needs_lpips("alex")
+def test_lpips_map_is_where_the_images_differ_and_averages_near_lpips():
+    """The spatial map (estimators' seen/unseen LPIPS): large where a blur was applied, near 0 on
+    the untouched half, its mean within a few % of the scalar LPIPS (bilinear upsampling of the
+    layer maps is not mean-preserving at the borders)."""
+    from skyeyes_bench.metrics.image import lpips_map
+
+    img = skdata.astronaut()[::4, ::4].astype(np.float32) / 255.0  # 128x128
+    blurred = img.copy()
+    blurred[:, :64] = np.clip(gaussian_filter(img[:, :64], sigma=(2, 2, 0)), 0, 1)
+    m = lpips_map(blurred[None], img[None], net="alex")
+    assert m.shape == (1, 128, 128) and m.dtype == np.float64
+    assert m[0, :, :56].mean() > 5 * m[0, :, 72:].mean()
+    assert m.mean() == pytest.approx(lpips(blurred[None], img[None], net="alex")[0], rel=0.05)
+    assert lpips_map(img[None], img[None], net="alex") == pytest.approx(0.0, abs=1e-6)

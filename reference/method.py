@@ -101,11 +101,12 @@ def json_sha(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def code_sha(cls) -> str:
-    """sha256 of the method's modules (its class hierarchy) and of reference/common."""
+def code_sha(cls, skip: tuple[str, ...] = ()) -> str:
+    """sha256 of the method's modules (its class hierarchy) and of reference/common, less the
+    packages of reference/common named in `skip` (ones the method never imports)."""
     files = {Path(inspect.getfile(c)).resolve() for c in inspect.getmro(cls) if c.__module__.startswith("reference")}
     common = Path(__file__).resolve().parent / "common"
-    files |= set(common.rglob("*.py"))
+    files |= {f for f in common.rglob("*.py") if f.relative_to(common).parts[0] not in skip}
     h = hashlib.sha256()
     for f in sorted(files):
         h.update(f.name.encode())

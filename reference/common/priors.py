@@ -53,13 +53,17 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
     """
     from tqdm import tqdm
 
-    from reference.method import json_sha
+    from reference.method import code_sha, json_sha
     from reference.parallel import fit_scenes
 
     out: dict[str, np.ndarray] = {}
     cached_s = 0.0
+    # The prior's code is part of the key: renders cached by an older `sugar` (or the `mvs` cloud
+    # it starts from) are not this code's priors. The diffusion package is left out: priors
+    # never import it, and its changes would otherwise re-fit every prior.
     ident = {"method": prior_method.name, "version": prior_method.version,
-             "config": prior_method.config_dict(), "seed": prior_method.seed}
+             "config": prior_method.config_dict(), "seed": prior_method.seed,
+             "code": code_sha(type(prior_method), skip=("diffusion",))}
     paths = {scene.name: cache_dir() / "reference" / "priors"
              / f"{scene.name}-{json_sha({**ident, 'scene': scene_aerial_hash(scene)})[:24]}.npz" for scene in scenes}
     todo = [scene for scene in scenes if not paths[scene.name].is_file()]

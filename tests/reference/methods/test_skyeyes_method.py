@@ -98,6 +98,24 @@ def test_render_priors_keys_and_cache(tiny, tmp_path):
         np.testing.assert_array_equal(p1[k], p2[k])
 
 
+def test_prior_cache_key_holds_the_prior_code(tiny, tmp_path, monkeypatch):
+    """Renders cached by other prior code (an older `sugar`, `mvs`) are not reused; the diffusion
+    package is not part of that code."""
+    import reference.method as M
+    from reference.methods.sugar import SuGaR
+
+    ds = open_dataset(tiny)
+    prior = StandInPrior(tmp_path)
+    render_priors(ds, ds.split("train"), prior, progress=False)
+    render_priors(ds, ds.split("train"), prior, progress=False)
+    assert prior.fitted == ["train-0-lane00"]
+    real = M.code_sha
+    monkeypatch.setattr(M, "code_sha", lambda cls, skip=(): "changed" + real(cls, skip))
+    render_priors(ds, ds.split("train"), prior, progress=False)
+    assert prior.fitted == ["train-0-lane00"] * 2
+    assert real(SuGaR, skip=("diffusion",)) != real(SuGaR) and real(SuGaR, skip=("nothing",)) == real(SuGaR)
+
+
 def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
     import torch
 

@@ -250,6 +250,23 @@ def test_set_metric_interval_contains_its_estimate_where_percentile_does_not():
     assert reps[7] == pytest.approx(_slow_fid(x[c[cl]], y[c[cl]]), rel=1e-6)
 
 
+def test_interval_from_replicates_not_widened_when_the_estimate_is_an_end():
+    """Every replicate equal to the estimate: the interval is the point, and it was not widened."""
+    assert stats.interval_from_replicates(2.0, [2.0, 2.0, 2.0], 0.95, 6) == (2.0, 2.0, False)
+
+
+@pytest.mark.filterwarnings("ignore::scipy.linalg.LinAlgWarning")
+def test_frechet_eigh_on_rank_deficient_covariances():
+    """3 samples in 12 dimensions: the covariances are singular and eigh returns eigenvalues a
+    rounding below 0; they count as 0 (no NaN from their square roots)."""
+    rng = np.random.default_rng(7)
+    x, y = rng.normal(size=(3, 12)), rng.normal(0.5, size=(5, 12))
+    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
+    assert np.linalg.eigvalsh(s1).min() < 0  # the case this test is about
+    got = stats.frechet_eigh(x.mean(0), s1, y.mean(0), s2)
+    assert np.isfinite(got) and got == pytest.approx(_slow_fid(x, y), rel=1e-6)
+
+
 def test_interval_from_replicates_by_hand():
     est, reps, k = 2.0, np.array([2.5, 1.5, 3.0, None, 2.0]), 6
     s = np.sqrt(3 / 3)

@@ -341,3 +341,35 @@ def test_compare_prints_one_estimand(scene_scored, tmp_path):
     for m, r in json.loads(out)["metrics"].items():
         if r["status"] == "ok":
             assert r["advantage"] == 0 and r["bootstrap_interval"] == [0.0, 0.0], m
+
+
+def test_compare_recomputes_set_metric_replicates_from_the_sidecars(scene_scored, tmp_path):
+    """Results without stored replicates (older files) but with their features sidecars: the
+    set metrics' replicates are recomputed from the features, to the stored ones' interval (those
+    are rounded to 6 digits). And the comparison names its methods, estimand and skipped metrics."""
+    from skyeyes_bench import stats
+
+    for n in ("b1", "b2"):
+        doc = json.loads((scene_scored / f"{n}-5.json").read_text())
+        for m in ("fid", "kid", "fvd", "kvd"):
+            assert doc["metrics"][m].pop("replicates")
+        (tmp_path / f"{n}-5.json").write_text(json.dumps(doc))
+        shutil.copy(scene_scored / f"{n}-5.features.npz", tmp_path)
+    a, fa = read_results(tmp_path / "b1-5.json", features=True)
+    b, fb = read_results(tmp_path / "b2-5.json", features=True)
+    got = stats.compare_results(a, b, fa, fb, emcee_steps=200)
+    stored = stats.compare_results(*(read_results(scene_scored / f"{n}-5.json")[0] for n in ("b1", "b2")),
+                                   emcee_steps=200)
+    for m in ("fid", "kid", "fvd", "kvd"):
+        assert got["metrics"][m]["bootstrap_interval"] == pytest.approx(stored["metrics"][m]["bootstrap_interval"],
+                                                                        rel=1e-4), m
+        assert got["metrics"][m]["bootstrap_interval"][0] < got["metrics"][m]["bootstrap_interval"][1]
+    # without replicates or sidecars: the set metrics are reported, not resampled
+    bare = stats.compare_results(a, b, None, None, emcee_steps=200)
+    assert bare["metrics"]["fid"]["status"] == "skipped" and "no replicates" in bare["metrics"]["fid"]["note"]
+    assert (got["a"], got["b"]) == ("b1", "b2") and got["estimand"] == stats.COMPARE_ESTIMAND
+    # a metric unavailable on one side is skipped, naming the side
+    b_lp = json.loads(json.dumps(b))
+    b_lp["metrics"]["psnr"]["status"] = "unavailable"
+    assert stats.compare_results(a, b_lp, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in B"
+    assert stats.compare_results(b_lp, a, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in A"

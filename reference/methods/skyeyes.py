@@ -139,9 +139,10 @@ BASELINE_ACM_STEPS = {"small": 3000}
 
 
 def baseline_presets(derive) -> dict[str, SkyeyesConfig]:
-    """`{preset: derive(Skyeyes' preset)}`, at the baselines' ACM budget (`BASELINE_ACM_STEPS`)."""
-    return {k: dataclasses.replace(derive(k, v), acm_steps=BASELINE_ACM_STEPS.get(k, v.acm_steps))
-            for k, v in PRESETS.items()}
+    """`{preset: derive(Skyeyes' preset)}`, at the baselines' ACM budget (`BASELINE_ACM_STEPS`):
+    where that applies, with the constant learning rate their rows were measured at."""
+    return {k: dataclasses.replace(derive(k, v), acm_steps=BASELINE_ACM_STEPS[k], acm_anneal=0)
+            if k in BASELINE_ACM_STEPS else derive(k, v) for k, v in PRESETS.items()}
 
 
 #: Bumped whenever a change makes old stage checkpoints mean something else (architecture,

@@ -218,3 +218,17 @@ def test_gvg_prior_is_the_mvs_geometry_of_its_stereo_preset(tmp_path):
     from reference.methods.mvs import PRESETS as MVS_PRESETS
 
     assert prior.config == dataclasses.replace(MVS_PRESETS["fast"], train_lanes=0, device="cpu")
+
+
+def test_baseline_budget_is_a_constant_rate_3000_steps_whatever_skyeyes_trains(monkeypatch):
+    """The baselines' `small` rows were measured at 3000 constant-rate ACM steps: if Skyeyes'
+    preset takes a learning-rate decay (`acm_anneal`), the baselines at that budget do not."""
+    from reference.methods import skyeyes
+
+    annealed = {k: dataclasses.replace(v, acm_steps=v.acm_steps + 2000, acm_anneal=2000)
+                for k, v in skyeyes.PRESETS.items()}
+    monkeypatch.setattr(skyeyes, "PRESETS", annealed)
+    got = skyeyes.baseline_presets(lambda k, v: v)
+    assert (got["small"].acm_steps, got["small"].acm_anneal) == (3000, 0)
+    for k in ("smoke", "paper"):  # no filed budget: the baselines follow Skyeyes
+        assert got[k] == annealed[k]

@@ -97,8 +97,10 @@ def prepare(workdir: Path, modules: list[str], tests: list[str], pytest_args: li
         "use_git_change_detection": False,
         # Numeric tests legitimately take seconds; a mutant looping forever is cut at 15x + 10 s.
         "timeout_constant": 10.0,
-        # "forkserver" for modules whose tests run torch (forking a process that ran torch's
-        # thread pools can hang); "fork" is faster for numpy-only modules.
+        # "forkserver" (the default): forking a process whose earlier tests ran torch's thread
+        # pools can hang the child, idle, until mutmut's timeout counts it a kill. Seen with
+        # fork: evaluate.py's campaign idled on mutants its tests pass in 11 s. "fork" is faster
+        # when no selected test runs torch.
         "process_isolation": isolation,
     }
     lines = ["", "[tool.mutmut]"] + [f"{k} = {json.dumps(v)}" for k, v in conf.items()]
@@ -218,7 +220,8 @@ def main() -> int:
     ap.add_argument("--time-limit", type=float, default=None, help="stop mutmut after this many seconds")
     ap.add_argument("--max-children", type=int, default=1, help="parallel mutant runs (default 1: shared cores)")
     ap.add_argument("--isolation", choices=["fork", "forkserver"], default=None,
-                    help="mutmut process_isolation (default: forkserver when a module under reference/ is mutated)")
+                    help="mutmut process_isolation (default forkserver; fork is faster, and safe only when no "
+                         "selected test runs torch)")
     ap.add_argument("--workdir", type=Path, help="keep the copy here (default: a temporary folder, removed)")
     ap.add_argument("--json", type=Path, help="also write the per-module figures here")
     ap.add_argument("--show", type=int, default=0, help="print the diffs of up to N surviving mutants")
@@ -240,7 +243,7 @@ def main() -> int:
                           text=True).stdout.strip()  # what `prepare` archives
     try:
         if not (workdir / "mutants").exists():
-            isolation = args.isolation or ("forkserver" if any(m.startswith("reference/") for m in modules) else "fork")
+            isolation = args.isolation or "forkserver"
             prepare(workdir, modules, args.tests, args.pytest_arg, isolation)
         only = None
         if args.sample:

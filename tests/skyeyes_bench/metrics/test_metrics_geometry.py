@@ -224,3 +224,13 @@ def test_sample_bilinear_at_centres_and_between():
     uv = np.array([[0.5, 0.5], [3.5, 2.5], [1.0, 0.5], [1.5, 1.0]])
     got = G.sample_bilinear(img, uv)[:, 0]
     assert got == pytest.approx([0.0, 11.0, 0.5, 3.0])
+
+
+def test_clean_depth_keeps_every_positive_depth():
+    """Depths below 1 m are valid (a facade next to the camera); 0, negatives, NaN and -inf are
+    not; +inf (sky) is kept; the input is not modified."""
+    d = np.array([[0.05, 0.999, 1.0, 250.0], [0.0, -0.5, np.nan, -np.inf], [np.inf, 1e-6, 3.0, 2.0]], np.float32)
+    got = G.clean_depth(d)
+    want = np.array([[0.05, 0.999, 1.0, 250.0], [np.nan] * 4, [np.inf, 1e-6, 3.0, 2.0]])
+    np.testing.assert_allclose(got, want.astype(np.float32).astype(np.float64), equal_nan=True)
+    assert got.dtype == np.float64 and d[1, 0] == 0.0

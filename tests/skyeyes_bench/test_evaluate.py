@@ -5,6 +5,7 @@ Expected values come from independent computations: scikit-image PSNR/SSIM, scip
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -373,3 +374,29 @@ def test_compare_recomputes_set_metric_replicates_from_the_sidecars(scene_scored
     b_lp["metrics"]["psnr"]["status"] = "unavailable"
     assert stats.compare_results(a, b_lp, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in B"
     assert stats.compare_results(b_lp, a, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in A"
+
+
+def test_results_record_what_was_scored(scored):
+    """The results document's provenance, recomputed from the files: tool, frame count and sizes
+    of the ground truth, the submission's absolute path and manifest fields, and the sha256 over
+    its frames ("<scene>/<file> <sha256 of the file>\\n" lines, sorted)."""
+    import hashlib
+
+    from PIL import Image
+
+    import skyeyes_bench
+
+    ds, subs, res, _ = scored
+    doc, sub = res["b1"], subs["b1"]
+    assert doc["tool"] == {"name": "skyeyes-bench", "version": skyeyes_bench.__version__}
+    pngs = sorted(p for p in Path(subs["gt"]).rglob("*.png"))  # the ground truth, written as a submission
+    assert doc["dataset"]["frames"] == len(pngs) == 96
+    assert doc["dataset"]["resolution"] == sorted({"{}x{}".format(*Image.open(p).size) for p in pngs})
+    assert doc["submission"]["path"] == str(Path(sub).resolve())
+    manifest = json.loads((Path(sub) / "submission.json").read_text())
+    for k in ("method", "peak_memory_mb", "hardware", "timings"):
+        assert k in doc["submission"] and doc["submission"][k] == manifest.get(k), k
+    lines = sorted(f"{p.relative_to(sub).as_posix()} {hashlib.sha256(p.read_bytes()).hexdigest()}\n"
+                   for p in Path(sub).rglob("*.png"))
+    assert len(lines) == 96
+    assert doc["submission"]["frames_sha256"] == hashlib.sha256("".join(lines).encode()).hexdigest()

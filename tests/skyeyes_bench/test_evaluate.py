@@ -400,3 +400,29 @@ def test_results_record_what_was_scored(scored):
                    for p in Path(sub).rglob("*.png"))
     assert len(lines) == 96
     assert doc["submission"]["frames_sha256"] == hashlib.sha256("".join(lines).encode()).hexdigest()
+
+
+def test_missing_extractor_weights_make_only_their_metrics_unavailable(tmp_path, monkeypatch):
+    """FID and KID on Inception with no weights in the cache: both unavailable, saying why and
+    what fixes it; the extractor marked unavailable; FVD and KVD (another extractor) still scored."""
+    from builders.evaluation import TEST_PROTOCOL, install_test_protocol
+
+    text = TEST_PROTOCOL
+    for m in ("fid", "kid"):
+        text = text.replace(f'[metrics.{m}]\nextractor = "random-image-64"\nresize = "none"',
+                            f'[metrics.{m}]\nextractor = "inception-tf-2015"\nresize = "clean-bicubic"')
+    assert text.count("inception-tf-2015") == 2
+    install_test_protocol(tmp_path, monkeypatch, text)
+    root = make_dataset(tmp_path / "ds", scenes=1, seqs=2, frames=8)
+    ds = open_dataset(root)
+    res = evaluate(blurred_submission(ds, tmp_path / "sub", sigma=1.0), data=root, out=tmp_path / "r.json",
+                   progress=False)
+    for m in ("fid", "kid"):
+        r = res["metrics"][m]
+        assert r["status"] == "unavailable" and "weights" in r["reason"] and "weights fetch" in r["fix"], r
+    assert res["extractors"]["inception-tf-2015"]["status"] == "unavailable"
+    assert res["extractors"]["random-video-64"]["status"] == "ok"
+    # LPIPS (a frame metric's network, no weights here either): the metric and its network
+    assert res["metrics"]["lpips"]["status"] == "unavailable"
+    assert res["extractors"]["lpips-alex-v0.1"]["status"] == "unavailable"
+    assert res["metrics"]["fvd"]["status"] == res["metrics"]["kvd"]["status"] == "ok"

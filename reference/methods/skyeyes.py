@@ -186,6 +186,9 @@ class Skyeyes(Method):
             config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0)
         if config.sample_strength < 1.0 and not config.core.residual:
             raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
+        if not 0 <= config.acm_anneal < max(config.acm_steps, 1):
+            raise ValueError(f"acm_anneal {config.acm_anneal}: expected 0 <= acm_anneal < acm_steps "
+                             f"({config.acm_steps}); the decay follows at least one constant-rate step")
         if config.condition == "aerial" and config.core.residual:
             # the residual from a view taken elsewhere means nothing: diffuse the frames
             config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
@@ -316,9 +319,7 @@ class Skyeyes(Method):
             self.training["acm"] = self._run("acm", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key, run)
         else:
             # constant-rate steps (a stage any longer run shares), then the decay phase from them
-            stable = c.acm_steps - c.acm_anneal
-            if not 0 < c.acm_anneal <= c.acm_steps:
-                raise ValueError(f"acm_anneal {c.acm_anneal}: expected 0 < acm_anneal <= acm_steps ({c.acm_steps})")
+            stable = c.acm_steps - c.acm_anneal  # >= 1 (checked in __init__)
             const_key, acm_key = acm_key, {"acm": {**acm_key, "steps": stable}, "anneal": c.acm_anneal}
             final = self._stage_ckpt("acm-anneal", acm_key, c.acm_steps)
             if not final.is_file():

@@ -209,8 +209,9 @@ def test_annealed_acm_shares_the_constant_steps_and_reports_their_seconds_once(t
     w3, w1 = m3.acm.state_dict(), m1.acm.state_dict()
     assert any(not torch.equal(w3[k], w1[k]) for k in w1)
     assert train.load_checkpoint(Path(m3.training["acm"]["checkpoint"]))["step"] == 6
-    with pytest.raises(ValueError, match="acm_anneal"):
-        _run(SkyeyesNoVCM, tiny, tmp_path / "e", acm_steps=2, acm_anneal=3)
+    for bad in (3, 2, -1):  # longer than the run, the whole run, negative: refused before any fit
+        with pytest.raises(ValueError, match="acm_anneal"):
+            Skyeyes(dataclasses.replace(TINY, acm_steps=2, acm_anneal=bad), tmp_path / "e")
 
 
 def test_cpu_formulation_end_to_end(tiny, tmp_path):

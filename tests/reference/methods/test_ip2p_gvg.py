@@ -55,7 +55,7 @@ def test_registry_and_presets_follow_skyeyes():
         p = ip2p.presets[k]
         assert p.core == dataclasses.replace(sk.core, conditioning="concat", null_prompt=True,
                                              prompt_text=ip2p_mod.INSTRUCTION)
-        budget = {"small": 3000}.get(k, sk.acm_steps)  # the rows' steps (skyeyes.BASELINE_ACM_STEPS)
+        budget = {"small": 3000}.get(k, sk.acm_steps)  # the rows' steps (skyeyes.BASELINE_TRAINING)
         assert (p.condition, p.vcm, p.acm_steps, p.sample_steps) == ("aerial", False, budget, sk.sample_steps)
         assert (p.drop_image, p.drop_text, p.drop_both, p.image_guidance, p.text_guidance) == (0.05, 0.05, 0.05, 1.5, 7.5)
         g = gvg.presets[k]
@@ -63,7 +63,10 @@ def test_registry_and_presets_follow_skyeyes():
         assert (g.condition, g.vcm, g.prior_method, g.acm_steps) == ("prior", False, "mvs", budget)
         c = get_method_class("controlnet").presets[k]
         assert (c.condition, c.vcm, c.acm_steps) == ("aerial", False, budget)
-        assert dataclasses.replace(c, condition=sk.condition, vcm=sk.vcm, acm_steps=sk.acm_steps) == sk
+        assert dataclasses.replace(c, condition=sk.condition, vcm=sk.vcm, acm_steps=sk.acm_steps,
+                                   acm_anneal=sk.acm_anneal, mixed_precision=sk.mixed_precision) == sk
+        if k == "small":  # filed rows: constant-rate fp32 steps ("auto" is none on the CPU)
+            assert (p.acm_anneal, p.mixed_precision, g.acm_anneal, g.mixed_precision) == (0, "auto", 0, "auto")
     assert SKYEYES["small"].acm_steps > 3000  # Skyeyes trains longer than the baselines' filed rows
     assert [gvg.presets[k].prior_preset for k in ("smoke", "small", "paper")] == ["smoke", "fast", "paper"]
     assert SKYEYES["small"].core.conditioning == "concat"  # the CPU presets already concatenate
@@ -229,6 +232,6 @@ def test_baseline_budget_is_a_constant_rate_3000_steps_whatever_skyeyes_trains(m
                 for k, v in skyeyes.PRESETS.items()}
     monkeypatch.setattr(skyeyes, "PRESETS", annealed)
     got = skyeyes.baseline_presets(lambda k, v: v)
-    assert (got["small"].acm_steps, got["small"].acm_anneal) == (3000, 0)
+    assert (got["small"].acm_steps, got["small"].acm_anneal, got["small"].mixed_precision) == (3000, 0, "auto")
     for k in ("smoke", "paper"):  # no filed budget: the baselines follow Skyeyes
         assert got[k] == annealed[k]

@@ -298,3 +298,39 @@ def test_condition_moves_its_frame_and_vcm_carries_it_across_the_clip(tiny, tmp_
     assert np.abs(moved[clip] - before[clip]).max() > 1e-4
     # ... frame by frame nothing but frame 0 moves.
     assert np.abs(moved_plain[clip] - plain[clip]).max() < 1e-6
+
+
+def test_bf16_autocast_trains_and_samples_under_its_own_key(tiny, tmp_path):
+    """`mixed_precision=bf16` on the CPU (the `small` preset): every diffusion stage trains under
+    bf16 autocast with fp32 weights, the sampler calls the same autocast forward, and the stages
+    are cached under other keys than an fp32 run's (their numbers differ)."""
+    import torch
+
+    from reference.common.diffusion import train
+
+    m32, _, a = _run(Skyeyes, tiny, tmp_path / "fp32")
+    m16, _, b = _run(Skyeyes, tiny, tmp_path / "bf16", mixed_precision="bf16")
+    for stage in ("base", "acm", "vcm"):
+        s32, s16 = m32.training[stage], m16.training[stage]
+        assert (s32["mixed_precision"], s16["mixed_precision"]) == ("no", "bf16")
+        assert Path(s32["checkpoint"]).parent != Path(s16["checkpoint"]).parent
+        l32 = train.load_checkpoint(Path(s32["checkpoint"]))["losses"]
+        l16 = train.load_checkpoint(Path(s16["checkpoint"]))["losses"]
+        assert len(l16) == len(l32) and l16 != l32 and np.allclose(l16, l32, rtol=0.1, atol=0.05)
+    assert all(p.dtype == torch.float32 for p in m16.acm.parameters())  # master weights stay fp32
+    # the model the sampler calls computes in bf16: equal to its plain forward under autocast,
+    # not to its plain forward in fp32 (the same weights)
+    g = torch.Generator().manual_seed(0)
+    x, k = torch.randn(2, 3, SIZE, SIZE, generator=g), torch.randn(2, 3, SIZE, SIZE, generator=g)
+    t = torch.tensor([10, 900])
+    with torch.no_grad():
+        got = m16.acm(x, t, k)
+        plain = m16.acm._original_forward  # accelerate's: the forward before `prepare` wrapped it
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            ref = plain(x, t, k).float()
+        f32 = plain(x, t, k)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, ref, rtol=0, atol=0)
+    assert (got - f32).abs().max() > 1e-4
+    for seq_id in a:
+        assert np.isfinite(b[seq_id]).all() and not np.array_equal(a[seq_id], b[seq_id])

@@ -212,6 +212,12 @@ def test_annealed_acm_shares_the_constant_steps_and_reports_their_seconds_once(t
     w3, w1 = m3.acm.state_dict(), m1.acm.state_dict()
     assert any(not torch.equal(w3[k], w1[k]) for k in w1)
     assert train.load_checkpoint(Path(m3.training["acm"]["checkpoint"]))["step"] == 6
+    # a decay whose constant steps are not cached either: everything trained now, nothing cached
+    # but the priors and the base stage (exactly; a clock's few ms made it negative once)
+    m4, _, _ = _run(SkyeyesNoVCM, tiny, tmp_path / "f", acm_steps=7, acm_anneal=2, acm_batch=3)  # new key
+    assert m4.training["acm"]["cached_seconds"] > 0  # the constant steps, trained by this run
+    base = float(train.load_checkpoint(Path(m4.training["base"]["checkpoint"]))["seconds"])  # unrounded
+    assert m4.cached_s == pytest.approx(priors + base, rel=0, abs=1e-9)
     for bad in (3, 2, -1):  # longer than the run, the whole run, negative: refused before any fit
         with pytest.raises(ValueError, match="acm_anneal"):
             Skyeyes(dataclasses.replace(TINY, acm_steps=2, acm_anneal=bad), tmp_path / "e")

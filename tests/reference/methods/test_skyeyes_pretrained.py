@@ -42,7 +42,7 @@ def test_pretrained_folder_drives_the_whole_method(sd, tiny, tmp_path):
     from transformers import CLIPTextModel, CLIPTokenizer
 
     cfg = dataclasses.replace(PRESETS["small"], core=dataclasses.replace(PRESETS["small"].core, resolution=RES),
-                              pretrained=str(sd), acm_steps=2, acm_batch=2, vcm_steps=1, clip_frames=3,
+                              pretrained=str(sd), acm_steps=2, acm_anneal=1, acm_batch=2, vcm_steps=1, clip_frames=3,
                               sample_steps=2, ckpt_every=1, figure_frames=2, device="cpu",
                               threads=1)  # a second thread spins on a shared 2-core machine
     m = Skyeyes(cfg, tmp_path / "w", prior_method=StandInPrior(tmp_path / "p"), progress=False)

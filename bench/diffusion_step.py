@@ -12,7 +12,6 @@ is cached or read. Warm-up steps are excluded. Prints one row per precision; --o
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 import time

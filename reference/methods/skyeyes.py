@@ -329,12 +329,11 @@ class Skyeyes(Method):
             const_key, acm_key = acm_key, {"acm": {**acm_key, "steps": stable}, "anneal": c.acm_anneal}
             final = self._stage_ckpt("acm-anneal", acm_key, c.acm_steps)
             if not final.is_file():
-                const = Path(self._run("acm", model, params, acm_loss, stable, c.acm_lr, const_key, run)["checkpoint"])
-                train.seed_stage(final.parent, const)
+                const = self._run("acm", model, params, acm_loss, stable, c.acm_lr, const_key, run)
                 # the decay stage reports the constant steps' seconds as resumed (cached) seconds:
                 # take off exactly those (the checkpoint's clock, a little short of the stage's
                 # own: subtracting the stage's seconds made a fresh run's cached time negative)
-                self.cached_s -= float(train.load_checkpoint(const)["seconds"])
+                self.cached_s -= train.seed_stage(final.parent, Path(const["checkpoint"]))
             self.training["acm"] = self._run("acm-anneal", model, params, acm_loss, c.acm_steps, c.acm_lr, acm_key,
                                              {**run, "anneal_from": stable}, entry="acm")
         core.trainable(model, [])

@@ -167,17 +167,20 @@ def stage_checkpoint(folder: Path, steps: int) -> Path:
     return ckpt
 
 
-def seed_stage(folder: Path, source: Path) -> None:
+def seed_stage(folder: Path, source: Path) -> float:
     """Start a stage that continues another one's run (a decay phase after its constant-rate
     steps): `source` copied into `folder` under its own step count, unless `folder` already
-    holds a checkpoint (then `stage_checkpoint` resumes from that)."""
+    holds a checkpoint (then `stage_checkpoint` resumes from that).
+
+    Returns `source`'s recorded seconds: what the continuing stage, resumed from it (directly or
+    through a later checkpoint of its own), counts as resumed work."""
     import shutil
 
-    if folder.is_dir() and any(folder.glob("train-*.pt")):
-        return
-    dst = folder / f"train-{int(load_checkpoint(source)['step'])}.pt"
-    with fileio.atomic_path(dst) as tmp:
-        shutil.copyfile(source, tmp)
+    state = load_checkpoint(source)
+    if not (folder.is_dir() and any(folder.glob("train-*.pt"))):
+        with fileio.atomic_path(folder / f"train-{int(state['step'])}.pt") as tmp:
+            shutil.copyfile(source, tmp)
+    return float(state["seconds"])
 
 
 def crops(g, size: int, *tensors):

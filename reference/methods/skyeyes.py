@@ -114,8 +114,9 @@ PRESETS: dict[str, SkyeyesConfig] = {
     # steps; decaying the rate over the last 3000 of 12000 steps bettered every metric by about
     # what 1000 more constant steps give; the VCM changed nothing measurable at 300 steps and
     # lowered the warp error at the paper's 3000. bf16 autocast (this machine's CPU has AMX)
-    # makes a step 0.28 -> 0.20 s and sampling 2x faster, which pays for both within a 90-minute
-    # run from a clean clone. On a CPU without native bf16, `--set mixed_precision=no` is faster.
+    # makes a step 0.28 -> 0.20 s and sampling 2x faster, which pays for both: 72 min from a clean
+    # clone with an empty cache (set-up and scoring included;
+    # docs/skyeyes.md, Results). On a CPU without native bf16, `--set mixed_precision=no` is faster.
     "small": SkyeyesConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
                         head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0,

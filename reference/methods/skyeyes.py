@@ -115,8 +115,8 @@ PRESETS: dict[str, SkyeyesConfig] = {
     # what 1000 more constant steps give; the VCM changed nothing measurable at 300 steps and
     # lowered the warp error at the paper's 3000. bf16 autocast (this machine's CPU has AMX)
     # makes a step 0.28 -> 0.20 s and sampling 2x faster, which pays for both: 72 min from a clean
-    # clone with an empty cache (set-up and scoring included;
-    # docs/skyeyes.md, Results). On a CPU without native bf16, `--set mixed_precision=no` is faster.
+    # clone with an empty cache, set-up and scoring included (docs/skyeyes.md, Results). On a CPU
+    # without native bf16, `--set mixed_precision=no` is faster.
     "small": SkyeyesConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
                         head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0,

@@ -74,6 +74,20 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `gpu` run wherever CUDA is present and are skipped, with that reason, elsewhere."""
+    gpu = [item for item in items if "gpu" in item.keywords]
+    if not gpu:
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (torch.cuda.is_available() is False here)")
+    for item in gpu:
+        item.add_marker(skip)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """Under SKYEYES_REQUIRE_WEIGHTS=1 (CI), a skip for missing weights is a failure: its reason

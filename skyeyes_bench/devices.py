@@ -1,0 +1,44 @@
+"""The one place a `--device` (or a config's `device`) becomes a torch device.
+
+"auto" (and None) is CUDA when this process can see a GPU, else the CPU. An explicit device
+that this machine does not have is a `UserError` (one line, exit 2), raised before any work
+starts, instead of a CUDA traceback minutes later. Both the benchmark (`evaluate --device`) and
+the reference methods (`reproduce --device`, a config's `device` field, the diffusion stages'
+accelerator) resolve through here.
+"""
+
+from __future__ import annotations
+
+from .errors import UserError
+
+
+def resolve_device(name: str | None = "auto", *, what: str = "--device"):
+    """`name` ("auto", None, "cpu", "cuda", "cuda:N", "mps", "meta") -> a `torch.device`
+    that exists here. `what` names the option or field in the error."""
+    import torch
+
+    if name is None or name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError, ValueError):
+        raise UserError(f"{what} {name!r}: not a torch device (expected auto, cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch has no CUDA support" if torch.version.cuda is None else "no GPU is visible"
+            raise UserError(f"{what} {name}: CUDA is not available on this machine ({why}, torch {torch.__version__}); "
+                            "use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise UserError(f"{what} {name}: this machine has {torch.cuda.device_count()} CUDA device(s) "
+                            f"(cuda:0 .. cuda:{torch.cuda.device_count() - 1})")
+    elif dev.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise UserError(f"{what} {name}: Apple MPS is not available on this machine; use --device cpu")
+    elif dev.type not in ("cpu", "meta"):
+        raise UserError(f"{what} {name!r}: unsupported device type {dev.type!r} (expected auto, cpu, cuda or cuda:N)")
+    return dev
+
+
+def device_name(name: str | None = "auto", *, what: str = "--device") -> str:
+    """`resolve_device` as the string configs and results record ("cpu", "cuda", "cuda:1")."""
+    return str(resolve_device(name, what=what))

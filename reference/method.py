@@ -168,6 +168,9 @@ class Method(abc.ABC):
         applied = list(sets)
         config = dataclasses.replace(base, **{**parse_overrides(base, applied), **(values or {})})
         if device is not None:
+            from skyeyes_bench.devices import resolve_device
+
+            resolve_device(device)  # a device this machine lacks: one line, before any work
             if has_field(config, "device"):
                 config = dataclasses.replace(config, device=device)
                 applied.append(f"device={device}")
@@ -197,14 +200,11 @@ class Method(abc.ABC):
 
     @property
     def device(self) -> str:
-        """The config's torch device, "auto" resolved (CUDA when available, else the CPU);
-        "cpu" for a config without one."""
-        device = getattr(self.config, "device", "cpu")
-        if device == "auto":
-            import torch
+        """The config's torch device, resolved where every device is (`skyeyes_bench.devices`:
+        "auto" is CUDA when available, else the CPU); "cpu" for a config without one."""
+        from skyeyes_bench.devices import device_name
 
-            return "cuda" if torch.cuda.is_available() else "cpu"
-        return device
+        return device_name(getattr(self.config, "device", "cpu"), what="device")
 
     def use_threads(self) -> None:
         """The config's torch intra-op threads (`threads`; 0: every core), set before each stage

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from reference.common.diffusion import guidance
 
-from .skyeyes import SkyeyesConfig, SkyeyesNoVCM, baseline_presets
+from .skyeyes import WHOLE_UNET_LR, SkyeyesConfig, SkyeyesNoVCM, baseline_presets
 
 #: The fixed edit instruction. IP2P's instructions are imperative edits; the Skyeyes paper names
 #: none for its baseline, so this one asks for what the task wants, in the words of Skyeyes'
@@ -58,7 +58,8 @@ def ip2p_config(base: SkyeyesConfig) -> IP2PConfig:
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(SkyeyesConfig)}
     fields.update(core=dataclasses.replace(base.core, conditioning="concat", null_prompt=True,
                                            prompt_text=INSTRUCTION),
-                  condition="aerial", vcm=False)
+                  condition="aerial", vcm=False,
+                  pretrained_acm_lr=WHOLE_UNET_LR)
     return IP2PConfig(**fields)
 
 

@@ -60,6 +60,12 @@ class SkyeyesConfig:
     acm_steps: int = 200
     acm_batch: int = 8
     acm_lr: float = 1e-3
+    # The ACM's learning rate with `--pretrained` (it replaces `acm_lr` there): a ControlNet branch
+    # beside a frozen SD1.5 UNet follows ControlNet's recipe. NOTE: Zhang et al. 2023, ControlNet
+    # training scripts (lllyasviel/ControlNet `tutorial_train.py`; diffusers' train_controlnet.py
+    # example): AdamW at 1e-5. The baselines that fine-tune the whole widened UNet (ip2p, gvg) use
+    # InstructPix2Pix's 1e-4 (Brooks et al. 2023, Sec. 4.1 / supplement).
+    pretrained_acm_lr: float = 1e-5
     # The last `acm_anneal` of the `acm_steps` decay the learning rate linearly to 0 (the decay
     # phase of a warmup-stable-decay schedule, Hägele et al. 2024; 0: constant throughout). The
     # constant-rate steps are their own stage, so runs of any length share them in the cache.
@@ -94,6 +100,11 @@ class SkyeyesConfig:
     # SuGaR prior leaves behind) on an otherwise idle 2-core machine.
     threads: int = 0
 
+
+#: `pretrained_acm_lr` of the baselines that fine-tune a pretrained UNet whole, its conv_in
+#: widened for the concatenated condition (ip2p, gvg). NOTE: InstructPix2Pix (Brooks et al.
+#: 2023), its training details: learning rate 1e-4, no warm-up.
+WHOLE_UNET_LR = 1e-4
 
 PRESETS: dict[str, SkyeyesConfig] = {
     # CI: whole `reproduce --preset smoke` (SynthTown smoke, 48x48) in a few minutes. CPU
@@ -186,9 +197,15 @@ class Skyeyes(Method):
             # a ControlNet branch (the paper's ACM; the concatenating baselines widen conv_in
             # instead, `pretrained_conditioning`); its fine-tuning keeps both. Its ControlNet
             # takes pixels 8x the latent's size, so no training crops (they would not align).
-            core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, prediction="epsilon",
-                                           conditioning=self.pretrained_conditioning, residual=False, coords=False)
-            config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0)
+            # Its noise schedule and objective are the folder's (`pretrained_schedule`), for
+            # training and sampling alike, and its learning rate the recipe's (`pretrained_acm_lr`).
+            from ..common.diffusion.core import pretrained_schedule
+
+            core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained,
+                                           conditioning=self.pretrained_conditioning, residual=False, coords=False,
+                                           **pretrained_schedule(config.pretrained))
+            config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0,
+                                         acm_lr=config.pretrained_acm_lr)
         if config.sample_strength < 1.0 and not config.core.residual:
             raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
         if not 0 <= config.acm_anneal < max(config.acm_steps, 1):
@@ -274,11 +291,11 @@ class Skyeyes(Method):
         self.use_threads()  # the prior stage runs single-threaded; the UNet wants every core
         # 1. tensors in model space: targets and conditions, one row per train ground frame; the
         # model diffuses z0 (the frames, or their residual from the prior: `core.to_diffused`).
-        x0 = core.encode(self._to_model([f.image() for _, f in frames]), cfg)
-        cc = core.encode_cond(self._to_model([conds[frame_key(s, f)] for s, f in frames]), cfg)
+        x0 = core.encode(self._to_model([f.image() for _, f in frames]), cfg, acc.device)
+        cc = core.encode_cond(self._to_model([conds[frame_key(s, f)] for s, f in frames]), cfg, acc.device)
         z0 = core.to_diffused(x0, cc, cfg)
-        data_hash = hashlib.sha256(x0.numpy().tobytes()).hexdigest()
-        cond_hash = hashlib.sha256(cc.numpy().tobytes()).hexdigest()
+        data_hash = hashlib.sha256(x0.cpu().numpy().tobytes()).hexdigest()
+        cond_hash = hashlib.sha256(cc.cpu().numpy().tobytes()).hexdigest()
         sched = core.train_scheduler(cfg)
         n = len(frames)
         gamma = c.snr_gamma or None
@@ -298,7 +315,7 @@ class Skyeyes(Method):
             params = core.trainable(model, ["unet.", "prompt"])
 
             def base_loss(net, g, part):
-                idx = torch.randint(0, n, (c.base_batch,), generator=g)
+                idx = torch.randint(0, n, (c.base_batch,), generator=g, device=g.device)
                 return train.denoise_loss(net, sched, z0[idx], None, g, part=part, snr_gamma=gamma)
 
             self.training["base"] = self._run("base", model, params, base_loss, c.base_steps, c.base_lr, base_key, run)
@@ -317,7 +334,7 @@ class Skyeyes(Method):
         params = core.trainable(model, ["controlnet."] if cfg.conditioning == "controlnet" else ["unet.", *texts])
 
         def acm_loss(net, g, part):
-            idx = torch.randint(0, n, (c.acm_batch,), generator=g)
+            idx = torch.randint(0, n, (c.acm_batch,), generator=g, device=g.device)
             z, k = train.crops(g, c.train_crop, z0[idx], cc[idx])
             k, text = self._drop_conditions(k, g)
             return train.denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma, text=text)
@@ -356,10 +373,10 @@ class Skyeyes(Method):
         def vcm_loss(net, g, part):
             rows = []
             for _ in range(c.vcm_batch):
-                q = seqs[int(torch.randint(0, len(seqs), (1,), generator=g))]
-                s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g))
+                q = seqs[int(torch.randint(0, len(seqs), (1,), generator=g, device=g.device))]
+                s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g, device=g.device))
                 rows.append(q[s0:s0 + f_clip])
-            idx = torch.tensor(rows)  # [B, F]
+            idx = torch.tensor(rows, device=z0.device)  # [B, F]
             z, k = train.crops(g, c.train_crop, z0[idx], cc[idx])
             with vcm.clip_frames(vmodel, f_clip):
                 return train.clip_denoise_loss(net, sched, z, k, g, part=part, snr_gamma=gamma)
@@ -423,11 +440,11 @@ class Skyeyes(Method):
         cfg = self.config.core
         priors = [self.conds[frame_key(scene, f)] for f in sequence.frames]
         self.use_threads()
-        cc = core.encode_cond(self._to_model(priors), cfg)
+        cc = core.encode_cond(self._to_model(priors), cfg, self.device)
         # Seed per sequence from its id, so frames do not depend on rendering order.
         self._seq_seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
         x = core.from_diffused(self._generate(cc), cc, cfg)
-        imgs = core.decode(x, cfg)  # [N, 3, res, res]
+        imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \

@@ -23,8 +23,16 @@ def _bytes_to_unicode() -> list[str]:
     return [chr(c) for c in cs]
 
 
+#: NOTE: runwayml/stable-diffusion-v1-5 `scheduler/scheduler_config.json`, as published.
+SD15_SCHEDULER = {"_class_name": "PNDMScheduler", "_diffusers_version": "0.6.0", "beta_end": 0.012,
+                  "beta_schedule": "scaled_linear", "beta_start": 0.00085, "num_train_timesteps": 1000,
+                  "set_alpha_to_one": False, "skip_prk_steps": True, "steps_offset": 1,
+                  "trained_betas": None, "clip_sample": False}
+
+
 def make_tiny_sd(root: Path) -> Path:
-    """unet/, vae/, text_encoder/, tokenizer/ of a tiny random SD1.5-layout pipeline."""
+    """unet/, vae/, text_encoder/, tokenizer/ of a tiny random SD1.5-layout pipeline, and SD1.5's
+    own scheduler/."""
     from diffusers import AutoencoderKL, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 
@@ -48,4 +56,7 @@ def make_tiny_sd(root: Path) -> Path:
                                  num_attention_heads=2, max_position_embeddings=77, projection_dim=16,
                                  bos_token_id=vocab["<|startoftext|>"], eos_token_id=vocab["<|endoftext|>"],
                                  pad_token_id=vocab["<|endoftext|>"])).save_pretrained(root / "text_encoder")
+    # SD1.5's own scheduler/scheduler_config.json (its values; the folder's model was trained on it)
+    (root / "scheduler").mkdir(parents=True)
+    (root / "scheduler" / "scheduler_config.json").write_text(json.dumps(SD15_SCHEDULER))
     return root

@@ -27,6 +27,10 @@ from torch import nn
 PROMPT = "a realistic street view image"
 
 
+#: The noise schedules of diffusers' DDPM/DDIM schedulers that a pretrained folder may name.
+BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
+
+
 @dataclass(frozen=True)
 class CoreConfig:
     """Architecture of the denoiser. Sizes in pixels; `channels` per UNet level."""
@@ -44,6 +48,9 @@ class CoreConfig:
     # pure noise at t = T up to 0.6 % signal amplitude.
     beta_start: float = 1e-4
     beta_end: float = 0.02
+    # diffusers' `beta_schedule`: "linear" (ours from scratch) or, with `pretrained`, the folder's
+    # own (SD1.5: "scaled_linear" 0.00085..0.012; `pretrained_schedule`).
+    beta_schedule: str = "linear"
     # What the network predicts (diffusers' `prediction_type`): "epsilon" (the paper's objective,
     # SD1.5's; forced with --pretrained) or "v_prediction" (Salimans & Ho 2022, v = sqrt(ab) eps -
     # sqrt(1 - ab) x0), the default for models trained from scratch. NOTE: measured on SynthTown smoke (250 +
@@ -101,6 +108,8 @@ class CoreConfig:
             raise ValueError("residual diffusion needs conditioning='concat'")
         if self.coords and self.conditioning != "concat":
             raise ValueError("coordinate channels need conditioning='concat'")
+        if self.beta_schedule not in BETA_SCHEDULES:
+            raise ValueError(f"beta_schedule {self.beta_schedule!r}: expected one of {', '.join(BETA_SCHEDULES)}")
         if self.cond_extra < 0 or (self.cond_extra and self.conditioning != "concat"):
             raise ValueError(f"cond_extra {self.cond_extra}: extra condition channels need "
                              "conditioning='concat' and a count >= 0")
@@ -145,7 +154,7 @@ class CoreConfig:
 
 #: Fields added after stage checkpoints were first cached: left out of `core_key` while at their
 #: defaults, so the stages cached before they existed keep their keys.
-_KEY_OMITTED_AT_DEFAULT = ("cond_extra", "null_prompt", "prompt_text")
+_KEY_OMITTED_AT_DEFAULT = ("cond_extra", "null_prompt", "prompt_text", "beta_schedule")
 
 
 def core_key(cfg: CoreConfig) -> dict:
@@ -207,7 +216,7 @@ def train_scheduler(cfg: CoreConfig):
     from diffusers import DDPMScheduler
 
     return DDPMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
-                         beta_end=cfg.beta_end, beta_schedule="linear", prediction_type=cfg.prediction,
+                         beta_end=cfg.beta_end, beta_schedule=cfg.beta_schedule, prediction_type=cfg.prediction,
                          clip_sample=False)
 
 
@@ -223,11 +232,43 @@ def sample_scheduler(cfg: CoreConfig):
     from diffusers import DDIMScheduler
 
     return DDIMScheduler(num_train_timesteps=cfg.train_timesteps, beta_start=cfg.beta_start,
-                         beta_end=cfg.beta_end, beta_schedule="linear", prediction_type=cfg.prediction,
+                         beta_end=cfg.beta_end, beta_schedule=cfg.beta_schedule, prediction_type=cfg.prediction,
                          clip_sample=cfg.pretrained is None, set_alpha_to_one=True,
                          # a residual of images in [-1, 1] lies in [-2, 2] (times its scale)
                          clip_sample_range=2.0 * cfg.residual_scale if cfg.residual else 1.0,
                          timestep_spacing="trailing")
+
+
+def pretrained_schedule(root: str | Path) -> dict:
+    """The noise schedule a pretrained folder's model was trained on, from its
+    `scheduler/scheduler_config.json`, as CoreConfig fields (`train_timesteps`, `beta_start`,
+    `beta_end`, `beta_schedule`, `prediction`): training and sampling must use the model's own
+    (SD1.5: scaled_linear 0.00085..0.012, epsilon; SD2: v_prediction), not ours from scratch."""
+    from skyeyes_bench import fileio
+    from skyeyes_bench.errors import UserError
+
+    path = Path(root) / "scheduler" / "scheduler_config.json"
+    if not path.is_file():
+        raise UserError(f"{path}: missing; a diffusers Stable Diffusion folder names its noise schedule there")
+    d = fileio.read_json(path)
+    fields = {"num_train_timesteps": "train_timesteps", "beta_start": "beta_start", "beta_end": "beta_end",
+              "beta_schedule": "beta_schedule", "prediction_type": "prediction"}
+    out = {}
+    for key, field_name in fields.items():
+        value = d.get(key, {"prediction_type": "epsilon"}.get(key))  # diffusers' default objective
+        ok = {"num_train_timesteps": lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 0,
+              "beta_start": lambda v: isinstance(v, (int, float)) and 0 < v < 1,
+              "beta_end": lambda v: isinstance(v, (int, float)) and 0 < v < 1,
+              "beta_schedule": lambda v: v in BETA_SCHEDULES,
+              "prediction_type": lambda v: v in ("epsilon", "v_prediction")}[key]
+        if value is None or not ok(value):
+            raise UserError(f"{path}: field {key!r} is {value!r}; expected "
+                            + {"num_train_timesteps": "a positive integer", "beta_start": "a number in (0, 1)",
+                               "beta_end": "a number in (0, 1)",
+                               "beta_schedule": " or ".join(BETA_SCHEDULES),
+                               "prediction_type": "epsilon or v_prediction"}[key])
+        out[field_name] = float(value) if key.startswith("beta_") and key != "beta_schedule" else value
+    return out
 
 
 # --------------------------------------------------------------------------- pixel codec
@@ -240,28 +281,42 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
 
 
-def encode(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+#: Frames per VAE call (`--pretrained`): a whole train split at 512x512 in one call does not fit
+#: a GPU (at `paper` size 3072 frames, ~100 GB of activations); 16 frames take ~3 GB.
+VAE_CHUNK = 16
+
+
+def _vae_chunks(fn, x: torch.Tensor, device) -> torch.Tensor:
+    """`fn` (a VAE encode or decode) over `x` [N, ...] in chunks of `VAE_CHUNK` on `device` (None:
+    where `x` is); the result comes back to `x`'s device."""
+    dev = x.device if device is None else torch.device(device)
+    with torch.no_grad():
+        return torch.cat([fn(x[i:i + VAE_CHUNK].to(dev)).to(x.device) for i in range(0, len(x), VAE_CHUNK)])
+
+
+def encode(images: torch.Tensor, cfg: CoreConfig, device=None) -> torch.Tensor:
     """Images [N, 3, res, res] in [0, 1] -> model space [N, 3 p^2, res/p, res/p] in [-1, 1]
-    (or the VAE latent [N, 4, res/8, res/8] of a pretrained folder)."""
+    (or the VAE latent [N, 4, res/8, res/8] of a pretrained folder, computed on `device` in
+    chunks and returned where `images` are)."""
     assert images.ndim == 4 and images.shape[1] == 3, images.shape
     x = images * 2.0 - 1.0
     if cfg.pretrained:
-        vae = _vae(cfg.pretrained)
-        with torch.no_grad():
-            return vae.encode(x).latent_dist.mean * vae.config.scaling_factor
+        vae = _vae(cfg.pretrained, device or x.device)
+        return _vae_chunks(lambda c: vae.encode(c).latent_dist.mean * vae.config.scaling_factor, x, device)
     return F.pixel_unshuffle(x, cfg.patch) if cfg.patch > 1 else x
 
 
-def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
+def encode_cond(images: torch.Tensor, cfg: CoreConfig, device=None) -> torch.Tensor:
     """Condition images [N, 3 + cfg.cond_extra, res, res] in [0, 1] -> the condition in model
     space: the colour image encoded as the sample is (unshuffled pixels, or the VAE latent of a
     pretrained folder), then the extra channels (mapped to [-1, 1] and folded alike, or
     area-averaged onto the latent grid), then the x, y coordinate channels with `cfg.coords`.
-    A pretrained ControlNet branch takes the raw [0, 1] pixels instead."""
+    A pretrained ControlNet branch takes the raw [0, 1] pixels instead. `device`: where the VAE
+    runs (`encode`)."""
     assert images.ndim == 4 and images.shape[1] == 3 + cfg.cond_extra, (images.shape, cfg.cond_extra)
     if cfg.pretrained and cfg.conditioning == "controlnet":
         return images
-    c = encode(images[:, :3], cfg)
+    c = encode(images[:, :3], cfg, device)
     if cfg.cond_extra:
         extra = images[:, 3:] * 2.0 - 1.0
         if cfg.pretrained:
@@ -272,8 +327,8 @@ def encode_cond(images: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
     if not cfg.coords:
         return c
     n, _, h, w = c.shape
-    ys = torch.linspace(-1.0, 1.0, h, dtype=c.dtype)
-    xs = torch.linspace(-1.0, 1.0, w, dtype=c.dtype)
+    ys = torch.linspace(-1.0, 1.0, h, dtype=c.dtype, device=c.device)
+    xs = torch.linspace(-1.0, 1.0, w, dtype=c.dtype, device=c.device)
     grid = torch.stack([xs[None, :].expand(h, w), ys[:, None].expand(h, w)])  # [2, h, w]: x, y
     return torch.cat([c, grid.expand(n, 2, h, w)], dim=1)
 
@@ -288,12 +343,12 @@ def sample_shape(cond_shape: tuple[int, ...], cfg: CoreConfig) -> tuple[int, ...
     return (n, cfg.sample_channels, h, w)
 
 
-def decode(x: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
-    """Model space [N, C, h, w] -> images [N, 3, res, res] in [0, 1] (clamped)."""
+def decode(x: torch.Tensor, cfg: CoreConfig, device=None) -> torch.Tensor:
+    """Model space [N, C, h, w] -> images [N, 3, res, res] in [0, 1] (clamped); a pretrained
+    folder's VAE decodes on `device` in chunks (`encode`)."""
     if cfg.pretrained:
-        vae = _vae(cfg.pretrained)
-        with torch.no_grad():
-            x = vae.decode(x / vae.config.scaling_factor).sample
+        vae = _vae(cfg.pretrained, device or x.device)
+        x = _vae_chunks(lambda c: vae.decode(c / vae.config.scaling_factor).sample, x, device)
     elif cfg.patch > 1:
         x = F.pixel_shuffle(x, cfg.patch)
     return ((x + 1.0) / 2.0).clamp(0.0, 1.0)
@@ -302,18 +357,19 @@ def decode(x: torch.Tensor, cfg: CoreConfig) -> torch.Tensor:
 _VAES: dict = {}
 
 
-def _vae(root: str):
+def _vae(root: str, device):
+    """The folder's VAE (loaded once), on `device`."""
     if root not in _VAES:
         from diffusers import AutoencoderKL
 
         _VAES[root] = AutoencoderKL.from_pretrained(Path(root) / "vae", local_files_only=True).eval()
-    return _VAES[root]
+    return _VAES[root].to(device)
 
 
 def images_to_tensor(images) -> torch.Tensor:
     """numpy float32 [N, H, W, C] in [0, 1] -> torch [N, C, H, W] (C = 3, or more for a
     condition with extra channels)."""
-    t = torch.as_tensor(images, dtype=torch.float32)
+    t = torch.as_tensor(images, dtype=torch.float32, device="cpu")  # frames are read on the host
     assert t.ndim == 4 and t.shape[-1] >= 3, t.shape
     return t.permute(0, 3, 1, 2).contiguous()
 
@@ -358,10 +414,12 @@ class ControlledUNet(nn.Module):
         self.controlnet = None
         # Learned null embedding standing in for the text-encoded prompt. Small init so the
         # cross-attention starts near a constant bias.
-        self.prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02)
+        # Built on the host like the UNet's own layers; the training loop moves the model.
+        self.prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim, device="cpu") * 0.02)
         # The unconditional text (classifier-free guidance on the text): a second learned
         # embedding, created after the others so models without it initialise as before.
-        self.null_prompt = nn.Parameter(torch.randn(1, 1, cfg.embed_dim) * 0.02) if cfg.null_prompt else None
+        self.null_prompt = (nn.Parameter(torch.randn(1, 1, cfg.embed_dim, device="cpu") * 0.02)
+                            if cfg.null_prompt else None)
 
     def add_control(self) -> None:
         """Give the model its condition input: a ControlNet branch (`conditioning="controlnet"`);

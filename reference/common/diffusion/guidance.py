@@ -42,7 +42,7 @@ def draw_drops(b: int, g: torch.Generator, p_image: float, p_text: float,
     drop_text [b]) bool. One uniform draw per example from `g` picks one of four exclusive cases:
     image only (p_image), text only (p_text), both (p_both), neither (the rest)."""
     check_drops(p_image, p_text, p_both)
-    u = torch.rand(b, generator=g, dtype=torch.float64)
+    u = torch.rand(b, generator=g, dtype=torch.float64, device=g.device)
     image_only = u < p_image
     text_only = (u >= p_image) & (u < p_image + p_text)
     both = (u >= p_image + p_text) & (u < p_image + p_text + p_both)

@@ -37,7 +37,7 @@ def _start(sched, shape, generator: torch.Generator, strength: float, init: torc
     strength s < 1 (SDEdit, Meng et al. 2022): `init` (zeros when None: for a residual model,
     the condition itself) noised to the first scheduled timestep below s T, and the steps from
     there. Noise is drawn on the CPU from `generator` (identical frames on every device)."""
-    noise = torch.randn(shape, generator=generator)
+    noise = torch.randn(shape, generator=generator, device=generator.device)
     flow = _is_flow(sched)
     scale = flow_noise if flow else sched.init_noise_sigma
     if strength >= 1.0:
@@ -48,7 +48,7 @@ def _start(sched, shape, generator: torch.Generator, strength: float, init: torc
     steps = sched.timesteps[sched.timesteps < limit]
     if len(steps) == 0:
         raise ValueError(f"strength {strength} leaves no sampling step")
-    init = torch.zeros(shape) if init is None else init.cpu()
+    init = torch.zeros(shape, device=noise.device) if init is None else init.to(noise.device)
     if flow:
         tau = float(steps[0]) / sched.config.num_train_timesteps
         return (1.0 - tau) * init + tau * scale * noise, steps

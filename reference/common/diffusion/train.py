@@ -42,7 +42,7 @@ def draw_timesteps(scheduler, b: int, g: torch.Generator) -> torch.Tensor:
     t = 0 is the clean sample, t = T the pure start)."""
     n = scheduler.config.num_train_timesteps
     lo = 1 if scheduler.config.prediction_type == "flow" else 0
-    return torch.randint(lo, n + lo, (b,), generator=g)
+    return torch.randint(lo, n + lo, (b,), generator=g, device=g.device)
 
 
 def loss_weight(scheduler, t: torch.Tensor, snr_gamma: float | None) -> torch.Tensor:
@@ -51,7 +51,7 @@ def loss_weight(scheduler, t: torch.Tensor, snr_gamma: float | None) -> torch.Te
     min(SNR_t, gamma) / (SNR_t + 1) for a v target, SNR_t = ab_t / (1 - ab_t)."""
     if not snr_gamma or scheduler.config.prediction_type == "flow":
         # the flow's velocity loss is unweighted (rectified flow; SD3's uniform-time variant)
-        return torch.ones(t.shape, dtype=torch.float32)
+        return torch.ones(t.shape, dtype=torch.float32, device=t.device)
     ab = scheduler.alphas_cumprod.to(torch.float64)[t]
     snr = ab / (1.0 - ab)
     clipped = torch.clamp(snr, max=snr_gamma)
@@ -83,7 +83,7 @@ def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
     """
     b = x0.shape[0]
     t = draw_timesteps(scheduler, b, g)
-    noise = torch.randn(x0.shape, generator=g)
+    noise = torch.randn(x0.shape, generator=g, device=g.device)
     s = _part(b, part)
     x0, noise, t = x0[s], noise[s], t[s]
     cond = cond[s] if cond is not None else None
@@ -109,7 +109,7 @@ def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
     """
     b, f = x0.shape[:2]
     t = draw_timesteps(scheduler, b, g)
-    noise = torch.randn(x0.shape, generator=g)
+    noise = torch.randn(x0.shape, generator=g, device=g.device)
     s = _part(b, part)
     x0, noise, t, cond = x0[s], noise[s], t[s], cond[s]
     b = x0.shape[0]
@@ -192,8 +192,8 @@ def crops(g, size: int, *tensors):
     if size > min(h, w):
         raise ValueError(f"train_crop {size} exceeds the model-space frame {h}x{w}")
     b = tensors[0].shape[0]
-    oy = torch.randint(0, h - size + 1, (b,), generator=g).tolist()
-    ox = torch.randint(0, w - size + 1, (b,), generator=g).tolist()
+    oy = torch.randint(0, h - size + 1, (b,), generator=g, device=g.device).tolist()
+    ox = torch.randint(0, w - size + 1, (b,), generator=g, device=g.device).tolist()
     return tuple(torch.stack([t[i, ..., y:y + size, x:x + size] for i, (y, x) in enumerate(zip(oy, ox))])
                  for t in tensors)
 
@@ -203,14 +203,17 @@ def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = 
 
     Launched with `accelerate launch` (several processes, one per GPU or CPU process group) it
     takes its device and process group from the launcher and the stages run data-parallel;
-    otherwise it is one process on `device`. `mixed_precision`: "auto" is bf16 on a CUDA device
+    otherwise it is one process on `device` (resolved by `skyeyes_bench.devices`: "auto" is CUDA
+    when available). `mixed_precision`: "auto" is bf16 on a CUDA device
     that supports it (fp16 otherwise), "no" on the CPU; or "no" / "fp16" / "bf16".
     """
     import os
 
     from accelerate import Accelerator
 
-    device = torch.device(device)
+    from skyeyes_bench.devices import resolve_device
+
+    device = resolve_device(str(device))
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # set by `accelerate launch`
     cuda = torch.cuda.is_available()
     on = "cuda" if distributed and cuda else device
@@ -282,6 +285,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         opt.load_state_dict(state["optimizer"])
         if ema is not None:
             ema.load_state_dict(state["ema"])
+            # the checkpoint is read onto the CPU; the average must live with the weights
+            ema.to(device=acc.device)
         start, losses, seconds = state["step"], list(state["losses"]), float(state["seconds"])
         cpu = float(state.get("cpu_seconds", 0.0))
     net, opt = acc.prepare(model, opt)

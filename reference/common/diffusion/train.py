@@ -59,13 +59,32 @@ def loss_weight(scheduler, t: torch.Tensor, snr_gamma: float | None) -> torch.Te
     return w.float()
 
 
-def _part(n: int, part: tuple[int, int]) -> slice:
-    """Rows of a global batch of n that process `rank` of `world` takes (contiguous, equal)."""
+def _share(n: int, part: tuple[int, int]) -> tuple[slice, float | None]:
+    """The rows of a global batch of n that process `rank` of `world` takes, and how its loss
+    becomes its share of the global mean.
+
+    Where `world` divides n every process takes n / world contiguous rows and its loss is their
+    mean (None): data-parallel training averages the processes' gradients, so that is the mean
+    over all n rows (and one process computes exactly what it always did). Otherwise each takes
+    ceil(n / world) rows (the last ones fewer, or none: 2 clips over 4 processes) and its loss
+    is the *sum* over them times world / n, which the average over processes turns into the same
+    global mean. A process left without rows computes one row at weight 0, so it still joins the
+    gradient all-reduce; the result equals one process's at the whole batch.
+    """
     rank, world = part
-    if n % world:
-        raise ValueError(f"batch {n} does not split over {world} processes")
-    k = n // world
-    return slice(rank * k, (rank + 1) * k)
+    if n % world == 0:
+        k = n // world
+        return slice(rank * k, (rank + 1) * k), None
+    k = -(-n // world)
+    lo, hi = min(rank * k, n), min((rank + 1) * k, n)
+    if lo == hi:
+        return slice(0, 1), 0.0
+    return slice(lo, hi), world / n
+
+
+def _share_loss(per_row: torch.Tensor, scale: float | None) -> torch.Tensor:
+    """This process's loss from its rows' losses [b, ...] (`_share`)."""
+    return per_row.mean() if scale is None else per_row.reshape(len(per_row), -1).mean(1).sum() * scale
 
 
 def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
@@ -79,12 +98,13 @@ def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
     classifier-free guidance; None: the prompt everywhere, and the model is called as before).
     Timesteps and noise are drawn for the whole batch from `g` on the CPU (so every device and
     every process draws the same numbers); process `rank` of `world` (`part`) then takes its
-    equal share, so data-parallel processes average to the one-process loss at the whole batch.
+    share (`_share`), so data-parallel processes average to the one-process loss at the whole
+    batch, also where `world` does not divide it.
     """
     b = x0.shape[0]
     t = draw_timesteps(scheduler, b, g)
     noise = torch.randn(x0.shape, generator=g, device=g.device)
-    s = _part(b, part)
+    s, scale = _share(b, part)
     x0, noise, t = x0[s], noise[s], t[s]
     cond = cond[s] if cond is not None else None
     x_t = scheduler.add_noise(x0, noise, t)
@@ -94,7 +114,7 @@ def denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor | None,
     extra = {} if text is None else {"text": text[s].to(dev)}
     pred = model(x_t.to(dev), t.to(dev), cond.to(dev) if cond is not None else None, **extra)
     err = ((pred.float() - want.to(dev)) ** 2).flatten(1).mean(1)  # [b]
-    return (err * w.to(dev)).mean()
+    return _share_loss(err * w.to(dev), scale)
 
 
 def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
@@ -110,7 +130,7 @@ def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
     b, f = x0.shape[:2]
     t = draw_timesteps(scheduler, b, g)
     noise = torch.randn(x0.shape, generator=g, device=g.device)
-    s = _part(b, part)
+    s, scale = _share(b, part)
     x0, noise, t, cond = x0[s], noise[s], t[s], cond[s]
     b = x0.shape[0]
     tt = t[:, None].expand(b, f).clone()  # [B, F]
@@ -121,7 +141,7 @@ def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
     dev = device_of(model)
     pred = model(x_t.flatten(0, 1).to(dev), tt.flatten().to(dev), cond.flatten(0, 1).to(dev)).view_as(x0.to(dev))
     err = ((pred[:, 1:].float() - want[:, 1:].to(dev)) ** 2).flatten(2).mean(2)  # [b, F - 1]
-    return (err * loss_weight(scheduler, t, snr_gamma).to(dev)[:, None]).mean()
+    return _share_loss(err * loss_weight(scheduler, t, snr_gamma).to(dev)[:, None], scale)
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

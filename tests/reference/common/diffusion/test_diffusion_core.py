@@ -428,8 +428,36 @@ def test_batch_share_of_a_process():
     parts = [train.denoise_loss(Rec(), s, x0, None, torch.Generator().manual_seed(4), part=(r, 3)) for r in range(3)]
     assert torch.equal(torch.cat(seen[1:]), seen[0])
     torch.testing.assert_close(torch.stack(parts).mean(), whole)
-    with pytest.raises(ValueError, match="split"):
-        train.denoise_loss(Rec(), s, x0, None, torch.Generator(), part=(0, 4))
+    # a batch the processes do not divide (issue 34: the paper's 2 VCM clips over 4 GPUs): shares
+    # of ceil(B/w) rows, a process left without rows computes one at weight 0, and the mean of
+    # the processes' losses (what data-parallel gradients average) is still the whole batch's
+    for world in (4, 5, 8):
+        seen.clear()
+        whole = train.denoise_loss(Rec(), s, x0, None, torch.Generator().manual_seed(4))
+        parts = [train.denoise_loss(Rec(), s, x0, None, torch.Generator().manual_seed(4), part=(r, world))
+                 for r in range(world)]
+        k = -(-6 // world)
+        rows = [min(k, max(0, 6 - r * k)) for r in range(world)]
+        assert [len(t) for t in seen[1:]] == [n or 1 for n in rows]  # weight-0 row where none is left
+        assert torch.equal(torch.cat([t for t, n in zip(seen[1:], rows) if n]), seen[0])
+        torch.testing.assert_close(torch.stack(parts).mean(), whole)
+        assert all(float(p) == 0.0 for p, n in zip(parts, rows) if not n)
+
+
+def test_clip_loss_share_of_a_process_where_the_batch_does_not_split():
+    """2 clips over 4 processes: the mean of the processes' clip losses is the whole batch's."""
+    m = core.build_model(TINY, control=True, seed=0)
+    vcm.install_vcm(m)
+    s = core.train_scheduler(TINY)
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(2, 3, 3, 16, 16, generator=g) * 2 - 1  # [B, F, C, h, w]
+    cond = torch.rand(2, 3, 3, 16, 16, generator=g) * 2 - 1
+    with torch.no_grad(), vcm.clip_frames(m, 3):
+        whole = train.clip_denoise_loss(m, s, x0, cond, torch.Generator().manual_seed(1))
+        parts = [train.clip_denoise_loss(m, s, x0, cond, torch.Generator().manual_seed(1), part=(r, 4))
+                 for r in range(4)]
+    torch.testing.assert_close(torch.stack(parts).mean(), whole, rtol=1e-5, atol=1e-7)
+    assert float(parts[2]) == float(parts[3]) == 0.0
 
 
 def test_vcm_sits_in_the_unet_down_and_up_blocks_only():

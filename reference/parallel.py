@@ -45,10 +45,22 @@ def available_cores() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
+#: Lanes fitted at once on one GPU: each worker process holds its own CUDA context (~0.5 GB) and
+#: a lane's splats (well under 1 GB at `small`); the lanes' many small kernels overlap. NOTE: not
+#: yet measured on a GPU (docs/gpu.md); `--jobs N` overrides it.
+GPU_LANES = 8
+
+
 def default_jobs(method: "Method") -> int:
-    """Worker processes when the user did not say: every core for a method on the CPU, else 1.
-    `fit_scenes` uses them only for methods that fit a scene on one thread (`parallel_ok`)."""
-    return available_cores() if method.device == "cpu" else 1
+    """Worker processes when the user did not say: every core for a method on the CPU, up to
+    `GPU_LANES` (and the cores) on a GPU, else 1. `fit_scenes` uses them only for methods that
+    fit a scene on one thread (`parallel_ok`)."""
+    device = method.device
+    if device == "cpu":
+        return available_cores()
+    if device.startswith("cuda"):
+        return min(available_cores(), GPU_LANES)
+    return 1
 
 
 def parallel_ok(method: "Method") -> bool:

@@ -147,6 +147,14 @@ PRESETS: dict[str, SkyeyesConfig] = {
 }
 
 
+#: A preset's training where the diffusion stages run on CUDA (`--device cuda`, or "auto" on a
+#: machine with a GPU), unless `--set` names the field: the same frames seen, in a quarter of the
+#: steps at four times the batch. NOTE: on one H200 a `small` ACM step cost 0.051 s at batch 16
+#: (launch overhead: the model is far too small to fill a GPU; ../MEASURED.md, b99d601), about
+#: what a CPU step costs at batch 1, so a GPU's width is spent on batch, not steps. The CPU
+#: presets stay as they are. Quality at this shape is not yet measured on a GPU (docs/gpu.md).
+GPU_TRAINING = {"small": dict(acm_steps=3000, acm_anneal=750, acm_batch=64, vcm_steps=750, vcm_batch=4)}
+
 #: Training of the baselines built from `PRESETS` (ip2p, gvg, controlnet) where it differs from
 #: Skyeyes': their leaderboard rows were measured at the 3000 constant-rate fp32 ACM steps `small`
 #: trained before it grew, and a preset must reproduce its filed row. NOTE: at Skyeyes' budget
@@ -222,6 +230,23 @@ class Skyeyes(Method):
         self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, 3]
         self.training: dict[str, Any] = {}
         self._figure_written = False
+
+    @classmethod
+    def configure(cls, preset: str, sets: list[str] | tuple = (), *, values: dict | None = None,
+                  device: str | None = None, pretrained: str | None = None) -> tuple[Any, list[str]]:
+        """`Method.configure`, then on a CUDA device the preset's `GPU_TRAINING` for the fields
+        neither `sets` nor `values` name (they join the returned overrides, so the run's own
+        record repeats it on any machine)."""
+        from skyeyes_bench.devices import resolve_device
+
+        config, applied = super().configure(preset, sets, values=values, device=device, pretrained=pretrained)
+        gpu = GPU_TRAINING.get(preset, {})
+        if gpu and resolve_device(config.device, what="device").type == "cuda":
+            named = {s.partition("=")[0] for s in sets} | set(values or {})
+            mine = {k: v for k, v in gpu.items() if k not in named}
+            config = dataclasses.replace(config, **mine)
+            applied = applied + [f"{k}={v}" for k, v in mine.items()]
+        return config, applied
 
     # ---------------------------------------------------------------- helpers
     @property

@@ -31,8 +31,6 @@ PROJECT_DIRS = tuple(str(_ROOT / d) + "/" for d in ("reference", "skyeyes_bench"
 
 #: Factories that take a `device=` (torch's own list, as `with torch.device(...)` uses).
 _FACTORIES = _device_constructors()
-#: Conversions that always make a CPU tensor and take no device: their result is moved to meta.
-_CPU_CONVERSIONS = {torch.from_numpy}
 
 
 def _from_project(depth: int = 2) -> str | None:
@@ -61,18 +59,31 @@ class StrayDevice(TorchFunctionMode):
             if not isinstance(first, torch.Tensor) and (site := _from_project()):
                 self.sites.append(site)
                 kwargs = {**kwargs, "device": "meta"}
-        elif func in _CPU_CONVERSIONS and (site := _from_project()):
-            self.sites.append(site)
-            return func(*args, **kwargs).to("meta")
         return func(*args, **kwargs)
+
+    def from_numpy(self, array):
+        """`torch.from_numpy` while the mode is on: it always makes a CPU tensor and takes no
+        device, and it bypasses torch-function modes, so `stray_device` swaps it for this."""
+        out = _FROM_NUMPY(array)
+        if site := _from_project():
+            self.sites.append(site)
+            return out.to("meta")
+        return out
+
+
+_FROM_NUMPY = torch.from_numpy
 
 
 @contextlib.contextmanager
 def stray_device() -> Iterator[StrayDevice]:
     """Within the block, project code's device-less tensors are made on `meta` (see the module)."""
     mode = StrayDevice()
-    with mode:
-        yield mode
+    torch.from_numpy = mode.from_numpy  # the one conversion modes do not see (module-level name)
+    try:
+        with mode:
+            yield mode
+    finally:
+        torch.from_numpy = _FROM_NUMPY
 
 
 def assert_on(device: str, *tensors) -> None:

@@ -103,11 +103,13 @@ PRESETS = {
 }
 
 
-def frame_view(frame: Frame, *, with_image: bool = True) -> View:
+def frame_view(frame: Frame, *, with_image: bool = True, device: str | torch.device = "cpu") -> View:
+    """The frame's image (zeros without it), pose and intrinsics as a `View` on `device`."""
     cam = frame.camera()
-    img = torch.from_numpy(frame.image()) if with_image else torch.zeros(frame.height, frame.width, 3)
-    return View(img, torch.tensor(cam.w2c, dtype=torch.float32), torch.tensor(cam.K, dtype=torch.float32),
-                name=frame.file)
+    img = (torch.as_tensor(frame.image(), device=device) if with_image
+           else torch.zeros(frame.height, frame.width, 3, device=device))
+    return View(img, torch.tensor(cam.w2c, dtype=torch.float32, device=device),
+                torch.tensor(cam.K, dtype=torch.float32, device=device), name=frame.file)
 
 
 class Gaussians3D(Method):
@@ -164,15 +166,16 @@ class Gaussians3D(Method):
         model = model.to(dev)
         views = []
         for f in train_frames:
-            v = frame_view(f)
-            mask = torch.from_numpy(region.rays_hit_box(f.camera(), box))
-            views.append(View(v.image.to(dev), v.viewmat.to(dev), v.K.to(dev), mask.to(dev), name=v.name))
-        bg = torch.from_numpy(self._backgrounds(scene).sky)
+            mask = torch.as_tensor(region.rays_hit_box(f.camera(), box), device=dev)
+            views.append(dataclasses.replace(frame_view(f, device=dev), mask=mask))
+        # The training background stays on the CPU (saved with the checkpoint); `train` moves it.
+        bg = torch.as_tensor(self._backgrounds(scene).sky, device="cpu")
         centres = np.array([f.c2w[:3, 3] for f in aerial])
         extent = max(1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 10.0)
         # 3. Train.
-        stats = train(model, views, cfg, extent=extent, box=torch.tensor(box, dtype=torch.float32), background=bg,
-                      seed=self.seed, regularizer=self.regularizer(scene), callback=callback, progress=progress)
+        stats = train(model, views, cfg, extent=extent, box=torch.tensor(box, dtype=torch.float32, device=dev),
+                      background=bg, seed=self.seed, regularizer=self.regularizer(scene), callback=callback,
+                      progress=progress)
         stats.update({"init": msg, "init_points": n_init, "extent_m": extent, "box": box.tolist(),
                       "background": bg.tolist(), "held_out": [f.file for f in held]})
         return (model, bg), stats
@@ -246,10 +249,9 @@ class Gaussians3D(Method):
         fitted (no colour map, the training background). model: instead of the scene's fitted
         one (a model in training)."""
         model = self.scene_model(scene)[0] if model is None else model
-        v = frame_view(frame, with_image=False)
-        dev = model.means.device
-        out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh, v.viewmat.to(dev),
-                        v.K.to(dev), v.width, v.height, sh_degree=self.config.sh_degree, near=self.config.render_near_m)
+        v = frame_view(frame, with_image=False, device=model.means.device)
+        out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh, v.viewmat,
+                        v.K, v.width, v.height, sh_degree=self.config.sh_degree, near=self.config.render_near_m)
         alpha = out["alpha"].cpu().numpy()
         colour = (out["rgb"] / out["alpha"].clamp_min(1e-6)[..., None]).clamp(0, 1).cpu().numpy()
         if not ground:

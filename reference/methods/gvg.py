@@ -51,7 +51,7 @@ from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 from .mvs import MVS
-from .skyeyes import SkyeyesConfig, SkyeyesNoVCM, baseline_presets
+from .skyeyes import WHOLE_UNET_LR, SkyeyesConfig, SkyeyesNoVCM, baseline_presets
 
 #: Channels of a raw geometry render (`geometry_render`) and of a condition (`condition_channels`).
 RAW_CHANNELS = ("r", "g", "b", "depth_m", "alpha")
@@ -111,7 +111,8 @@ def gvg_config(base: SkyeyesConfig, mvs_preset: str) -> GVGConfig:
     `mvs` geometry of `mvs_preset` as the prior, frame by frame."""
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(SkyeyesConfig)}
     fields.update(core=dataclasses.replace(base.core, conditioning="concat", cond_extra=2), prior_method="mvs", prior_preset=mvs_preset,
-                  condition="prior", vcm=False)
+                  condition="prior", vcm=False,
+                  pretrained_acm_lr=WHOLE_UNET_LR)
     return GVGConfig(**fields)
 
 

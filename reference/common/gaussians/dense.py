@@ -18,18 +18,20 @@ def composite_dense(means2d, conics, opacities, colors, background, valid, depth
     Args: means2d [N, 2], conics [N, 3], opacities [N], colors [N, C], background [C],
     valid [N] bool, depths [N]. Returns (out [H, W, C], alpha [H, W]).
     """
-    dtype = colors.dtype
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
+    dtype, dev = colors.dtype, colors.device
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=dev), torch.arange(width, dtype=dtype, device=dev),
+                            indexing="ij")
     px, py = xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5
-    T = torch.ones(px.shape[0], dtype=dtype)
-    done = torch.zeros(px.shape[0], dtype=torch.bool)
-    out = torch.zeros(px.shape[0], colors.shape[1], dtype=dtype)
+    T = torch.ones(px.shape[0], dtype=dtype, device=dev)
+    done = torch.zeros(px.shape[0], dtype=torch.bool, device=dev)
+    out = torch.zeros(px.shape[0], colors.shape[1], dtype=dtype, device=dev)
+    alpha_max = torch.tensor(ALPHA_MAX, dtype=dtype, device=dev)
     order = [int(i) for i in torch.argsort(depths.detach(), stable=True) if valid[i]]
     for i in order:
         dx, dy = px - means2d[i, 0], py - means2d[i, 1]
         a, b, c = conics[i]
         q = a * dx * dx + 2 * b * dx * dy + c * dy * dy
-        alpha = torch.minimum(opacities[i] * torch.exp(-0.5 * q), torch.tensor(ALPHA_MAX, dtype=dtype))
+        alpha = torch.minimum(opacities[i] * torch.exp(-0.5 * q), alpha_max)
         hit = (q <= SUPPORT_SIGMA ** 2) & (alpha >= ALPHA_MIN) & ~done
         test_T = T * (1 - alpha)
         stop = hit & (test_T < T_MIN)
@@ -48,7 +50,7 @@ def rasterize_dense(means, quats, scales, opacities, sh, viewmat, K, width, heig
     dtype = means.dtype
     deg = resolve_degree(sh, sh_degree)
     if background is None:
-        background = torch.zeros(3, dtype=dtype)
+        background = torch.zeros(3, dtype=dtype, device=means.device)
     viewmat = viewmat.to(dtype)
     proj = project(means, quats, scales, viewmat, K, width, height, near=near, far=far)
     colors = sh_colors(sh, means, viewmat, deg)

@@ -36,18 +36,21 @@ class GaussianModel:
         d, _ = cKDTree(xyz).query(xyz, k=k)
         dist = np.sqrt(np.mean(np.square(d[:, 1:]), axis=1)) if k > 1 else np.ones(n)
         dist = np.clip(dist, 1e-3, max_scale)
+        # On the CPU, deliberately: numpy inputs and a CPU generator (the same start on every
+        # device); `to(device)` moves the model.
+        cpu = torch.device("cpu")
         g = torch.Generator().manual_seed(seed)
-        quats = torch.zeros(n, 4)
+        quats = torch.zeros(n, 4, device=cpu)
         quats[:, 0] = 1.0
-        quats = quats + 0.01 * torch.randn(n, 4, generator=g)  # break symmetry for SuGaR normals
+        quats = quats + 0.01 * torch.randn(n, 4, generator=g, device=cpu)  # break symmetry for SuGaR normals
         nb = (sh_degree + 1) ** 2
         return cls({
-            "means": torch.tensor(xyz, dtype=torch.float32),
-            "log_scales": torch.log(torch.tensor(dist, dtype=torch.float32))[:, None].repeat(1, 3),
+            "means": torch.tensor(xyz, dtype=torch.float32, device=cpu),
+            "log_scales": torch.log(torch.tensor(dist, dtype=torch.float32, device=cpu))[:, None].repeat(1, 3),
             "quats": quats,
-            "logit_opacities": torch.full((n,), math.log(opacity / (1 - opacity))),
-            "sh0": rgb_to_sh0(torch.tensor(rgb, dtype=torch.float32))[:, None, :],
-            "shN": torch.zeros(n, nb - 1, 3),
+            "logit_opacities": torch.full((n,), math.log(opacity / (1 - opacity)), device=cpu),
+            "sh0": rgb_to_sh0(torch.tensor(rgb, dtype=torch.float32, device=cpu))[:, None, :],
+            "shN": torch.zeros(n, nb - 1, 3, device=cpu),
         })
 
     @classmethod
@@ -55,15 +58,15 @@ class GaussianModel:
         """Init from oriented discs (`reference.common.geometry.splat.surfels`: means, quats,
         scales, colors), as 3DGS starts from an MVS cloud but with each point's own size and
         orientation instead of its neighbours' distance."""
-        n = surfels["means"].shape[0]
+        n, dev = surfels["means"].shape[0], surfels["means"].device
         nb = (sh_degree + 1) ** 2
         return cls({
             "means": surfels["means"].float(),
             "log_scales": torch.log(surfels["scales"].float().clamp_min(1e-4)),
             "quats": surfels["quats"].float(),
-            "logit_opacities": torch.full((n,), math.log(opacity / (1 - opacity))),
+            "logit_opacities": torch.full((n,), math.log(opacity / (1 - opacity)), device=dev),
             "sh0": rgb_to_sh0(surfels["colors"].float())[:, None, :],
-            "shN": torch.zeros(n, nb - 1, 3),
+            "shN": torch.zeros(n, nb - 1, 3, device=dev),
         })
 
     def __len__(self) -> int:
@@ -142,7 +145,8 @@ class GaussianModel:
         p = {k: v.detach()[idx] for k, v in self.params.items()}
         scales = torch.exp(p["log_scales"]).repeat(n, 1)
         R = quat_to_rotmat(p["quats"]).repeat(n, 1, 1)
-        offs = torch.randn(scales.shape, generator=generator).to(scales.device) * scales
+        # Drawn on the CPU generator's device (the same draws on every device), then moved.
+        offs = torch.randn(scales.shape, generator=generator, device=generator.device).to(scales.device) * scales
         out = {k: v.repeat(n, *([1] * (v.ndim - 1))) for k, v in p.items()}
         out["means"] = out["means"] + (R @ offs[..., None])[..., 0]
         # NOTE: 0.8 * N shrink factor from 3DGS densify_and_split.

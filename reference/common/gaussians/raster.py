@@ -44,10 +44,10 @@ _LOG2_ALPHA_MIN = math.log2(ALPHA_MIN)
 _LOG2_ALPHA_MAX = math.log2(ALPHA_MAX)
 
 
-def _q_bound(opacities: torch.Tensor | None, n: int, dtype) -> torch.Tensor:
+def _q_bound(opacities: torch.Tensor | None, n: int, dtype, device) -> torch.Tensor:
     """[N] largest Mahalanobis q a Gaussian can be composited at: q <= support^2 and
     o exp(-q/2) >= 1/255 (gsplat's opacity-aware radius); -1 if it can never pass."""
-    q = torch.full((n,), SUPPORT_SIGMA ** 2, dtype=dtype)
+    q = torch.full((n,), SUPPORT_SIGMA ** 2, dtype=dtype, device=device)
     if opacities is not None:
         o = opacities.detach().to(dtype)
         q_alpha = 2 * torch.log((o * 255.0).clamp_min(1e-300))
@@ -108,7 +108,7 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
         ids = ids[_argsort_depths(depths.detach()[ids])]
         r = radii.detach()[ids].to(f64)
         if conics is not None:
-            qmax = _q_bound(None if opacities is None else opacities[ids], len(ids), f64)
+            qmax = _q_bound(None if opacities is None else opacities[ids], len(ids), f64, ids.device)
             keep = qmax >= 0
             ids, r, qmax = ids[keep], r[keep], qmax[keep]
             cn = conics.detach()[ids].to(f64)
@@ -126,7 +126,7 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
         n_rows = (y1 - y0 + 1).clamp_min(0)
         owner = torch.repeat_interleave(n_rows)
         sel = lambda t, i: t.index_select(0, i)  # noqa: E731
-        row = sel(y0 - (torch.cumsum(n_rows, 0) - n_rows), owner) + torch.arange(len(owner))
+        row = sel(y0 - (torch.cumsum(n_rows, 0) - n_rows), owner) + torch.arange(len(owner), device=owner.device)
         mx = sel(mx_g, owner)
         r_o = sel(r, owner)
         if conics is not None:
@@ -146,12 +146,13 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
         n_cols = (x1 - x0 + 1).clamp_min(0) * nonempty
         # One entry per (tile, Gaussian) pair, still in depth order.
         pair_row = torch.repeat_interleave(n_cols)
-        tile_id = sel(row * tx + x0 - (torch.cumsum(n_cols, 0) - n_cols), pair_row) + torch.arange(len(pair_row))
+        tile_id = (sel(row * tx + x0 - (torch.cumsum(n_cols, 0) - n_cols), pair_row)
+                   + torch.arange(len(pair_row), device=pair_row.device))
         key_dtype = torch.int16 if n_tiles < 2 ** 15 else torch.int32  # radix sort on few bits
         perm = torch.sort(tile_id.to(key_dtype), stable=True).indices
         gauss_ids = sel(sel(sel(ids, owner), pair_row), perm)
         tile_counts = torch.bincount(tile_id, minlength=n_tiles)
-        starts = torch.zeros(n_tiles + 1, dtype=torch.long)
+        starts = torch.zeros(n_tiles + 1, dtype=torch.long, device=tile_id.device)
         starts[1:] = torch.cumsum(tile_counts, 0)
     return gauss_ids, starts, tx, ty
 
@@ -177,14 +178,14 @@ def _chunks(starts: torch.Tensor, pix_per_tile: int, block: int):
         i = j
 
 
-def _pixel_features(tile: int, dtype) -> torch.Tensor:
+def _pixel_features(tile: int, dtype, device) -> torch.Tensor:
     """[P, 6] monomials (u^2, 2uv, v^2, u, v, 1) of tile-local pixel centres (u, v in px).
 
     The squared Mahalanobis distance of every pixel to every Gaussian of a tile is then one
     matmul with per-Gaussian coefficients (`_coefficients`), instead of ten elementwise passes.
     Tile-local coordinates keep the expansion well conditioned in float32.
     """
-    oy, ox = torch.meshgrid(torch.arange(tile), torch.arange(tile), indexing="ij")
+    oy, ox = torch.meshgrid(torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij")
     u = ox.reshape(-1).to(dtype) + 0.5 - tile / 2
     v = oy.reshape(-1).to(dtype) + 0.5 - tile / 2
     return torch.stack([u * u, 2 * u * v, v * v, u, v, torch.ones_like(u)], -1)
@@ -192,7 +193,8 @@ def _pixel_features(tile: int, dtype) -> torch.Tensor:
 
 def _tile_pixels(tiles: torch.Tensor, tx: int, tile: int, width: int, height: int):
     """Flat pixel indices [T, P] (0 outside the image), in-image mask [T, P], tile centres [T, 2] (px)."""
-    oy, ox = torch.meshgrid(torch.arange(tile), torch.arange(tile), indexing="ij")
+    dev = tiles.device
+    oy, ox = torch.meshgrid(torch.arange(tile, device=dev), torch.arange(tile, device=dev), indexing="ij")
     px = (tiles % tx)[:, None] * tile + ox.reshape(1, -1)
     py = (tiles // tx)[:, None] * tile + oy.reshape(1, -1)
     inside = (px < width) & (py < height)
@@ -208,7 +210,7 @@ def _gather(tiles, lo, hi, starts, gauss_ids):
     """
     s = starts[tiles]
     n = starts[tiles + 1] - s
-    ar = torch.arange(lo, hi)
+    ar = torch.arange(lo, hi, device=starts.device)
     real = ar[None, :] < n[:, None]
     idx = (s[:, None] + ar[None, :]).clamp_max_(max(len(gauss_ids) - 1, 0))
     return gauss_ids[idx], real
@@ -240,8 +242,14 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     single GEMMs) and memory-bound, so every step is one vectorised pass where it can be, and no
     boolean [T, B, P] mask is built (masked_fill / where on them were the slowest passes).
     """
-    dtype = feat.dtype
-    log_amax = torch.tensor(_LOG2_ALPHA_MAX, dtype=dtype)
+    dtype, dev = feat.dtype, feat.device
+
+    def scalar(v: float) -> torch.Tensor:
+        # A 0-dim operand on the data's device; `full` fills it there (`torch.tensor` would copy
+        # from the host, a device sync per block on CUDA).
+        return torch.full((), v, dtype=dtype, device=dev)
+
+    log_amax = scalar(_LOG2_ALPHA_MAX)
     log2o = torch.log2(o.clamp_min(1e-30))
     # log2 alpha = log2 o - log2(e) q/2 as one matmul: the coefficients carry -log2(e)/2 and log2 o.
     k = (-0.5 * LOG2E) * k
@@ -253,14 +261,14 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     # (q <= s^2  <=>  log2 alpha >= log2 o - log2(e) s^2/2); padding slots never pass. The
     # threshold is moved down one ulp so that `L - thr > 0` is exactly `L >= threshold`.
     thr = torch.clamp_min(log2o - (0.5 * LOG2E) * SUPPORT_SIGMA ** 2, _LOG2_ALPHA_MIN)
-    thr = torch.nextafter(thr, torch.tensor(-math.inf, dtype=dtype)).masked_fill_(~(real & (o > 0)), math.inf)
+    thr = torch.nextafter(thr, scalar(-math.inf)).masked_fill_(~(real & (o > 0)), math.inf)
     keep = _step(torch.sub(L, thr[:, :, None]))
     # The backward needs which alphas are not clamped at 0.99; only a Gaussian with o > 0.99
     # can be clamped (0.989: margin for the rounding of L), so most blocks skip the mask
     # (None = all ones).
     lv = None
     if need_grad and bool((o > 0.989).any()):
-        lv = _step(torch.rsub(L, torch.nextafter(log_amax, torch.tensor(math.inf, dtype=dtype))))
+        lv = _step(torch.rsub(L, torch.nextafter(log_amax, scalar(math.inf))))
     # Floor: exp2 never returns a subnormal (those run ~50x slower); it only touches skipped pairs.
     alpha = L.clamp_(LOG2_FLOOR, log_amax).exp2_().mul_(keep)
     om = torch.rsub(alpha, 1.0)
@@ -284,7 +292,7 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     dense = len(ts) > Ta.shape[0] // 2  # most tiles: cheaper on the whole block than gathered
     if len(ts):
         Tsub = Ta if dense else Ta.index_select(0, ts)  # [k, B, P]
-        used = _step(Tsub - torch.nextafter(torch.tensor(T_MIN, dtype=dtype), torch.tensor(0.0, dtype=dtype)))
+        used = _step(Tsub - torch.nextafter(scalar(T_MIN), scalar(0.0)))
         # T after the last used Gaussian (T_in if none) for the stopping pixels.
         n_used = used.sum(1).long()  # [k, P]
         val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
@@ -349,8 +357,8 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, background, gauss_ids, starts, tx, width, height, tile, block,
                 need_grad):
         n_ch = colors.shape[1]
-        dtype = colors.dtype
-        feat = _pixel_features(tile, dtype)
+        dtype, dev = colors.dtype, colors.device
+        feat = _pixel_features(tile, dtype, dev)
         P = tile * tile
         # One per-Gaussian table, so a block gathers its Gaussians with one index_select; planar
         # (a row per quantity) so every per-Gaussian step runs on contiguous [T, B] planes.
@@ -358,21 +366,21 @@ class _Composite(torch.autograd.Function):
         bg_cp = background.to(dtype)[None, :, None]  # [1, C, 1]
         # Pixels of tiles no Gaussian touches see only the background.
         out = background.to(dtype).expand(height * width, n_ch).clone()
-        t_final = torch.ones(height * width, dtype=dtype)
+        t_final = torch.ones(height * width, dtype=dtype, device=dev)
         saved = []  # per chunk: (flat, inside, blocks), for the backward
         for tiles, mcount in _chunks(starts, P, block):
             flat, inside, centres = _tile_pixels(tiles, tx, tile, width, height)
             n_t = len(tiles)
             # Colour sums channel-major, [T, C, P]: bmm(colours [T, C, B], w [T, B, P]) is ~4x
             # faster than producing [T, P, C] (a [P, B] x [B, C] product per tile).
-            acc = torch.zeros(n_t, n_ch, P, dtype=dtype)
-            T = torch.ones(n_t, P, dtype=dtype)
+            acc = torch.zeros(n_t, n_ch, P, dtype=dtype, device=dev)
+            T = torch.ones(n_t, P, dtype=dtype, device=dev)
             # State of the tiles still compositing (early stop drops finished tiles from it).
-            act = torch.arange(n_t)
+            act = torch.arange(n_t, device=dev)
             a_tiles, a_centres = tiles, centres.to(dtype)
             a_counts = starts[tiles + 1] - starts[tiles]
             a_acc, a_T = torch.zeros_like(acc), torch.ones_like(T)
-            a_done = torch.zeros(n_t, P, dtype=torch.bool)
+            a_done = torch.zeros(n_t, P, dtype=torch.bool, device=dev)
             blocks, sel = [], None
             for lo in range(0, mcount, block):
                 g, real = _gather(a_tiles, lo, min(lo + block, mcount), starts, gauss_ids)
@@ -412,15 +420,15 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, g_out, g_alpha):
         means2d, conics, opacities, colors, background, t_final, out, *tensors = ctx.saved_tensors
         tile, layout = ctx.meta
-        dtype = colors.dtype
+        dtype, dev = colors.dtype, colors.device
         n_ch = colors.shape[1]
-        feat_t = (-0.5 * _pixel_features(tile, dtype)).T.contiguous()  # [6, P]; -1/2 from the coefficients
+        feat_t = (-0.5 * _pixel_features(tile, dtype, dev)).T.contiguous()  # [6, P]; -1/2 from the coefficients
         g_out = g_out.reshape(-1, n_ch).to(dtype)
         g_alpha = torch.zeros_like(t_final) if g_alpha is None else g_alpha.reshape(-1).to(dtype)
         # Gradients of the per-Gaussian table, planar: (means2d, conics, opacity) [6, N], and
         # colours [C, N].
-        d_table = torch.zeros(6, means2d.shape[0], dtype=dtype)
-        d_colors = torch.zeros(n_ch, means2d.shape[0], dtype=dtype)  # planar, [C, N]
+        d_table = torch.zeros(6, means2d.shape[0], dtype=dtype, device=dev)
+        d_colors = torch.zeros(n_ch, means2d.shape[0], dtype=dtype, device=dev)  # planar, [C, N]
         d_bg = (g_out * t_final[:, None]).sum(0)  # d out / d bg = T_final everywhere
         # Per pixel: the whole composited sum <g, sum_j c_j w_j> and what the background and the
         # alpha output add behind every Gaussian; suffix sums then come from prefix sums.

@@ -24,10 +24,12 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         viewmat: [4, 4] world-to-camera (OpenCV). K: [3, 3] px. background: [3] (default black).
         sh_degree: degree to use (<= what sh holds; default all of it).
         backend: "auto" (gsplat on CUDA if installed), "torch" or "gsplat".
+        tile: the torch rasterizer's tile side (px); gsplat uses its own default (16), the only
+            tile size it tests (its `rasterization` docs).
 
     Returns dict: rgb [H, W, 3], depth [H, W] (expected planar depth of the composited
     Gaussians, m; 0 where alpha is 0), alpha [H, W], radii [N] px, means2d [N, 2] px (retains
-    grad for densification), visible [N] bool.
+    grad for densification; gsplat's is [1, N, 2], the tensor its graph uses), visible [N] bool.
     """
     n = means.shape[0]
     assert means.shape == (n, 3) and quats.shape == (n, 4) and scales.shape == (n, 3), (means.shape, quats.shape, scales.shape)
@@ -36,9 +38,10 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     dtype = means.dtype
     if background is None:
         background = torch.zeros(3, dtype=dtype, device=means.device)
+    background = background.to(means.device)  # no-op where the caller put it with the data
     if backend == "gsplat" or (backend == "auto" and means.is_cuda and _has_gsplat()):
         return _rasterize_gsplat(means, quats, scales, opacities, sh, viewmat, K, width, height,
-                                 background, deg, near, far, tile)
+                                 background, deg, near, far)
     viewmat = viewmat.to(dtype)
     proj = project(means, quats, scales, viewmat, K, width, height, near=near, far=far)
     means2d = proj["means2d"]
@@ -64,16 +67,18 @@ def _has_gsplat() -> bool:
     return True
 
 
-def _rasterize_gsplat(means, quats, scales, opacities, sh, viewmat, K, width, height, background, deg, near, far, tile):
+def _rasterize_gsplat(means, quats, scales, opacities, sh, viewmat, K, width, height, background, deg, near, far):
     """gsplat path (CUDA only). Untested on this CPU machine; kept to gsplat's documented API."""
     import gsplat
 
     rgbd, alphas, meta = gsplat.rasterization(
         means, quats, scales, opacities, sh, viewmat[None], K[None], width, height,
-        near_plane=near, far_plane=far, sh_degree=deg, tile_size=tile,
+        near_plane=near, far_plane=far, sh_degree=deg,
         backgrounds=background[None], render_mode="RGB+ED", packed=False,
     )
-    means2d = meta["means2d"]
+    means2d = meta["means2d"]  # [1, N, 2]: a view of it would take no part in the graph, nor get a grad
+    if means2d.requires_grad:
+        means2d.retain_grad()  # densification reads its gradient, as on the torch path
     radii = meta["radii"][0]
     radii = radii.max(-1).values if radii.ndim == 2 else radii
     return {"rgb": rgbd[0, ..., :3], "depth": rgbd[0, ..., 3], "alpha": alphas[0, ..., 0],

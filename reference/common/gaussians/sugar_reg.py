@@ -55,7 +55,7 @@ class SugarRegularizer:
             xyz = model.means.detach().cpu().numpy()
             k = min(self.w.knn, n)
             _, idx = cKDTree(xyz).query(xyz, k=k)
-            self._knn = torch.from_numpy(np.asarray(idx).reshape(n, k)).to(model.means.device)
+            self._knn = torch.as_tensor(np.asarray(idx).reshape(n, k), device=model.means.device)
             self._knn_it = it
         return self._knn
 
@@ -78,11 +78,12 @@ def sdf_terms(model: GaussianModel, knn: torch.Tensor, samples: int, gen: torch.
     """(SDF alignment loss, normal loss), both scalars, from `samples` points drawn from the
     Gaussians (chosen uniformly). knn: [N, k] neighbour indices (self included)."""
     n = len(model)
-    src = torch.randint(0, n, (samples,), generator=gen).to(model.means.device)
+    # Drawn where the generator lives (the CPU: the same draws on every device), then moved.
+    src = torch.randint(0, n, (samples,), generator=gen, device=gen.device).to(model.means.device)
     means, scales, opac = model.means, model.scales, model.opacities
     R = quat_to_rotmat(model.quats)  # [N, 3, 3]
     with torch.no_grad():  # sample p ~ N(mu, Sigma) of the source Gaussian
-        eps = torch.randn(samples, 3, generator=gen).to(means.device)
+        eps = torch.randn(samples, 3, generator=gen, device=gen.device).to(means.device)
         p = means[src] + (R[src] @ (eps * scales[src])[..., None])[..., 0]  # [S, 3]
     nb = knn[src]  # [S, k]
     d = p[:, None, :] - means[nb]  # [S, k, 3]

@@ -112,7 +112,7 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
     dev = model.means.device  # everything runs where the model's parameters live
-    bg = (background if background is not None else torch.zeros(3)).to(dev)
+    bg = background.to(dev) if background is not None else torch.zeros(3, device=dev)
     if box is not None:
         box = box.to(dev)
     lrs = {"means": cfg.lr_means * extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
@@ -143,7 +143,8 @@ def train(model: GaussianModel, views: list[View], cfg: TrainConfig, *, extent: 
         # 3. Densification statistics: view-space positional gradient in NDC units (as 3DGS).
         vis = out["visible"]
         if out["means2d"].grad is not None and it < cfg.densify_until:
-            g = out["means2d"].grad.detach() * torch.tensor([view.width / 2, view.height / 2], device=dev)
+            ndc = torch.tensor([view.width / 2, view.height / 2], device=dev)
+            g = out["means2d"].grad.detach().reshape(-1, 2) * ndc  # reshape: gsplat's means2d is [1, N, 2]
             grad_acc[vis] += g[vis].norm(dim=-1)
             grad_cnt[vis] += 1
         opt.step()

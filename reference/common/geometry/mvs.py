@@ -291,7 +291,7 @@ def run_mvs(images: list[np.ndarray], cams: list[Camera], box: np.ndarray, cfg: 
     from tqdm import tqdm
 
     assert len(images) == len(cams), (len(images), len(cams))
-    imgs = [torch.from_numpy(np.ascontiguousarray(i)).permute(2, 0, 1).float().to(device) for i in images]
+    imgs = [torch.as_tensor(np.ascontiguousarray(i), device=device).permute(2, 0, 1).float() for i in images]
     sources = select_sources(cams, box, cfg)
     raw = [plane_sweep(imgs, cams, r, sources[r], box, cfg)
            for r in tqdm(range(len(cams)), desc="mvs", disable=None if progress else True, leave=False)]

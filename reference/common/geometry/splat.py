@@ -64,14 +64,16 @@ def disc_rotations(normals: np.ndarray) -> np.ndarray:
 def surfels(cloud: PointCloud, *, size: float = 1.0, thickness: float = 0.01) -> dict[str, torch.Tensor]:
     """Gaussian parameters of the cloud's discs: means [N, 3], quats [N, 4] wxyz, scales [N, 3]
     (m), colours [N, 3]. Disc radius = size * footprint / 2; across the disc `thickness` times
-    that. Points without a normal get spheres."""
+    that. Points without a normal get spheres. On the CPU (from the cloud's numpy arrays); the
+    caller moves them to its device."""
     r = np.maximum(size * cloud.footprint.astype(np.float64) / 2, 1e-4)
     has_n = np.linalg.norm(cloud.normals, axis=1) > 0.5
     scales = np.stack([r, r, np.where(has_n, r * thickness, r)], 1)
-    return {"means": torch.tensor(cloud.xyz, dtype=torch.float32),
-            "quats": torch.from_numpy(disc_rotations(cloud.normals)),
-            "scales": torch.tensor(scales, dtype=torch.float32),
-            "colors": torch.tensor(cloud.rgb, dtype=torch.float32)}
+    cpu = torch.device("cpu")
+    return {"means": torch.tensor(cloud.xyz, dtype=torch.float32, device=cpu),
+            "quats": torch.as_tensor(disc_rotations(cloud.normals), device=cpu),
+            "scales": torch.tensor(scales, dtype=torch.float32, device=cpu),
+            "colors": torch.tensor(cloud.rgb, dtype=torch.float32, device=cpu)}
 
 
 def ground_colour(cloud: PointCloud, *, layer_m: float = 0.5) -> np.ndarray | None:
@@ -87,7 +89,8 @@ def ground_colour(cloud: PointCloud, *, layer_m: float = 0.5) -> np.ndarray | No
 @torch.no_grad()
 def render_surfels(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float = 0.98, near: float = 0.5,
                    device: str | torch.device = "cpu") -> dict[str, np.ndarray]:
-    """Render surfels (`surfels(...)`, tensors on `device`) from `cam`: colour, coverage and depth.
+    """Render surfels (`surfels(...)`; moved to `device` where they are elsewhere) from `cam`:
+    colour, coverage and depth.
 
     Returns float32 arrays: "colour" [H, W, 3] in [0, 1] (the discs' own colour where alpha > 0,
     0 elsewhere), "alpha" [H, W] (the coverage), "depth" [H, W] (the discs' planar depth in
@@ -98,15 +101,17 @@ def render_surfels(params: dict[str, torch.Tensor], cam: Camera, *, opacity: flo
     from reference.common.gaussians.model import rgb_to_sh0
     from reference.common.gaussians.render import rasterize
 
+    params = {k: v.to(device) for k, v in params.items()}  # no copy where they are on `device`
     means = params["means"]
     n = means.shape[0]
     if n == 0:
         zeros = np.zeros((cam.height, cam.width), np.float32)
         return {"colour": np.zeros((cam.height, cam.width, 3), np.float32), "alpha": zeros, "depth": zeros.copy()}
+    dev = means.device
     sh = rgb_to_sh0(params["colors"])[:, None, :]
-    w2c = torch.tensor(cam.w2c, dtype=torch.float32, device=device)
-    K = torch.tensor(cam.K, dtype=torch.float32, device=device)
-    out = rasterize(means, params["quats"], params["scales"], torch.full((n,), opacity, device=device), sh, w2c, K,
+    w2c = torch.tensor(cam.w2c, dtype=torch.float32, device=dev)
+    K = torch.tensor(cam.K, dtype=torch.float32, device=dev)
+    out = rasterize(means, params["quats"], params["scales"], torch.full((n,), opacity, device=dev), sh, w2c, K,
                     cam.width, cam.height, near=near, sh_degree=0)
     alpha = out["alpha"]
     colour = out["rgb"] / alpha.clamp_min(1e-6)[..., None] * (alpha[..., None] > 0)  # composited over black
@@ -117,7 +122,7 @@ def render_surfels(params: dict[str, torch.Tensor], cam: Camera, *, opacity: flo
 
 def render_cloud(params: dict[str, torch.Tensor], cam: Camera, *, opacity: float = 0.98, near: float = 0.5,
                  device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Render surfels (`surfels(...)`, tensors on `device`) from `cam`.
+    """Render surfels (`surfels(...)`, moved to `device` where they are elsewhere) from `cam`.
 
     Returns (colour float32 [H, W, 3] in [0, 1], the discs' own colour where alpha > 0 and 0
     elsewhere; alpha float32 [H, W], the coverage). Composite with `over`. Depth as well:

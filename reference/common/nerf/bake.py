@@ -110,8 +110,9 @@ def grid_shape(box: SceneBox, voxel_m: float) -> tuple[int, int, int]:
 
 
 def view_directions(view: str, dtype=torch.float32) -> torch.Tensor:
-    """The 8 unit directions [8, 3] averaged over by `view` ("horizontal" or "aerial")."""
-    yaw = torch.arange(8, dtype=torch.float64) * (math.pi / 4)
+    """The 8 unit directions [8, 3] averaged over by `view` ("horizontal" or "aerial"), on the CPU
+    (the same numbers for every device; the caller moves them)."""
+    yaw = torch.arange(8, dtype=torch.float64, device="cpu") * (math.pi / 4)
     pitch = {"horizontal": 0.0, "aerial": -math.pi / 4}[view]
     dirs = torch.stack([torch.cos(yaw) * math.cos(pitch), torch.sin(yaw) * math.cos(pitch),
                         torch.full_like(yaw, math.sin(pitch))], -1)

@@ -66,13 +66,14 @@ class HashEncoding(nn.Module):
         #: levels 0..n_dense-1 index densely (resolutions grow, so the dense ones are a prefix)
         self.n_dense = sum((n + 1) ** 3 <= T for n in res)
         # NOTE: the paper initialises the tables uniformly in [-1e-4, 1e-4].
-        table = (torch.rand(cfg.levels, T, cfg.features, generator=generator) * 2 - 1) * init_scale
+        # Made on the CPU (a CPU generator: the same table on every device); `.to(device)` moves it.
+        table = (torch.rand(cfg.levels, T, cfg.features, generator=generator, device="cpu") * 2 - 1) * init_scale
         self.table = nn.Parameter(table)  # [L, T, F]
-        self.register_buffer("res", torch.tensor(res, dtype=torch.long), persistent=False)  # [L]
+        self.register_buffer("res", torch.tensor(res, dtype=torch.long, device="cpu"), persistent=False)  # [L]
         res1 = self.res + 1
         strides = torch.stack([torch.ones_like(res1), res1, res1 * res1], -1)  # [L, 3]
         self.register_buffer("strides", strides, persistent=False)
-        self.register_buffer("primes", torch.tensor(PRIMES, dtype=torch.long), persistent=False)  # [3]
+        self.register_buffer("primes", torch.tensor(PRIMES, dtype=torch.long, device="cpu"), persistent=False)  # [3]
 
     def corner_rows(self, cell: torch.Tensor) -> torch.Tensor:
         """Cells cell [N, L, 3] (lower corners) -> table rows [N, L, 8] of their 8 corners, corner

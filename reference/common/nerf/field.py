@@ -53,11 +53,14 @@ class NeRFField(nn.Module):
         self.cfg = cfg
         g = torch.Generator().manual_seed(seed)
         torch.manual_seed(seed)  # the MLPs' default initialisation
+        # Made on the CPU (its generators: the same field on every device); `.to(device)` moves it.
+        cpu = torch.device("cpu")
         self.encoding = HashEncoding(cfg.grid, generator=g)
-        self.density_mlp = nn.Sequential(nn.Linear(cfg.grid.out_dim, cfg.hidden), nn.ReLU(),
-                                         nn.Linear(cfg.hidden, 1 + cfg.geo_features))
-        self.colour_mlp = nn.Sequential(nn.Linear(cfg.geo_features + 16, cfg.hidden), nn.ReLU(),
-                                        nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, 3))
+        self.density_mlp = nn.Sequential(nn.Linear(cfg.grid.out_dim, cfg.hidden, device=cpu), nn.ReLU(),
+                                         nn.Linear(cfg.hidden, 1 + cfg.geo_features, device=cpu))
+        self.colour_mlp = nn.Sequential(nn.Linear(cfg.geo_features + 16, cfg.hidden, device=cpu), nn.ReLU(),
+                                        nn.Linear(cfg.hidden, cfg.hidden, device=cpu), nn.ReLU(),
+                                        nn.Linear(cfg.hidden, 3, device=cpu))
 
     def density(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points u [N, 3] in the unit cube (contracted) -> sigma [N] (1/m), geometry features [N, G]."""
@@ -117,7 +120,8 @@ class OccupancyGrid:
         """A random point [N, 3] in each of the cells [N] (unit cube)."""
         r = self.res
         ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], -1).float()
-        jit = torch.rand(len(cells), 3, generator=generator).to(cells.device)
+        # Drawn where the generator lives (the CPU: the same draws on every device), then moved.
+        jit = torch.rand(len(cells), 3, generator=generator, device=generator.device).to(cells.device)
         return (ijk + jit) / r
 
     @torch.no_grad()
@@ -128,9 +132,10 @@ class OccupancyGrid:
         if n_cells is None or n_cells >= total:
             cells = torch.arange(total, device=self.sigma.device)
         else:
-            uni = torch.randint(0, total, (n_cells // 2,), generator=generator).to(self.sigma.device)
+            gd = generator.device  # the CPU generator's draws, the same on every device, then moved
+            uni = torch.randint(0, total, (n_cells // 2,), generator=generator, device=gd).to(self.sigma.device)
             occ = self.occupied.nonzero()[:, 0]
-            pick = torch.randint(0, max(len(occ), 1), (n_cells - n_cells // 2,), generator=generator)
+            pick = torch.randint(0, max(len(occ), 1), (n_cells - n_cells // 2,), generator=generator, device=gd)
             cells = torch.cat([uni, occ[pick.to(occ.device)]]) if len(occ) else uni
         pts = self.cell_points(cells, generator)
         new = torch.cat([density_fn(p) for p in pts.split(chunk)]) if len(pts) else pts[:, 0]

@@ -27,18 +27,19 @@ import torch
 
 @dataclass
 class SceneBox:
-    """Axis-aligned box (world, m) that maps to [-1, 1]^3; lo, hi [3]."""
+    """Axis-aligned box (world, m) that maps to [-1, 1]^3; lo, hi [3]. `centre` and `half` are
+    CPU tensors (from the numpy corners); users move them to their data (`.to(x)`)."""
 
     lo: np.ndarray
     hi: np.ndarray
 
     @property
     def centre(self) -> torch.Tensor:
-        return torch.tensor((np.asarray(self.lo) + np.asarray(self.hi)) / 2, dtype=torch.float32)
+        return torch.tensor((np.asarray(self.lo) + np.asarray(self.hi)) / 2, dtype=torch.float32, device="cpu")
 
     @property
     def half(self) -> torch.Tensor:
-        return torch.tensor((np.asarray(self.hi) - np.asarray(self.lo)) / 2, dtype=torch.float32)
+        return torch.tensor((np.asarray(self.hi) - np.asarray(self.lo)) / 2, dtype=torch.float32, device="cpu")
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:  # [..., 3] world -> box units
         return (x - self.centre.to(x)) / self.half.to(x)

@@ -173,14 +173,15 @@ def pretrain_density(model: Model, points: torch.Tensor, cfg: NeRFConfig, *, ste
     dev = points.device
     opt = torch.optim.Adam(model.field.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     empty = (~model.grid.occupied).nonzero()[:, 0]
-    loss = torch.zeros(())
+    loss = torch.zeros((), device=dev)
+    gd = gen.device  # draws on the CPU generator (the same on every device), then moved
     for _ in range(steps):
-        pos = points[torch.randint(0, len(points), (batch,), generator=gen).to(dev)]
-        pos = pos + (torch.rand(batch, 3, generator=gen).to(dev) - 0.5) * step_m
+        pos = points[torch.randint(0, len(points), (batch,), generator=gen, device=gd).to(dev)]
+        pos = pos + (torch.rand(batch, 3, generator=gen, device=gd).to(dev) - 0.5) * step_m
         sig_pos = model.field.density(to_unit(model.box.normalise(pos)))[0]
         loss = -torch.log(-torch.expm1(-(sig_pos * step_m).clamp_min(1e-6))).mean()
         if len(empty):
-            cells = empty[torch.randint(0, len(empty), (batch,), generator=gen).to(dev)]
+            cells = empty[torch.randint(0, len(empty), (batch,), generator=gen, device=gd).to(dev)]
             sig_neg = model.field.density(model.grid.cell_points(cells, gen))[0]
             loss = loss + (sig_neg * step_m).mean()
         opt.zero_grad(set_to_none=True)
@@ -219,7 +220,7 @@ def train(model: Model, rays: tuple[torch.Tensor, torch.Tensor, torch.Tensor], c
             warm = full_warmup and it <= cfg.occ_warmup
             grid.update(density_fn, gen, n_cells=None if warm else grid.res ** 3 // 4)
         # 3. A batch of random rays of all views, rendered over the training background.
-        idx = torch.randint(0, len(o_all), (cfg.batch_rays,), generator=gen).to(o_all.device)
+        idx = torch.randint(0, len(o_all), (cfg.batch_rays,), generator=gen, device=gen.device).to(o_all.device)
         out = render_rays(model, o_all[idx], d_all[idx], cfg, near=cfg.near_m, generator=gen)
         rgb = out["rgb"] + (1 - out["acc"])[:, None] * model.background
         loss = torch.nn.functional.mse_loss(rgb, c_all[idx])

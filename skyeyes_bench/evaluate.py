@@ -94,7 +94,7 @@ def _frame_batches(items: list, size: int):
 
 
 def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = False,
-             progress: bool = True, protocol: str | None = None) -> dict[str, Any]:
+             progress: bool = True, protocol: str | None = None, device: str | None = "cpu") -> dict[str, Any]:
     """Score a submission folder against its protocol.
 
     Args:
@@ -108,14 +108,22 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         protocol: score with this protocol (`id@N`) instead of the one `submission.json` names;
             it must score the same data (`data.dataset_protocol`), e.g. "synthtown@3" for a
             submission written for "synthtown@2" (same frames, more metrics).
+        device: where the feature extractors (Inception, I3D, LPIPS) run: "cpu" (the default and
+            the reference), "cuda", "cuda:N" or "auto" (CUDA when visible; `devices.resolve_device`).
+            GPU features agree with the CPU's to float rounding, so scores may differ in their last
+            digits; the device type is recorded as `extractors.<id>.device`, and features are cached
+            per device type.
     Returns:
         The results dict (or the partial dict for a shard).
     Raises:
         ValidationError: every problem of the submission, before anything is computed or written.
+        UserError: a device this machine lacks (before any work).
     """
     from .data.layout import open_dataset
+    from .metrics.extractors import on_device
     from .protocol import load_protocol as _load_protocol
 
+    dev = _scoring_device(device)  # before any work: `--device cuda` without CUDA is one line, exit 2
     shard = parse_shard(shard)
     sub = Path(submission_dir)
     out = Path(out) if out is not None else None
@@ -157,9 +165,12 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
     seq_index = {sid: k for k, sid in enumerate(seq_ids)}
-    records, unavailable = _frame_metrics(sub, frames, protocol, seq_index, sub_sha, timing, progress)
-    _sequence_metrics(sub, ds, frames, protocol, records, unavailable, timing, progress)
-    features, extractors = _features(sub, frames, protocol, seq_index, unavailable, timing, progress)
+    # The per-frame and per-sequence metric functions call LPIPS without a device argument:
+    # `on_device` sends every extractor inside the block to `dev`.
+    with on_device(dev):
+        records, unavailable = _frame_metrics(sub, frames, protocol, seq_index, sub_sha, timing, progress)
+        _sequence_metrics(sub, ds, frames, protocol, records, unavailable, timing, progress)
+        features, extractors = _features(sub, frames, protocol, seq_index, unavailable, timing, progress, dev)
     doc.update(frames=records, unavailable=unavailable, extractors=extractors)
     if shard is None:
         doc = finalize(doc, features, timing=timing, progress=progress)
@@ -168,6 +179,17 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     if out is not None:
         write_results(out, doc, features)
     return doc
+
+
+def _scoring_device(device):
+    """`--device` resolved (`devices.resolve_device`) to a device that computes numbers."""
+    from .devices import resolve_device
+
+    dev = resolve_device(device)
+    if dev.type == "meta":
+        raise UserError(f"--device {device}: the meta device holds no data, so it cannot compute features "
+                        "(expected auto, cpu, cuda or cuda:N)")
+    return dev
 
 
 def _check_extractors(protocol) -> None:
@@ -288,8 +310,9 @@ def _sequence_metrics(sub: Path, ds, frames, protocol, records: list[dict], unav
             bar.update(1)
 
 
-def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progress):
-    """Features of the submission and ground truth for every set-metric extractor.
+def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progress, device):
+    """Features of the submission and ground truth for every set-metric extractor, computed on
+    `device` (a torch device; its type is recorded in each extractor's info).
 
     Returns ({"<extractor>": {"sub": [N, D], "gt": [N, D], "seq": [N]}}, {extractor: info})."""
     from .metrics import MetricUnavailable
@@ -312,7 +335,8 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
         for ex_id, specs in wanted.items():
             try:
                 ex = get_extractor(ex_id)
-                extractors[ex_id] = {"kind": ex.kind, "dim": ex.dim, "weights_sha256": ex.weights_sha256}
+                extractors[ex_id] = {"kind": ex.kind, "dim": ex.dim, "weights_sha256": ex.weights_sha256,
+                                     "device": device.type}
             except MetricUnavailable as e:
                 extractors[ex_id] = {"status": "unavailable", "reason": e.reason}
                 for m in specs:
@@ -327,8 +351,8 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                     sub_paths = [sub / frame_relpath(s, f) for s, f in frames]
                     gt_paths = [f.path for _, f in frames]
                     seq = np.array([seq_index[f"{s}/{f.sequence}"] for s, f in frames], dtype=np.int64)
-                    fs = extract_image_features(ex_id, sub_paths, progress=progress)
-                    fg = extract_image_features(ex_id, gt_paths, progress=progress)
+                    fs = extract_image_features(ex_id, sub_paths, progress=progress, device=device)
+                    fg = extract_image_features(ex_id, gt_paths, progress=progress, device=device)
                 else:
                     spec = specs[0]
                     if len({(m.clip_length, m.clip_stride) for m in specs}) > 1:
@@ -348,8 +372,8 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                     if not clips_sub:
                         fs = fg = np.zeros((0, ex.dim))
                     else:
-                        fs = extract_clip_features(ex_id, clips_sub, progress=progress)
-                        fg = extract_clip_features(ex_id, clips_gt, progress=progress)
+                        fs = extract_clip_features(ex_id, clips_sub, progress=progress, device=device)
+                        fg = extract_clip_features(ex_id, clips_gt, progress=progress, device=device)
             except MetricUnavailable as e:
                 extractors[ex_id]["status"] = "unavailable"
                 for m in specs:

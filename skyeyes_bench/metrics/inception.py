@@ -42,27 +42,31 @@ def clean_resize(img_u8: np.ndarray, size: int = SIZE) -> np.ndarray:
 
 
 def preprocess(images: np.ndarray) -> torch.Tensor:
-    """float [N, H, W, 3] in [0, 1] -> network input [N, 3, 299, 299] (channels-last memory).
+    """float [N, H, W, 3] in [0, 1] -> network input [N, 3, 299, 299] (channels-last memory),
+    on the CPU, where clean-fid's PIL resize runs (the caller moves it to the network's device).
 
     The images are quantised to 8 bits first (exact for frames read from 8-bit PNGs, which is
     what the benchmark scores), so features equal clean-fid's on the same files.
     """
     u8 = to_uint8(np.asarray(images))
     x = np.stack([clean_resize(im) for im in u8])  # [N, 299, 299, 3]
-    t = torch.from_numpy(x).permute(0, 3, 1, 2)
+    t = torch.as_tensor(x, device="cpu").permute(0, 3, 1, 2)
     t = (t - 128.0) / 128.0
     return t.contiguous(memory_format=torch.channels_last)
 
 
-def load_inception(path, *, freeze: bool = True) -> torch.nn.Module:
-    """The TorchScript Inception for inference; `freeze` inlines the weights as constants and
-    folds each BatchNorm into its convolution (torch.jit.freeze), the same function up to
-    float rounding (checked against the plain module in the tests)."""
+def load_inception(path, *, freeze: bool = True, device="cpu") -> torch.nn.Module:
+    """The TorchScript Inception for inference on `device`; `freeze` inlines the weights as
+    constants and folds each BatchNorm into its convolution (torch.jit.freeze), the same function
+    up to float rounding (checked against the plain module in the tests).
+
+    The weights are mapped to `device` while loading, before freezing: a frozen module's
+    constants would not follow a later `.to(device)`."""
     import warnings
 
     with warnings.catch_warnings():  # torch 2.13 marks TorchScript deprecated; the file is TorchScript
         warnings.simplefilter("ignore", DeprecationWarning)
-        m = torch.jit.load(str(path), map_location="cpu").eval()
+        m = torch.jit.load(str(path), map_location=torch.device(device)).eval()
         if freeze:
             m = torch.jit.freeze(m)
     return m

@@ -110,6 +110,15 @@ def peak_rss_mb() -> float:
     return (own + workers) / 1024.0
 
 
+def _peak_gpu_note() -> str:
+    """", peak GPU memory N MB" of this process where it used CUDA (worker processes, such as
+    the lanes of a prior, hold their own), else ""."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_initialized():
+        return ""
+    return f", peak GPU memory {torch.cuda.max_memory_allocated() / 2**20:.0f} MB in this process"
+
+
 def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]:
     out.mkdir(parents=True, exist_ok=True)
     fh = logging.FileHandler(out / "reproduce.log", mode="w" if fresh else "a")
@@ -227,8 +236,8 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             w.finish(timings={"fit_s": fit_s, "render_s": float(sum(per_frame)), "per_frame_render_s": per_frame,
                               "cached_s": cached_s},
                      peak_memory_mb=peak_rss_mb(), hardware=None)
-        log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB)", sub_dir, fit_s,
-                 sum(per_frame), peak_rss_mb())
+        log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB%s)", sub_dir, fit_s,
+                 sum(per_frame), peak_rss_mb(), _peak_gpu_note())
         # 5. Evaluate.
         res = evaluate(sub_dir, data=root, out=out / "results.json", force=True, progress=progress)
         print(format_summary(res))

@@ -94,6 +94,11 @@ class SkyeyesConfig:
     device: str = "auto"
     mixed_precision: str = "auto"
     ckpt_every: int = 50
+    # Memory for batch on a GPU (the same training up to float rounding, so neither is in the stage
+    # keys): each process's share of a batch in this many micro-batches, gradients accumulated;
+    # and activation checkpointing in the UNet and its ControlNet branch (recomputed in backward).
+    micro_batches: int = 1
+    grad_checkpointing: bool = False
     figure_frames: int = 6
     # torch threads of the diffusion stages (0: every core; OMP_NUM_THREADS wins when set).
     # NOTE: measured on SynthTown small, base stage: 2.4 s/step on 1 thread (the setting the
@@ -143,7 +148,11 @@ PRESETS: dict[str, SkyeyesConfig] = {
                         attention=(False, True, True, True), layers_per_block=2, head_dim=64,
                         embed_dim=768, norm_groups=32),
         prior_preset="paper", base_steps=30000, base_batch=32, acm_steps=30000, acm_batch=32,
-        vcm_steps=3000, vcm_batch=2, sample_steps=50, ckpt_every=1000),
+        vcm_steps=3000, vcm_batch=2, sample_steps=50, ckpt_every=1000,
+        # NOTE: SD1.5's UNet and a ControlNet branch at batch 32 of 64x64 latents keep their
+        # activations in tens of GB; checkpointing them is what fits one 80 GB GPU (not yet
+        # measured there: docs/gpu.md). If it still does not fit: --set micro_batches=2.
+        grad_checkpointing=True),
 }
 
 
@@ -324,11 +333,13 @@ class Skyeyes(Method):
         sched = core.train_scheduler(cfg)
         n = len(frames)
         gamma = c.snr_gamma or None
-        run = dict(accelerator=acc, ema_decay=c.ema_decay)
+        run = dict(accelerator=acc, ema_decay=c.ema_decay, micro_batches=c.micro_batches)
 
         # 2. base UNet on ground truth: only for a ControlNet branch trained from scratch (a
         # pretrained UNet replaces it; a concat-conditioned UNet is trained whole in stage 3).
         model = core.build_model(cfg, control=False, seed=self.seed)
+        if c.grad_checkpointing:  # activations recomputed in backward (memory, not results)
+            model.unet.enable_gradient_checkpointing()
         # Stage keys hold everything a stage depends on except its own step count, plus the
         # full identity (with steps) of the stage it starts from.
         base_key = {"core": core.core_key(cfg), "batch": c.base_batch, "lr": c.base_lr, "seed": self.seed,
@@ -351,6 +362,8 @@ class Skyeyes(Method):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed + 1)
             model.add_control()
+        if c.grad_checkpointing and model.controlnet is not None:
+            model.controlnet.enable_gradient_checkpointing()
         acm_key = {"base": base_id, "batch": c.acm_batch, "lr": c.acm_lr, "condition": c.condition,
                    "cond": cond_hash, **self._acm_key_extra()}
         # A concat UNet is trained whole, with its learned text embeddings (a pretrained one's
@@ -429,7 +442,8 @@ class Skyeyes(Method):
                    "cached_seconds": round(res["resumed_seconds"], 2),
                    "trainable_parameters": sum(p.numel() for p in params),
                    "device": str(acc.device), "processes": acc.num_processes,
-                   "mixed_precision": acc.mixed_precision}
+                   "mixed_precision": acc.mixed_precision, "micro_batches": self.config.micro_batches,
+                   "grad_checkpointing": self.config.grad_checkpointing}
         if run.get("anneal_from") is not None:
             summary["anneal_steps"] = steps - run["anneal_from"]
         self.cached_s += res["resumed_seconds"]

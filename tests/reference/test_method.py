@@ -60,7 +60,12 @@ class FakeScene:
     name: str
 
 
-def test_configure_applies_sets_then_values_device_and_records_the_sets():
+def test_configure_applies_sets_then_values_device_and_records_the_sets(monkeypatch):
+    import torch
+
+    # torch reports two GPUs (nothing runs on them): configure checks the device exists
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     cfg, sets = Toy.configure("big", ["scale=0.5", "inner.a=4"], values={"steps": 7}, device="cuda:1")
     assert cfg == Cfg(steps=7, scale=0.5, inner=Inner(a=4), device="cuda:1")
     assert sets == ["scale=0.5", "inner.a=4", "device=cuda:1"]

@@ -218,6 +218,24 @@ def crops(g, size: int, *tensors):
                  for t in tensors)
 
 
+def _accumulate(acc, net, loss_fn, generator, seed: int, step: int, part: tuple[int, int], micro: int):
+    """One step's gradient in `micro` passes: micro-batch j of process r is share r * micro + j of
+    `world * micro` (the same global draw, from a fresh generator each pass), its loss divided by
+    `micro`; gradients are synchronised across processes on the last pass only. Returns the
+    step's loss (the passes' sum, what one pass would report)."""
+    import contextlib
+
+    rank, world = part
+    total = 0.0
+    for j in range(micro):
+        sync = contextlib.nullcontext() if j == micro - 1 else acc.no_sync(net)
+        with sync:
+            loss = loss_fn(net, generator(seed, step), (rank * micro + j, world * micro)) / micro
+            acc.backward(loss)
+        total = total + loss.detach()
+    return total
+
+
 def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = "auto"):
     """The Hugging Face `Accelerator` the diffusion stages run under.
 
@@ -264,7 +282,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                loss_fn: Callable[..., torch.Tensor], *, steps: int, lr: float,
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
                ema_decay: float = 0.0, accelerator=None, anneal_from: int | None = None,
-               stop_after: int | None = None, progress: bool = True, desc: str = "train") -> dict:
+               stop_after: int | None = None, progress: bool = True, desc: str = "train",
+               micro_batches: int = 1) -> dict:
     """Run `steps` optimisation steps of `loss_fn` over `params`, resuming from `ckpt`.
 
     Args:
@@ -281,6 +300,9 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
             reaching 0 after step `steps` (the decay phase of a warmup-stable-decay schedule).
             None: constant. The rate of a step depends only on its index, so resuming is exact.
         stop_after: stop after this many steps *of this call* (simulates a killed run).
+        micro_batches: each process computes its share of the global batch in this many
+            micro-batches, one backward each, gradients accumulated (memory for batch: the same
+            gradient up to float rounding). 1: one pass, as ever.
 
     Returns:
         {"steps": steps done in total, "losses": [per step], "seconds": wall time of this call
@@ -333,9 +355,12 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         if anneal_from is not None:
             for group in opt.param_groups:
                 group["lr"] = lr * anneal_factor(step, anneal_from, steps)
-        loss = loss_fn(net, step_generator(seed, step), part)
         opt.zero_grad(set_to_none=True)
-        acc.backward(loss)
+        if micro_batches == 1:
+            loss = loss_fn(net, step_generator(seed, step), part)
+            acc.backward(loss)
+        else:
+            loss = _accumulate(acc, net, loss_fn, step_generator, seed, step, part, micro_batches)
         if grad_clip:
             acc.clip_grad_norm_(params, grad_clip)
         opt.step()

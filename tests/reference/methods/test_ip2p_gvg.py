@@ -45,7 +45,7 @@ def tiny(tmp_path_factory) -> Path:
 # --------------------------------------------------------------------------- registry, presets
 
 
-def test_registry_and_presets_follow_skyeyes():
+def test_registry_and_presets_follow_skyeyes(monkeypatch):
     assert METHODS["ip2p"] == "reference.methods.ip2p:InstructPix2Pix"
     assert METHODS["gvg"] == "reference.methods.gvg:GVG"
     ip2p, gvg = get_method_class("ip2p"), get_method_class("gvg")
@@ -70,7 +70,9 @@ def test_registry_and_presets_follow_skyeyes():
     assert SKYEYES["small"].acm_steps > 3000  # Skyeyes trains longer than the baselines' filed rows
     assert [gvg.presets[k].prior_preset for k in ("smoke", "small", "paper")] == ["smoke", "fast", "paper"]
     assert SKYEYES["small"].core.conditioning == "concat"  # the CPU presets already concatenate
-    # --device is a config field of both
+    # --device is a config field of both (torch reports two GPUs here; configure checks it exists)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     cfg, applied = ip2p.configure("smoke", device="cuda:1")
     assert cfg.device == "cuda:1" and "device=cuda:1" in applied
     assert gvg.configure("small", device="cpu")[0].device == "cpu"

@@ -267,6 +267,7 @@ def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert m.device == "cpu"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)  # what torch would report; no kernel runs
     assert m.device == "cuda"
     assert Skyeyes(dataclasses.replace(TINY, device="cuda:1"), tmp_path / "b").device == "cuda:1"
     prior = make_prior_method(PRESETS["small"], tmp_path / "p", 0, "cuda")

@@ -154,7 +154,8 @@ def test_extra_condition_channels_follow_the_colour_folded_alike():
 
 def test_stage_keys_keep_their_old_form_while_the_new_fields_are_at_defaults():
     key = core.core_key(core.CoreConfig())
-    assert not {"cond_extra", "null_prompt", "prompt_text"} & set(key)
+    assert not {"cond_extra", "null_prompt", "prompt_text", "beta_schedule"} & set(key)
     assert key == {k: v for k, v in __import__("dataclasses").asdict(core.CoreConfig()).items()
-                   if k not in ("cond_extra", "null_prompt", "prompt_text", "flow_noise")}
+                   if k not in ("cond_extra", "null_prompt", "prompt_text", "flow_noise", "beta_schedule")}
+    assert core.core_key(core.replace_config(TINY, beta_schedule="scaled_linear"))["beta_schedule"] == "scaled_linear"
     assert core.core_key(core.replace_config(TINY, cond_extra=2))["cond_extra"] == 2

@@ -37,6 +37,17 @@ def make_tiny_dataset(root: Path, frames: int = 6, seqs: int = 2) -> Path:
     return root
 
 
+def render_all(method, dataset) -> dict:
+    """{sequence id: frames [N, H, W, 3]} of every test sequence: each test scene fitted, then
+    its sequences rendered in order (the method's fit_train done already)."""
+    out = {}
+    for scene in dataset.split("test"):
+        method.fit_scene(scene)
+        for seq in scene.sequences.values():
+            out[seq.id] = np.stack(list(method.render_sequence(scene, seq)))
+    return out
+
+
 class StandInPrior(Method):
     """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised. Counts its calls."""
 

@@ -20,7 +20,7 @@ import pytest
 import diffusers  # noqa: F401  (a hard dependency of reference: a broken install fails here, never skips)
 
 from builders.devices import stray_device  # noqa: E402
-from builders.skyeyes import SIZE, StandInGeometryPrior, StandInPrior, make_tiny_dataset  # noqa: E402
+from builders.skyeyes import SIZE, StandInGeometryPrior, StandInPrior, make_tiny_dataset, render_all  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
 from reference.methods.gvg import GVG  # noqa: E402
 from reference.methods.ip2p import InstructPix2Pix  # noqa: E402
@@ -57,12 +57,7 @@ def _frames(cls, cfg, tiny: Path, workdir: Path, prior_cls=StandInPrior) -> dict
     ds = open_dataset(tiny)
     m = cls(cfg, workdir, seed=0, prior_method=prior_cls(workdir / "prior"), progress=False)
     m.fit_train(ds)
-    out = {}
-    for scene in ds.split("test"):
-        m.fit_scene(scene)
-        for seq in scene.sequences.values():
-            out[seq.id] = np.stack(list(m.render_sequence(scene, seq)))
-    return out
+    return render_all(m, ds)
 
 
 def _both(cls, cfg, tiny, tmp_path, monkeypatch, prior_cls=StandInPrior):
@@ -90,22 +85,23 @@ def test_diffusion_methods_make_no_stray_tensors(name, cls, cfg, tiny, tmp_path,
         np.testing.assert_array_equal(stray[k], plain[k])
 
 
-def test_ip2p_guidance_makes_no_stray_tensors(tiny, tmp_path, monkeypatch):
-    cfg = dataclasses.replace(InstructPix2Pix.presets["smoke"], core=dataclasses.replace(
-        InstructPix2Pix.presets["smoke"].core, resolution=SIZE, channels=(16, 32), attention=(False, True),
-        head_dim=8, embed_dim=16, norm_groups=4), acm_steps=2, acm_batch=4, sample_steps=2, ckpt_every=1,
-        figure_frames=2, device="cpu", threads=1)
-    stray, plain = _both(InstructPix2Pix, cfg, tiny, tmp_path, monkeypatch)
-    for k in stray:
-        np.testing.assert_array_equal(stray[k], plain[k])
+def _tiny_baseline(cls) -> object:
+    """A baseline's own smoke preset on the tiny UNet."""
+    base = cls.presets["smoke"]
+    return dataclasses.replace(base, core=dataclasses.replace(base.core, resolution=SIZE, channels=(16, 32),
+                                                              attention=(False, True), head_dim=8, embed_dim=16,
+                                                              norm_groups=4),
+                               acm_steps=2, acm_batch=4, sample_steps=2, ckpt_every=1, figure_frames=2, device="cpu",
+                               threads=1)
 
 
-def test_gvg_geometry_channels_make_no_stray_tensors(tiny, tmp_path, monkeypatch):
-    cfg = dataclasses.replace(GVG.presets["smoke"], core=dataclasses.replace(
-        GVG.presets["smoke"].core, resolution=SIZE, channels=(16, 32), attention=(False, True),
-        head_dim=8, embed_dim=16, norm_groups=4), acm_steps=2, acm_batch=2, sample_steps=2, ckpt_every=1,
-        figure_frames=2, device="cpu", threads=1)
-    stray, plain = _both(GVG, cfg, tiny, tmp_path, monkeypatch, prior_cls=StandInGeometryPrior)
+@pytest.mark.parametrize("cls,prior_cls", [
+    (InstructPix2Pix, StandInPrior),  # guidance: three branches, dropped conditions
+    (GVG, StandInGeometryPrior),  # depth and coverage channels beside the colour
+])
+def test_baselines_make_no_stray_tensors(cls, prior_cls, tiny, tmp_path, monkeypatch):
+    stray, plain = _both(cls, _tiny_baseline(cls), tiny, tmp_path, monkeypatch, prior_cls=prior_cls)
+    assert stray.keys() == plain.keys() and stray
     for k in stray:
         np.testing.assert_array_equal(stray[k], plain[k])
 

@@ -13,6 +13,7 @@ format (and `merge`, `read_results`, ...) from `results`, re-exported here.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,14 @@ from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
     PARTIAL_FORMAT, RESULTS_FORMAT, _digest, _stage, _tqdm, default_out, features_path, finalize, format_summary,
-    merge, read_results, write_results)
+    merge, read_results)
 from .submission import expected_frames, frame_relpath, read_submission, validate_submission
 
 _FRAME_BATCH = 16
+
+#: What `evaluate --out` (and `merge --out`) write: --force replaces only these (`fileio.OutputKind`).
+RESULTS_OUTPUT = fileio.OutputKind("a results file", formats=(RESULTS_FORMAT, PARTIAL_FORMAT))
+FEATURES_OUTPUT = fileio.OutputKind("a features sidecar", magic=b"PK")  # any zip: one without arrays starts PK\x05\x06
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -119,16 +124,29 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         ValidationError: every problem of the submission, before anything is computed or written.
         UserError: a device this machine lacks (before any work).
     """
-    from .data.layout import open_dataset
-    from .metrics.extractors import on_device
-    from .protocol import load_protocol as _load_protocol
-
     dev = _scoring_device(device)  # before any work: `--device cuda` without CUDA is one line, exit 2
     shard = parse_shard(shard)
     sub = Path(submission_dir)
     out = Path(out) if out is not None else None
     if out is not None:  # before any work: a refused output never costs a scoring run
-        fileio.check_output(out, force=force, sidecars=[features_path(out)], outside=[sub])
+        _check_out(out, force, [sub])
+    with contextlib.ExitStack() as held:  # the output's lock, taken once the dataset is known
+        return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held)
+
+
+def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
+    if not out.name:  # '.', '/': no file name to put the sidecar beside
+        raise UserError(f"{out}: is a folder; expected the path of an output file")
+    fileio.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
+                        sidecar_kind=FEATURES_OUTPUT)
+
+
+def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: bool, protocol, dev,
+              held: contextlib.ExitStack) -> dict[str, Any]:
+    from .data.layout import open_dataset
+    from .metrics.extractors import on_device
+    from .protocol import load_protocol as _load_protocol
+
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
     with _stage(timing, "validate_s"):
@@ -136,7 +154,9 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         protocol = _load_protocol(protocol or manifest["protocol"])
         ds = open_dataset(resolve_data(manifest, protocol, data))
         if out is not None:
-            fileio.check_output(out, force=force, outside=[ds.root])
+            _check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
+            held.enter_context(fileio.output_lock(out))  # a second run to this --out: one line, exit 2
+            _check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
         _check_extractors(protocol)
         all_seqs = ds.sequences("test")
         seq_ids = [q.id for q in all_seqs]
@@ -177,8 +197,22 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     timing["total_s"] = round(time.perf_counter() - t_start, 4)
     doc["timing_s"] = timing
     if out is not None:
-        write_results(out, doc, features)
+        _check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
+        with fileio.reading(sub, ds.root):
+            write_results(out, doc, features)
     return doc
+
+
+def write_results(out: Path, doc: dict, features: dict) -> None:
+    """Write the results JSON `out` and its features sidecar as one unit (`fileio.write_unit`: under
+    the output's lock, both to temporary names, the sidecar renamed in first and the results last),
+    so two runs never mix their files and a killed run is repeated without --force. The sidecar's
+    bytes depend on the features alone (`fileio.npz_bytes`), so a repeated run writes the same file."""
+    fpath = features_path(out)
+    arrays = {f"{ex_id}|{part}": np.asarray(f[part]) for ex_id, f in features.items() for part in ("sub", "gt", "seq")}
+    blob = fileio.npz_bytes(arrays)
+    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_bytes(blob)}
+    fileio.write_unit(out, fileio.json_bytes(doc), {fpath: blob})
 
 
 def _scoring_device(device):

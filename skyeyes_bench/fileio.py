@@ -1,21 +1,38 @@
-"""File I/O at the edges: atomic writes, JSON, 8-bit sRGB PNG and float32 EXR depth.
+"""File I/O at the edges: the output discipline, atomic writes, JSON, 8-bit sRGB PNG and float32 EXR depth.
 
 Everything that writes goes through a temporary file in the destination folder followed by
-`os.replace`, so a crash never leaves a half-written file under the final name.
+`os.replace`, so a crash never leaves a half-written file under the final name. What is
+created gets the user's umask (`file_mode`, `folder_mode`), not tempfile's private 0600 / 0700.
+
+The output discipline, the same for every command:
+
+- `check_output`, before any work: an output never is, holds or lies inside an input (with or
+  without --force), and --force replaces only an earlier output of the same kind (`OutputKind`).
+- `reading(*inputs)`: inside the block, every write of this module checks its destination against
+  the inputs once more at the moment of its rename, with symlinks resolved then.
+- `output_lock` and `write_unit`: a results file and its sidecars are one unit, written under an
+  exclusive lock in an order that a run killed at any point can simply be repeated.
+- A full disk (or a read-only folder) while writing is a one-line `UserError`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import errno
 import hashlib
+import io
 import json
 import math
 import os
+import re
 import shutil
 import stat
 import struct
 import tempfile
+import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
@@ -23,51 +40,287 @@ import numpy as np
 
 from .errors import UserError
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover  (not POSIX: no advisory locks; runs are not serialised)
+    fcntl = None
+
 #: Largest image we agree to decode (pixels). Guards against decompression bombs.
 MAX_PIXELS = 8192 * 8192
 
 
+# --------------------------------------------------------------------------- modes
+
+
+_UMASK: int | None = None
+
+
+def umask() -> int:
+    """The process's umask, read once: from /proc/self/status where Linux has it (reading changes
+    nothing), else by setting and at once restoring it."""
+    global _UMASK
+    if _UMASK is None:
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            with open("/proc/self/status") as f:
+                for line in f:
+                    if line.startswith("Umask:"):
+                        _UMASK = int(line.split()[1], 8)
+        if _UMASK is None:
+            _UMASK = os.umask(0o022)
+            os.umask(_UMASK)
+    return _UMASK
+
+
+def file_mode() -> int:
+    """Mode of a created file: what `open(..., "w")` gives (0o666 less the umask)."""
+    return 0o666 & ~umask()
+
+
+def folder_mode() -> int:
+    """Mode of a created folder: what `mkdir` gives (0o777 less the umask)."""
+    return 0o777 & ~umask()
+
+
+#: errno values that say the disk, not the program, failed a write: one line, never a traceback.
+_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
+def _cannot_write(path: Path, e: OSError) -> UserError:
+    return UserError(f"{path}: cannot write ({e.strerror or _one_line(e)}); nothing was written there")
+
+
+# --------------------------------------------------------------------------- output discipline
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """What a command writes, so that `--force` replaces an earlier output of the same kind only:
+    never a README, a home folder, or another command's output that happens to sit at the path.
+
+    An existing path is an earlier output of this kind when (`recognises`):
+    - a folder kind (`folder`): it is an empty folder (nothing to lose), or it holds `marker`, the
+      manifest every output of the kind holds at its top (`submission.json`, `dataset.json`);
+    - a file kind: it is a regular file (following a symlink) that starts with `magic`, if given;
+    - with `formats`, the file (for a folder, its `marker`) is a JSON object whose "format" names one
+      of `formats`, or none (a hand-written placeholder such as `{}`; never another command's file).
+    """
+
+    what: str  # with its article, e.g. "a results file"
+    folder: bool = False
+    marker: str | None = None
+    formats: tuple[str, ...] = ()
+    magic: bytes = b""
+
+    def recognises(self, path: str | os.PathLike) -> bool:
+        path = Path(path)
+        try:
+            if self.folder:
+                if not path.is_dir():
+                    return False
+                if not any(path.iterdir()):
+                    return True
+                if self.marker is None:
+                    return False
+                path = path / self.marker
+            with open_regular(path) as f:
+                if f.read(len(self.magic)) != self.magic:
+                    return False
+            if self.formats:
+                doc = read_json(path, allow_nan=True)
+                return isinstance(doc, dict) and doc.get("format", self.formats[0]) in self.formats
+            return True
+        except (UserError, OSError):
+            return False
+
+
+def _apart(out: Path, inp: Path, desc: str) -> None:
+    """Refuse `out` when it is, lies inside or holds `inp` (symlinks resolved as they are now)."""
+    try:
+        o, i = out.resolve(), inp.resolve()
+    except (OSError, RuntimeError) as e:  # a symlink loop
+        raise UserError(f"{out}: cannot resolve the path ({_one_line(e)})") from None
+    if o == i:
+        raise UserError(f"{out}: is {desc}; write the output elsewhere")
+    if o.is_relative_to(i):
+        raise UserError(f"{out}: lies inside {inp} ({desc}); write the output elsewhere")
+    if i.is_relative_to(o):
+        raise UserError(f"{out}: holds {inp} ({desc}); write the output elsewhere")
+
+
+_READING: contextvars.ContextVar[tuple[Path, ...]] = contextvars.ContextVar("skyeyes_reading", default=())
+
+
+@contextlib.contextmanager
+def reading(*inputs: str | os.PathLike | None) -> Iterator[None]:
+    """Inside the block, every write of this module (`atomic_path`, `atomic_dir`, `write_unit`)
+    refuses, at the moment of its rename and with symlinks resolved then, a destination that is,
+    holds or lies inside one of `inputs` (None entries are ignored): what `check_output` checked
+    before the work, checked again at the point of writing."""
+    token = _READING.set(_READING.get() + tuple(Path(p) for p in inputs if p is not None))
+    try:
+        yield
+    finally:
+        _READING.reset(token)
+
+
+def guard(path: str | os.PathLike) -> None:
+    """The `reading` check of one destination (a no-op outside a `reading` block)."""
+    for inp in _READING.get():
+        _apart(Path(path), inp, "an input of this command")
+
+
+def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=(), inputs=(),
+                 inputs_are: str = "the inputs", kind: OutputKind | None = None,
+                 sidecar_kind: OutputKind | None = None) -> Path:
+    """Refuse, before any work and in one line, an output that could not be written or must not be.
+
+    - An output or one of its `sidecars` that is, holds or lies inside one of the `inputs` (files or
+      folders; `inputs_are` names them) or one of the existing `outside` folders (e.g. the
+      submission being scored), symlinks resolved: refused with or without `force`.
+    - A folder where a file is expected; for a folder `kind`, a file.
+    - An existing output without `force`; with `force`, one that `kind` does not recognise as an
+      earlier output of the same kind (`OutputKind`). A sidecar whose output does not exist is what
+      a run killed between the renames of `write_unit` leaves: not an output yet, so it is replaced
+      without `force` when `sidecar_kind` recognises it.
+    - A nearest existing ancestor that is a file or not writable (`creatable`).
+    """
+    path = Path(path)
+    sidecars = tuple(map(Path, sidecars))
+    kinds = {path: kind, **{s: sidecar_kind for s in sidecars}}
+    inputs = tuple(inputs)
+    guarded = [(Path(p), inputs_are if len(inputs) == 1 else f"one of {inputs_are}") for p in inputs]
+    guarded += [(Path(r), "an input of this command") for r in outside if Path(r).exists()]
+    for p in kinds:
+        for inp, desc in guarded:
+            _apart(p, inp, desc)
+    main_exists = path.exists() or path.is_symlink()
+    for p, k in kinds.items():
+        if k is not None and k.folder:
+            if p.exists() and not p.is_dir():
+                raise UserError(f"{p}: is a file; expected a folder (or a path that does not exist)")
+        elif p.is_dir():
+            raise UserError(f"{p}: is a folder; expected the path of an output file")
+        if not (p.exists() or p.is_symlink()):
+            continue
+        orphan = p != path and not main_exists and k is not None and k.recognises(p)
+        if not force and not orphan:
+            raise UserError(f"{p}: already exists; pass --force to replace it")
+        if k is not None and not k.recognises(p):
+            raise _not_same_kind(p, k)
+    return creatable(path)
+
+
+def _not_same_kind(path: Path, kind: OutputKind) -> UserError:
+    return UserError(f"{path}: exists and is not {kind.what} (--force replaces only {kind.what} written "
+                     "earlier); move it away or choose another path")
+
+
+def creatable(path: str | os.PathLike) -> Path:
+    """`path` if its nearest existing ancestor is a writable folder, else a one-line UserError
+    (a parent that is a file used to surface as NotADirectoryError after the work was done)."""
+    path = Path(path)
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UserError(f"{path}: cannot be created ({parent} is a file, not a folder)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"{path}: cannot be created ({parent} is not writable)")
+    return path
+
+
+# --------------------------------------------------------------------------- atomic writes
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; on success rename it to `path`, else delete it."""
+    """Yield a temporary path beside `path`; on success give it the umask's mode and rename it to
+    `path` (checked against `reading`'s inputs first), else delete it. A full disk is one line."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise _cannot_write(path, e) from None
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        os.replace(tmp_path, path)
+        try:
+            yield tmp_path
+        except OSError as e:
+            if e.errno in _FULL:
+                raise _cannot_write(path, e) from None
+            raise
+        guard(path)
+        try:
+            os.chmod(tmp_path, file_mode())
+            os.replace(tmp_path, path)
+        except OSError as e:
+            raise _cannot_write(path, e) from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
 
 
+def _existing_folder(path: Path, overwrite: bool, kind: OutputKind | None) -> None:
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not overwrite:
+        raise UserError(f"{path}: already exists; pass --force to replace it")
+    if not path.is_dir():
+        raise UserError(f"{path}: is a file; expected a folder (or a path that does not exist)")
+    if kind is not None and not kind.recognises(path):
+        raise _not_same_kind(path, kind)
+
+
 @contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False, kind: OutputKind | None = None,
+               inputs=()) -> Iterator[Path]:
     """Yield a temporary folder beside `path`; on success move it to `path` as a whole.
 
-    An existing `path` is refused unless `overwrite` (then it is replaced only after the new
-    content is complete).
+    `path` may not be, hold or lie inside one of `inputs` (or `reading`'s). An existing `path` is
+    refused unless `overwrite`, and then unless `kind` (if given) recognises it as an earlier output
+    of the same kind; it is replaced only after the new content is complete. Every check is made
+    again at the moment of the move, symlinks resolved then.
     """
     path = Path(path)
-    if path.exists() and not overwrite:
-        raise UserError(f"{path}: already exists; pass --force to replace it")
-    if path.exists() and not path.is_dir():
-        raise UserError(f"{path}: is a file; expected a folder (or a path that does not exist)")
+
+    def check() -> None:
+        for inp in inputs:
+            _apart(path, Path(inp), "an input of this command")
+        guard(path)
+        _existing_folder(path, overwrite, kind)
+
+    check()
     creatable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
     try:
-        yield tmp
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    except OSError as e:
+        raise _cannot_write(path, e) from None
+    try:
+        try:
+            yield tmp
+        except OSError as e:
+            if e.errno in _FULL:
+                raise _cannot_write(path, e) from None
+            raise
+        check()
+        try:
+            os.chmod(tmp, folder_mode())
+            if path.exists() or path.is_symlink():
+                old = path.with_name(f".{path.name}.old-{os.getpid()}")
+                os.replace(path, old)
+                os.replace(tmp, path)
+                if old.is_symlink():  # the link is replaced, never what it points to
+                    old.unlink()
+                else:
+                    shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+        except OSError as e:
+            raise _cannot_write(path, e) from None
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -79,17 +332,22 @@ class AtomicFolderWriter:
     Inside `with`, `self.root` is a temporary sibling of `final`. On a clean exit after
     `finish()` (which a subclass defines and which must set `self._finished = True`), and once
     `_before_commit()` has raised nothing, the folder is moved to `final`; on an exception, a
-    missing `finish()` or a failed check, it is deleted and nothing appears at `final`.
+    missing `finish()` or a failed check, it is deleted and nothing appears at `final`. A subclass
+    sets `kind` so that `overwrite` replaces only an earlier output of that kind; `final` may not be,
+    hold or lie inside one of `inputs` (`atomic_dir`).
     """
 
-    def __init__(self, final: str | os.PathLike, *, overwrite: bool = False):
+    kind: OutputKind | None = None
+
+    def __init__(self, final: str | os.PathLike, *, overwrite: bool = False, inputs=()):
         self.final = Path(final)
         self.overwrite = overwrite
+        self.inputs = tuple(inputs)
         self._ctx: contextlib.AbstractContextManager[Path] | None = None
         self._finished = False
 
     def __enter__(self):
-        self._ctx = atomic_dir(self.final, overwrite=self.overwrite)
+        self._ctx = atomic_dir(self.final, overwrite=self.overwrite, kind=self.kind, inputs=self.inputs)
         self.root = self._ctx.__enter__()
         return self
 
@@ -108,46 +366,175 @@ class AtomicFolderWriter:
         return self._ctx.__exit__(exc_type, exc, tb)
 
 
-def check_output(path: str | os.PathLike, *, force: bool = False, sidecars=(), outside=(), inputs=(),
-                 inputs_are: str = "the inputs") -> Path:
-    """Refuse, before any work, an output file that could not be written or must not be:
-    a folder, an existing file (or sidecar) without `force`, a parent that is a file or not
-    writable, a place inside one of the `outside` folders (e.g. the submission being scored,
-    where it would become an extra file), or one of the `inputs` files (`inputs_are` names them)."""
-    path = Path(path)
-    mine = (path, *map(Path, sidecars))
-    taken = {Path(p).resolve() for p in inputs}
-    for p in mine:
-        if p.resolve() in taken:
-            raise UserError(f"{path}: is one of {inputs_are}; write the output elsewhere")
-    for p in mine:
-        if p.is_dir():
-            raise UserError(f"{p}: is a folder; expected the path of an output file")
-        if (p.exists() or p.is_symlink()) and not force:
-            raise UserError(f"{p}: already exists; pass --force to replace it")
-    for root in outside:
-        if Path(root).exists() and inside(path, root):
-            raise UserError(f"{path}: lies inside {root}; write the output elsewhere")
-    return creatable(path)
+# --------------------------------------------------------------------------- one unit: results + sidecars
 
 
-def creatable(path: str | os.PathLike) -> Path:
-    """`path` if its nearest existing ancestor is a writable folder, else a one-line UserError
-    (a parent that is a file used to surface as NotADirectoryError after the work was done)."""
+_HELD: dict[Path, int] = {}  # lock files this process holds -> depth (`output_lock` is re-entrant)
+
+
+def _lock_file(path: Path) -> Path:
+    return path.with_name(f".{path.name}.lock")
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike) -> Iterator[None]:
+    """Hold the exclusive lock of output `path` for the block: `flock` on `.<name>.lock` beside it,
+    removed again on release. A second run that wants the same output while the lock is held gets
+    a one-line UserError at once (it never waits). Re-entrant within a process. Parent folders that
+    do not exist yet are made, and removed on release while they stay empty (a refused run leaves
+    nothing behind). A killed holder's lock ends with its process; its lock file is reused."""
     path = Path(path)
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise UserError(f"{path}: cannot be created ({parent} is a file, not a folder)")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"{path}: cannot be created ({parent} is not writable)")
-    return path
+    lock = _lock_file(path)
+    key = Path(os.path.abspath(lock))
+    if key in _HELD:
+        _HELD[key] += 1
+        try:
+            yield
+        finally:
+            _HELD[key] -= 1
+        return
+    made: list[Path] = []
+    fd = None
+    try:
+        for _ in range(50):  # another run may remove the folder or the lock file as we open it
+            try:
+                made += _make_parents(lock.parent)
+                fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o666)
+            except FileNotFoundError:
+                continue
+            except OSError as e:
+                raise UserError(f"{path}: cannot lock it for writing ({lock}: {e.strerror})") from None
+            if fcntl is None:
+                break
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise UserError(f"{path}: another run is writing it now (lock {lock}); wait for it to end or "
+                                "choose another output") from None
+            try:
+                st = os.stat(lock, follow_symlinks=False)
+                if (st.st_dev, st.st_ino) == (os.fstat(fd).st_dev, os.fstat(fd).st_ino):
+                    break  # the lock file is still the one on disk: ours
+            except FileNotFoundError:
+                pass
+            os.close(fd)  # the holder before us removed it as we opened it: lock the new one
+            fd = None
+        else:
+            raise UserError(f"{path}: cannot lock it for writing ({lock} keeps changing)")
+        _HELD[key] = 1
+        try:
+            yield
+        finally:
+            del _HELD[key]
+            with contextlib.suppress(OSError):
+                os.unlink(lock)  # while still holding it: a waiter that opened it sees it gone
+    finally:
+        if fd is not None:
+            os.close(fd)
+        for d in sorted(set(made), key=lambda p: len(p.parts), reverse=True):
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only while empty: never a folder that received the output
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """mkdir -p `folder`; the folders this call made, deepest first."""
+    made = []
+    p = folder
+    while not (p.exists() or p.is_symlink()) and p != p.parent:
+        made.append(p)
+        p = p.parent
+    for d in reversed(made):
+        with contextlib.suppress(FileExistsError):
+            d.mkdir()
+    return made
+
+
+_PARTIAL = ".partial"
+
+
+def _partials(dest: Path) -> list[Path]:
+    """Temporary files `write_unit` makes for `dest` (`.<name>.<8 random characters>.partial`)."""
+    pattern = re.compile(rf"^\.{re.escape(dest.name)}\.[a-z0-9_]{{8}}{re.escape(_PARTIAL)}$")
+    with contextlib.suppress(OSError):
+        return [dest.parent / n for n in os.listdir(dest.parent) if pattern.match(n)]
+    return []
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def write_unit(path: str | os.PathLike, data: bytes, sidecars: dict | None = None) -> None:
+    """Write the file `path` (bytes `data`) and its `sidecars` ({path: bytes}) as one unit.
+
+    Under `output_lock(path)` (taken here unless this process holds it already):
+    1. temporary files a killed run left for these names are removed (no one else holds the lock);
+    2. each member is written to a temporary name beside it, flushed to disk, given the umask's mode;
+    3. the destinations are checked against `reading`'s inputs, symlinks resolved now;
+    4. an existing `path` is removed: from here to step 6 the unit is absent, never mixed;
+    5. the sidecars are renamed into place;
+    6. `path` is renamed into place last.
+    Killed at any step, a run leaves the earlier unit whole, or sidecars without their `path`,
+    which `check_output` treats as no output yet: the same run repeated without --force writes
+    the same bytes. Any failure, a full disk included, is a one-line UserError that leaves no
+    temporary file behind and nothing half-written under a final name.
+    """
+    path = Path(path)
+    members = [*((Path(p), b) for p, b in (sidecars or {}).items()), (path, data)]
+    with output_lock(path):
+        temps: list[Path] = []
+        try:
+            for dest, blob in members:
+                for old in _partials(dest):
+                    old.unlink()
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=_PARTIAL, dir=dest.parent)
+                temps.append(Path(tmp))
+                try:
+                    _write_all(fd, blob)
+                    os.fsync(fd)
+                    os.fchmod(fd, file_mode())
+                finally:
+                    os.close(fd)
+            for dest, _ in members:
+                guard(dest)
+            if path.exists() or path.is_symlink():
+                os.unlink(path)
+            for (dest, _), tmp in zip(members, temps):
+                os.replace(tmp, dest)
+        except OSError as e:
+            raise _cannot_write(path, e) from None
+        finally:
+            for tmp in temps:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """What `np.savez(f, **arrays)` writes, as bytes that depend on the arrays alone: stored
+    (uncompressed) `.npy` members in the given order with a fixed timestamp (`np.savez` stamps
+    the time of writing, so two runs of one computation would differ)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for key, arr in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asanyarray(arr), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, member.getvalue(), compress_type=zipfile.ZIP_STORED)
+    return buf.getvalue()
+
+
+def json_bytes(obj: Any) -> bytes:
+    """The bytes `write_json` writes for `obj`."""
+    return (json.dumps(obj, indent=2, sort_keys=False, allow_nan=True) + "\n").encode()
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, allow_nan=True) + "\n")
+        tmp.write_bytes(json_bytes(obj))
 
 
 #: Largest JSON file read (bytes): far above any manifest or results file, far below memory.

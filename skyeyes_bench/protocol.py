@@ -20,7 +20,12 @@ from .errors import UserError
 from .metricspec import METRICS
 from .paths import protocols_dir
 
-_VERSION_FILE = re.compile(r"^v([1-9]\d*)\.toml$")  # v1.toml, v2.toml ... (no v01)
+#: Largest protocol version (9 digits): a longer number in a file name or a reference is refused in one
+#: line instead of reaching int(), which stops at 4300 digits with a traceback.
+MAX_VERSION = 999_999_999
+#: Largest protocol file read (bytes); ours are a few kB.
+MAX_PROTOCOL_BYTES = 1 << 20
+_VERSION_FILE = re.compile(r"^v([1-9]\d{0,8})\.toml$")  # v1.toml, v2.toml ... (no v01; at most MAX_VERSION)
 _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 
 #: Resampling units `[statistics] cluster` may name: a scene (one lane: its sequences share one
@@ -192,8 +197,10 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     for key, typ in (("id", str), ("title", str), ("description", str), ("reference", str)):
         if not isinstance(raw[key], typ):
             raise UserError(f"{file}: key '{key}' must be str, got {raw[key]!r}")
-    if not isinstance(raw["version"], int) or isinstance(raw["version"], bool) or raw["version"] < 1:
-        raise UserError(f"{file}: key 'version' must be an int >= 1, got {raw['version']!r}")
+    if (not isinstance(raw["version"], int) or isinstance(raw["version"], bool)
+            or not 1 <= raw["version"] <= MAX_VERSION):
+        raise UserError(f"{file}: key 'version' must be an int >= 1 (at most {MAX_VERSION}), "
+                        f"got {_short(raw['version'])}")
     for section in ("data", "capture", "metrics", "statistics"):
         if section not in raw:
             raise UserError(f"{file}: missing table [{section}]")
@@ -272,16 +279,33 @@ def available(root: Path | None = None) -> dict[str, list[int]]:
     return out
 
 
+def _short(value: Any, n: int = 40) -> str:
+    """repr of `value`, cut to `n` characters: a 5000-digit number stays a one-line error."""
+    text = repr(value)
+    return text if len(text) <= n else f"{text[:n]}... ({len(text)} characters)"
+
+
 def load_protocol_file(path: str | Path) -> Protocol:
+    from . import fileio  # numpy behind it: kept out of `protocols list`'s import time
+
     path = Path(path)
+    if not (path.exists() or path.is_symlink()):
+        raise UserError(f"{path}: protocol file not found")
     try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: protocol file not found") from None
+        with fileio.open_regular(path) as f:  # a named pipe or a device would block a plain read
+            data = f.read(MAX_PROTOCOL_BYTES + 1)
+    except OSError as e:
+        raise UserError(f"{path}: cannot read protocol file ({e.strerror or e})") from None
+    if len(data) > MAX_PROTOCOL_BYTES:
+        raise UserError(f"{path}: more than {MAX_PROTOCOL_BYTES} bytes; expected a protocol TOML file")
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise UserError(f"{path}: not UTF-8 text (byte {e.start}); expected a protocol TOML file") from None
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"{path}: cannot read protocol file ({e})") from None
+    except ValueError as e:  # an integer of more than 4300 digits
+        raise UserError(f"{path}: not valid TOML here ({' '.join(str(e).split())})") from None
     proto = parse_protocol(raw, str(path))
     m = _VERSION_FILE.match(path.name)
     if m and (int(m.group(1)) != proto.version or path.parent.name != proto.id):
@@ -296,8 +320,11 @@ def load_protocol(ref: str, root: Path | None = None) -> Protocol:
     """`load_protocol("carla-town04@1")`; without `@N`, the latest version."""
     m = _REF.match(ref.strip())
     if not m:
-        raise UserError(f"protocol reference {ref!r}: expected 'ID' or 'ID@N' (e.g. 'synthtown@1')")
+        raise UserError(f"protocol reference {_short(ref)}: expected 'ID' or 'ID@N' (e.g. 'synthtown@1')")
     pid, version = m.group(1), m.group(2)
+    if version is not None and len(version.lstrip("0") or "0") > len(str(MAX_VERSION)):
+        raise UserError(f"protocol reference {_short(ref)}: version of {len(version)} digits; expected at "
+                        f"most {MAX_VERSION}")
     known = available(root)
     if pid not in known:
         raise UserError(f"unknown protocol {pid!r}; known: {', '.join(known) or '(none)'}")

@@ -32,6 +32,9 @@ EXPECTED_FILE = "EXPECTED_FRAMES.txt"
 FORMAT = "skyeyes-bench/submission@1"
 #: Split whose ground frames a submission must hold.
 SPLIT = "test"
+#: What `submission template` and `SubmissionWriter` write: `overwrite` (--force) replaces only an
+#: empty folder or a folder holding a submission.json (`fileio.OutputKind`).
+SUBMISSION_OUTPUT = fileio.OutputKind("a submission folder", folder=True, marker=SUBMISSION_FILE, formats=(FORMAT,))
 #: cached_s: how much of fit_s + render_s was taken from caches (reported at its original cost).
 _TIMING_KEYS = ("fit_s", "render_s", "per_frame_render_s", "cached_s")
 
@@ -118,13 +121,19 @@ class SubmissionWriter(fileio.AtomicFolderWriter):
         w.finish(timings={"fit_s": 12.0, "render_s": 3.1, "per_frame_render_s": [...]},
                  peak_memory_mb=2100.0)
     ```
-    Nothing appears at `out` unless `finish()` ran and the block exited without an exception.
+    Nothing appears at `out` unless `finish()` ran and the block exited without an exception; `out`
+    may not be, hold or lie inside the dataset, and `overwrite` replaces only an earlier submission
+    (`SUBMISSION_OUTPUT`), both checked here, before any work, and again as the folder is moved in.
     """
+
+    kind = SUBMISSION_OUTPUT
 
     def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
                  overwrite: bool = False):
         fields.name("method name", method, "the method's name")
-        super().__init__(out_dir, overwrite=overwrite)
+        fileio.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[dataset.root],
+                            inputs_are="the dataset")
+        super().__init__(out_dir, overwrite=overwrite, inputs=[dataset.root])
         self.ds = dataset
         self.method, self.method_version, self.config = method, str(method_version), dict(config or {})
         self._expected = {(s, f.file): f for s, f in expected_frames(dataset)}
@@ -391,7 +400,8 @@ def write_template(ds, out_dir, *, from_ground_truth: bool = False, overwrite: b
             w.finish(timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": [0.0] * len(frames)},
                      peak_memory_mb=0.0)
         return Path(out_dir)
-    with fileio.atomic_dir(out_dir, overwrite=overwrite) as tmp:
+    fileio.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root], inputs_are="the dataset")
+    with fileio.atomic_dir(out_dir, overwrite=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root]) as tmp:
         manifest = make_manifest(ds, method="my-method", method_version="0.0", config={"example": True},
                                  timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": []},
                                  peak_memory_mb=None, hardware=None)

@@ -172,6 +172,7 @@ def _check(args) -> int:
 
 def _synthtown(args) -> int:
     from .. import paths
+    from ..data.importers.common import check_out
     from ..data.synthtown.generate import dataset_name, ensure_dataset, generate_dataset
     from ..errors import UserError
 
@@ -186,17 +187,21 @@ def _synthtown(args) -> int:
         print(f"{'exists' if existed else 'wrote'} {root}")
         return 0
     out = Path(args.out) if args.out else paths.data_dir() / dataset_name(args.preset, args.seed)
+    check_out(out, args.force, [])  # --force replaces a dataset (or an empty folder) only, never e.g. a home folder
     generate_dataset(out, args.preset, args.seed, overwrite=args.force, progress=not args.quiet, workers=args.workers)
     print(f"wrote {out}")
     return 0
 
 
 def _gallery(args) -> int:
+    from .. import fileio
     from ..data.synthtown.gallery import tiles_from_dataset, tiles_rendered, write_gallery
     from ..errors import UserError
 
     if args.rows < 1 or args.size < 16:
         raise UserError("gallery: --rows must be >= 1 and --size >= 16")
+    # the image is replaced if it exists (no --force here), but never inside the dataset it shows
+    fileio.check_output(args.out, force=True, inputs=[args.dataset] if args.dataset else [], inputs_are="the dataset")
     if args.dataset:
         tiles = tiles_from_dataset(Path(args.dataset), args.rows)
     else:
@@ -242,6 +247,10 @@ def _capture_carla(args) -> int:
         if not args.force:
             raise UserError(f"{old}: a capture of another plan (town, options or protocol differ); pass --force "
                             "to start over, or another --out")
+        for given in (args.waypoints, args.xodr):  # starting over deletes OUT: never a file this run reads
+            if given and fileio.inside(given, out):
+                raise UserError(f"{given}: lies inside {out}, which --force would delete before reading it; "
+                                "copy it out of OUT first")
         shutil.rmtree(out)
     if not args.waypoints:
         fileio.write_json(out / WAYPOINTS_FILE, waypoints_document(args.town, waypoints, args.waypoint_distance))

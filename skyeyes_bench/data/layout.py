@@ -204,15 +204,42 @@ def _intrinsics_problem(d: Any, where: str) -> str | None:
     return None
 
 
+def _escapes(path: Path, root: Path) -> str | None:
+    """Why `path` is not inside the dataset `root` once symlinks are resolved, or None if it is:
+    the README promises that a dataset's files stay inside its folder."""
+    if fileio.inside(path, root):
+        return None
+    return f"{path}: leaves the dataset folder {root} (a symlink to {os.path.realpath(path)}); files stay inside it"
+
+
 def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
                 check_pixels: bool = False) -> Scene | None:
     sdir = root / name
     sfile = sdir / SCENE_FILE
+    if (sdir.exists() or sdir.is_symlink()) and (why := _escapes(sdir, root)):
+        problems.append(why)
+        return None
+    folders: dict[Path, str | None] = {}  # folder -> why it leaves the dataset, "" if absent (resolved once)
+
+    def outside(p: Path) -> bool:
+        """Report (once per folder) a file whose folder, or which itself, is linked out of the dataset."""
+        folder = p.parent
+        if folder not in folders:
+            folders[folder] = _escapes(folder, root) if folder.exists() or folder.is_symlink() else ""
+            if folders[folder]:
+                problems.append(folders[folder])
+        if folders[folder] is not None:  # linked out (reported), or absent (nothing to read there)
+            return bool(folders[folder])
+        if p.is_symlink() and (why := _escapes(p, root)):
+            problems.append(why)
+            return True
+        return False
+
     if not sfile.is_file():
         problems.append(f"{sfile}: missing (scene {name!r} is listed in {DATASET_FILE})")
         return None
     try:
-        raw = fileio.read_json(sfile)
+        raw = fileio.read_json(sfile, root=root)  # never a file linked from outside the dataset
     except UserError as e:
         problems.append(str(e))
         return None
@@ -228,6 +255,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
     rejected_seqs: set[str] = set()
     unknown_seq_rejected = False  # a rejected frame whose sequence is unknown: any hole may be its
     group_rejected = False
+    linked_out = False  # a frame refused for leaving the dataset: reported already
     for kind in KINDS:
         group = intr.get(kind)
         p = _intrinsics_problem(group, f"{sfile}: field 'intrinsics.{kind}'")
@@ -281,6 +309,9 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
                     problems.append(str(err))
                     continue
             frame = Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
+            if outside(frame.path) or any(outside(frame.layer_path(layer)) for layer in LAYERS):
+                linked_out = True
+                continue
             if check_files:
                 _check_frame_files(frame, problems, check_pixels)
             frames[kind].append(frame)
@@ -308,7 +339,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             what = "; ".join(w for w in (f"duplicate indices {dup[:5]}" if dup else "",
                                          f"missing indices {gaps[:5]}" if gaps else "") if w)
             problems.append(f"{sfile}: sequence {seq.name!r} is not numbered 0..n-1 ({what}; field 'index')")
-    if not scene.ground and not group_rejected:  # rejected intrinsics: reported already
+    if not scene.ground and not group_rejected and not linked_out:  # rejected intrinsics or links: reported
         problems.append(f"{sfile}: scene has no ground frames")
     return scene
 
@@ -362,7 +393,7 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check
     if not dfile.is_file():
         return None, [f"{dfile}: missing (not a dataset folder; expected the canonical layout of DESIGN.md)"]
     try:
-        raw = fileio.read_json(dfile)
+        raw = fileio.read_json(dfile, root=root)
     except UserError as e:
         return None, [str(e)]
     if not isinstance(raw, dict):

@@ -13,8 +13,8 @@ import numpy as np
 from ... import fields, fileio
 from ...cameras import from_carla
 from ...errors import UserError
-from .common import (PlannedFrame, PlannedScene, check_sequences, check_size, ordered_splits, rel_file, town_split,
-                     write_plan, yaw_sequence_name)
+from .common import (PlannedFrame, PlannedScene, check_out, check_sequences, check_size, ordered_splits, rel_file,
+                     town_split, write_plan, yaw_sequence_name)
 
 _fail, _numbers, _number, _int, _name = fields.fail, fields.numbers, fields.number, fields.integer, fields.name
 
@@ -116,6 +116,7 @@ def import_carla(src: str | Path, out: str | Path, *, protocol: str = "carla-tow
     """Convert a CARLA capture folder into the canonical layout at `out`."""
     from ...protocol import load_protocol
 
+    check_out(out, force, [src])  # before any work: OUT never is, holds or lies inside SRC
     proto = load_protocol(protocol)
     scenes, split_of = plan_carla(src, proto, split)
     meta = {"source": "carla", "importer": "skyeyes-bench data import-carla", "src": str(src),
@@ -123,5 +124,6 @@ def import_carla(src: str | Path, out: str | Path, *, protocol: str = "carla-tow
     # The protocol whose data this is: carla-town04@2 (the default, the latest) scores
     # carla-town04@1's frames, so the dataset says carla-town04@1 and both versions score it.
     out = write_plan(Path(out), scenes, name=name or Path(out).name, protocol=proto.data_ref,
-                     splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress)
+                     splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress,
+                     inputs=[src])
     return out, scenes

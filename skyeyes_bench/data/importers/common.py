@@ -20,9 +20,20 @@ import numpy as np
 
 from ... import fields, fileio
 from ...errors import UserError
+from ..layout import DATASET_FILE
 from ..writer import DatasetWriter
 
 _fail = fields.fail
+
+#: What the importers (and `data synthtown --out`) write: --force replaces only an empty folder or
+#: a dataset written earlier (a folder holding dataset.json), never SRC or a folder around it.
+DATASET_OUTPUT = fileio.OutputKind("a dataset folder", folder=True, marker=DATASET_FILE)
+
+
+def check_out(out: str | Path, force: bool, inputs, inputs_are: str = "the capture (SRC)") -> Path:
+    """Refuse, before any work, an OUT that is, holds or lies inside an input (SRC, depth folders),
+    or that exists without --force, or with it is not an earlier dataset (`fileio.check_output`)."""
+    return fileio.check_output(out, force=force, kind=DATASET_OUTPUT, inputs=inputs, inputs_are=inputs_are)
 
 
 @dataclass
@@ -115,12 +126,15 @@ def check_sequences(scene: PlannedScene, where: str) -> None:
 
 
 def write_plan(out: Path, scenes: list[PlannedScene], *, name: str, protocol: str, splits: dict[str, list[str]],
-               meta: dict, force: bool, progress: bool) -> Path:
-    """Write planned scenes atomically; validates the result before moving it into place."""
+               meta: dict, force: bool, progress: bool, inputs=(), inputs_are: str = "the capture (SRC)") -> Path:
+    """Write planned scenes atomically; validates the result before moving it into place. `out`
+    is checked against `inputs` (what the plan reads) before writing and again as it is moved in."""
     from tqdm import tqdm
 
+    check_out(out, force, inputs, inputs_are)
     total = sum(len(s.ground) + len(s.aerial) for s in scenes)
-    with DatasetWriter(out, name=name, protocol=protocol, overwrite=force, validate=True) as w, \
+    with fileio.reading(*inputs), \
+            DatasetWriter(out, name=name, protocol=protocol, overwrite=force, validate=True) as w, \
             tqdm(total=total, desc=f"import {name}", unit="frame", file=sys.stderr,
                  disable=None if progress else True) as bar:
         for s in scenes:

@@ -17,7 +17,8 @@ import numpy as np
 from ... import fields, fileio
 from ...cameras import from_matrixcity, intrinsics
 from ...errors import UserError
-from .common import PlannedFrame, PlannedScene, ordered_splits, rel_file, town_split, write_plan, yaw_sequence_name
+from .common import (PlannedFrame, PlannedScene, check_out, ordered_splits, rel_file, town_split, write_plan,
+                     yaw_sequence_name)
 
 _fail, _number, _int, _name = fields.fail, fields.number, fields.integer, fields.name
 
@@ -157,12 +158,15 @@ def default_depth_roots(src: Path) -> list[Path]:
     return [src.with_name(n) for n in names if src.with_name(n).is_dir()]
 
 
-def _raw_image(folder: Path, index: int, where: str) -> Path:
+def _raw_image(folder: Path, index: int, where: str, src: Path) -> Path:
     """`<folder>/NNNN.png`, or `<folder>/<folder>/NNNN.png` (the block's tar unpacked into the
-    block's own folder); a one-line error that names the tar when it is still packed."""
+    block's own folder), inside `src` once symlinks are resolved; a one-line error that names the
+    tar when it is still packed."""
     name = f"{index:04d}.png"
     for cand in (folder / name, folder / folder.name / name):
         if cand.is_file():
+            if not fileio.inside(cand, src):
+                _fail(where, f"image {cand} leaves {src} (through a symlink)")
             return fileio.check_regular(cand)
     tar = folder.with_name(folder.name + ".tar")
     hint = f" (unpack {tar} into {folder.parent} first)" if tar.is_file() else ""
@@ -188,7 +192,7 @@ def _mc_intrinsics(raw: dict, jfile: Path, img_w: int, img_h: int) -> dict:
 
 
 def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_roots: list[Path]) -> list[_MCFrame]:
-    raw = fileio.read_json(jfile)
+    raw = fileio.read_json(jfile, root=src)  # a pose file linked from outside SRC is refused
     if not isinstance(raw, dict) or not isinstance(raw.get("frames"), list) or not raw["frames"]:
         _fail(jfile, "field 'frames' must be a non-empty list")
     kind = _mc_kind(jfile, src)
@@ -205,7 +209,7 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
                 image = rel_file(jfile.parent, f"{at}.file_path", fr["file_path"], "image", src)
             else:
                 fi = _int(f"{at}.frame_index", fr.get("frame_index"), "the frame index", 0)
-                image = _raw_image(jfile.parent, fi, f"{at}.frame_index")
+                image = _raw_image(jfile.parent, fi, f"{at}.frame_index", src)
             mat_key = "rot_mat"
         else:
             fp = fr.get("file_path")
@@ -232,7 +236,12 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
             _fail(f"{at}.{mat_key}", f"{e} (is --pose-format {fmt} right for this file?)")
         names = frozenset(Path(block).parts) | frozenset(image.parent.relative_to(src).parts
                                                        if image.is_relative_to(src) else ())
-        out.append(_MCFrame(block, kind, i, image, cam.c2w, dict(intr), _mc_depth_path(image, src, depth_roots), names))
+        depth = _mc_depth_path(image, src, depth_roots)
+        if depth is not None:  # beside the image (inside SRC) or in a depth folder, symlinks resolved
+            if not any(fileio.inside(depth, r) for r in (src, *depth_roots)):
+                _fail(f"{at}", f"depth {depth} leaves {src} and the depth folders (through a symlink)")
+            fileio.check_regular(depth)
+        out.append(_MCFrame(block, kind, i, image, cam.c2w, dict(intr), depth, names))
     return out
 
 
@@ -260,6 +269,8 @@ def _pose_files(src: Path, pose_format: str, include: list[str] | None = None) -
         raise UserError(f"{src}: holds several MatrixCity maps ({', '.join(maps)}); pass one as SRC, "
                         f"e.g. {src / maps[0]}")
     if maps and (src / maps[0]).is_dir() and src.name != maps[0]:  # the download's root: use its one map
+        if not fileio.inside(src / maps[0], src):
+            raise UserError(f"{src / maps[0]}: leaves {src} (a symlink); every file read must lie inside SRC")
         return _pose_files(src / maps[0], pose_format, include)
     raw_files, paper_files = [p for p in raw_files if keep(p)], [p for p in paper_files if keep(p)]
     if pose_format == "auto":
@@ -316,6 +327,8 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
     src = Path(src)
     if not src.is_dir():
         raise UserError(f"{src}: not a folder (expected a MatrixCity capture with transforms*.json files)")
+    if not (isinstance(aerial_radius_m, (int, float)) and math.isfinite(aerial_radius_m) and aerial_radius_m > 0):
+        raise UserError(f"--aerial-radius {aerial_radius_m}: expected a finite distance in metres > 0")
     for t in ([*regions] if regions else [town]):
         _name("--region" if regions else "--town", t, "a town name")
     src, pose_format, files = _pose_files(src, pose_format, include)
@@ -465,6 +478,8 @@ def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "city
     """Convert a MatrixCity / CitySample capture into the canonical layout at `out`."""
     from ...protocol import load_protocol
 
+    given = [depth_root] if isinstance(depth_root, (str, Path)) else list(depth_root or [])
+    check_out(out, force, [src, *given], _INPUTS_ARE)  # before any work: OUT is never SRC, around it or in it
     proto = load_protocol(protocol)
     scenes, split_of, meta = plan_matrixcity(src, proto, town=town, split=split, pose_format=pose_format,
                                              convention=convention, depth_root=depth_root,
@@ -472,5 +487,9 @@ def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "city
     meta = {**meta, "importer": "skyeyes-bench data import-matrixcity", "src": str(src)}
     # The protocol whose data this is (citysample-region5@2 scores citysample-region5@1's frames).
     out = write_plan(Path(out), scenes, name=name or Path(out).name, protocol=proto.data_ref,
-                     splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress)
+                     splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress,
+                     inputs=[src, *meta["depth_roots"]], inputs_are=_INPUTS_ARE)
     return out, scenes, meta
+
+
+_INPUTS_ARE = "the capture (SRC and its depth folders)"

@@ -76,8 +76,15 @@ def test_import_carla_refuses_existing_out(carla_src, tmp_path):
     _, _, err = run_cli("data", "import-carla", str(src), str(out), "--no-progress", check=2)
     assert err.strip() == f"skyeyes-bench: error: {out}: already exists; pass --force to replace it"
     assert os.listdir(out) == ["keep.txt"]
-    run_cli("data", "import-carla", str(src), str(out), "--no-progress", "--force")
-    assert not (out / "keep.txt").exists() and (out / "dataset.json").is_file()
+    # --force replaces an earlier dataset (or an empty folder) only, never a folder of other files
+    _, _, err = run_cli("data", "import-carla", str(src), str(out), "--no-progress", "--force", check=2)
+    assert err.strip() == (f"skyeyes-bench: error: {out}: exists and is not a dataset folder (--force replaces "
+                           "only a dataset folder written earlier); move it away or choose another path")
+    assert os.listdir(out) == ["keep.txt"]
+    (out / "keep.txt").unlink()
+    for _ in range(2):  # the empty folder, then the dataset written into it
+        run_cli("data", "import-carla", str(src), str(out), "--no-progress", "--force")
+        assert (out / "dataset.json").is_file()
 
 
 def _mutate_capture(src: Path, fn):

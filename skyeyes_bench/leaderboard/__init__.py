@@ -67,41 +67,49 @@ def build(root: Path) -> dict[str, bytes]:
 
 
 def _same_png(a: bytes, b: bytes) -> bool:
-    """PNG bytes equal, or (if the encoder differs) the decoded pixels equal."""
+    """PNG bytes equal, or (if the encoder differs) the decoded pixels equal. Decoded in memory
+    (`--check` writes nothing), each checked by `fileio.png_problem` before a decoder sees it."""
     if a == b:
         return True
-    import tempfile
+    import io
 
     import numpy as np
+    from PIL import Image
 
     from .. import fileio
 
-    with tempfile.TemporaryDirectory() as d:
-        pa, pb = Path(d) / "a.png", Path(d) / "b.png"
-        pa.write_bytes(a)
-        pb.write_bytes(b)
-        try:
-            return np.array_equal(fileio.read_image_uint8(pa), fileio.read_image_uint8(pb))
-        except UserError:
-            return False
+    if fileio.png_problem(a) or fileio.png_problem(b):
+        return False
+    try:
+        pa, pb = (np.asarray(Image.open(io.BytesIO(x)).convert("RGBA")) for x in (a, b))
+    except (OSError, ValueError):
+        return False
+    return pa.shape == pb.shape and np.array_equal(pa, pb)
 
 
 def _stale_generated(root: Path, files: dict) -> list[Path]:
+    """PNGs (files or links) in plots/ and strips/ that the inputs no longer generate."""
     return [p for d in GENERATED_DIRS if (root / d).is_dir() for p in sorted((root / d).glob("*.png"))
-            if f"{d}/{p.name}" not in files]
+            if f"{d}/{p.name}" not in files and (p.is_file() or p.is_symlink())]
 
 
 def write(root: Path) -> list[str]:
-    """Regenerate the leaderboard in place (atomically per file); remove stale plots and strips."""
-    from .. import fileio
+    """Regenerate the leaderboard in place (atomically per file, with the user's umask); remove
+    stale plots and strips. Every path written or removed is checked, where it is written or
+    removed, to lie under `root` (a planted symlink to elsewhere is refused in one line)."""
+    from .. import safe
 
     root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"{root}: leaderboard folder not found")
+    safe.writable(root)  # before the work: a read-only folder is one line, not a late traceback
     files = build(root)
+    for rel in files:  # every target first, so a planted symlink is refused before any file changes
+        safe.confined(root / rel, root)
     for rel, data in files.items():
-        with fileio.atomic_path(root / rel) as tmp:
-            tmp.write_bytes(data)
+        safe.write_bytes(root / rel, data, root=root)  # and again at the point of writing
     for p in _stale_generated(root, files):
-        p.unlink()
+        safe.remove(p, root=root)
     return sorted(files)
 
 
@@ -109,15 +117,17 @@ def check(root: Path) -> list[str]:
     """Files that differ from what the inputs generate (empty: up to date)."""
     root = Path(root)
     files = build(root)
+    from .. import fileio
+
     stale = []
     for rel, data in files.items():
         p = root / rel
         if not p.is_file():
             stale.append(f"{rel} (missing)")
-        elif rel.endswith(".png"):
-            if not _same_png(p.read_bytes(), data):
-                stale.append(f"{rel} (differs)")
-        elif p.read_bytes() != data:
+            continue
+        with fileio.open_regular(p) as f:  # never blocks; a refusal is one line
+            on_disk = f.read(fileio.MAX_JSON_BYTES)  # far above any page or PNG generated here
+        if not (_same_png(on_disk, data) if rel.endswith(".png") else on_disk == data):
             stale.append(f"{rel} (differs)")
     stale += [f"{p.parent.name}/{p.name} (no longer generated)" for p in _stale_generated(root, files)]
     return stale

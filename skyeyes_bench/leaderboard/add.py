@@ -4,12 +4,13 @@ dataset it was scored against are on this machine."""
 
 from __future__ import annotations
 
-import math
-import shutil
+import contextlib
+import json
 from pathlib import Path
 
-from .. import fields, fileio
+from .. import fileio, safe
 from ..errors import UserError
+from . import checks
 from .plots import FRAMES_DIR, FRAMES_LIST, GROUND_TRUTH, save_tile, write_frames_list
 from .tables import ADD_KEY, format_hardware, frames_key
 
@@ -60,6 +61,7 @@ def check_results(path: Path) -> dict:
               f"says these are partial results of one shard; expected complete results ({RESULTS_FORMAT!r}): "
               f"merge every shard first (`skyeyes-bench merge PARTS... --out results.json`)")
     doc, _ = read_results(path)
+    checks.results_fields(doc, path)  # paths and page text, before anything uses them
     ref = doc["protocol"]["ref"]
     try:
         proto = load_protocol(ref)
@@ -68,13 +70,7 @@ def check_results(path: Path) -> dict:
     if proto.sha256 != doc["protocol"]["sha256"]:
         _fail(path, "protocol.sha256", f"is {doc['protocol']['sha256'][:12]}…, but protocol {ref} is "
               f"{proto.sha256[:12]}… here: the protocol file changed since this result was scored")
-    timings = doc["submission"].get("timings")
-    for key in ("fit_s", "render_s"):
-        v = timings.get(key) if isinstance(timings, dict) else None
-        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
-            what = "missing" if v is None else f"is {fields._short(v)}"
-            _fail(path, f"submission.timings.{key}", f"{what}; expected the seconds the submission reports (a "
-                  f"number >= 0): the leaderboard shows and plots run time (fit + render)")
+    checks.run_seconds(path, doc["submission"].get("timings"), required=True)
     if not any(m.get("status") == "ok" for m in doc["metrics"].values()):
         _fail(path, "metrics", "holds no metric with status 'ok'; expected at least one scored metric")
     for name, m in doc["metrics"].items():
@@ -86,30 +82,45 @@ def check_results(path: Path) -> dict:
     return doc
 
 
-def _tiles_from(folder: Path, frames: list[dict], records: dict, sha_key: str, dst: Path, *,
-                overwrite: bool) -> str | None:
-    """Save the chosen frames of `folder` (a submission or a dataset root: `<scene>/<file>`) as
-    small PNGs in `dst` if every one is there with the sha256 the results recorded; else say why not."""
+def _tiles_problem(folder: Path, frames: list[dict], records: dict, sha_key: str) -> str | None:
+    """Why the chosen frames of `folder` (a submission or a dataset root: `<scene>/<file>`) cannot
+    be saved (None: each is there with the sha256 the results recorded)."""
     for f in frames:
         p = folder / f["scene"] / f["file"]
         if not p.is_file():
             return f"{p} not found"
         if fileio.sha256_file(p) != records[(f["scene"], f["file"])][sha_key]:
             return f"{p} differs from the frame that was scored (sha256)"
-    with fileio.atomic_dir(dst, overwrite=overwrite) as tmp:
-        for f in frames:
-            save_tile(folder / f["scene"] / f["file"], tmp / f["tile"])
     return None
+
+
+def _save_tiles(folder: Path, frames: list[dict], dst: Path, *, root: Path, overwrite: bool) -> None:
+    with safe.atomic_folder(dst, root=root, overwrite=overwrite) as tmp:
+        for f in frames:
+            save_tile(folder / f["scene"] / f["file"], tmp / f["tile"], root=root)
+
+
+def _hardware_here() -> dict:
+    """This machine's hardware, with the names that reach the page made plain text (a CPU model
+    string is whatever /proc/cpuinfo says)."""
+    from ..submission import detect_hardware
+
+    hw = detect_hardware()
+    for key in ("cpu", "gpu"):
+        if isinstance(hw.get(key), str):
+            hw[key] = "".join(c for c in hw[key] if not safe.text_problem(c, 1))[:200] or None
+    return hw
 
 
 def add_result(results_path, *, root, name: str | None = None, force: bool = False) -> list[str]:
     """File `results_path` as `<root>/results/<name>.json` and save its strip frames.
 
     Returns the lines to print (what was filed, what the strip has or lacks).
-    Raises UserError (one line) for a file the leaderboard cannot use or an existing name.
+    Raises UserError (one line) for a file the leaderboard cannot use or an existing name; then
+    nothing is left behind: every check runs before the first write, and what this call created
+    is removed if a write fails. Every path written or deleted is checked to lie under `root`
+    where it is written (`safe`). Without `force` nothing is replaced or deleted.
     """
-    from ..submission import detect_hardware
-
     path, root = Path(results_path), Path(root)
     if not root.is_dir():
         raise UserError(f"{root}: leaderboard folder not found (pass --root DIR)")
@@ -118,41 +129,81 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
         name = doc["submission"].get("method")
         if name is None:
             _fail(path, "submission.method", "is null; pass --name NAME")
-        fields.name(f"{path}: field 'submission.method'", name, "a name to file the result under (or pass --name)")
+        checks.filed_name(f"{path}: field 'submission.method'", name, "a name to file the result under (or pass "
+                          "--name)")
     else:
-        fields.name("--name", name, "the name to file the result under")
+        checks.filed_name("--name", name, "the name to file the result under")
+    safe.writable(root)
+    # 1. where everything goes, checked before anything is written
     dest = root / "results" / f"{name}.json"
+    if dest.is_dir():
+        raise UserError(f"{dest}: is a folder; expected the results file filed as {name!r} (or nothing)")
     if dest.exists() and not force:
         raise UserError(f"{dest}: a result is already filed as {name!r}; pass --force to replace it or --name "
                         f"to file it under another name")
-    lines = [f"{dest}: {doc['submission'].get('method')} on {doc['protocol']['ref']}"]
-    # 1. hardware: the run's, else this machine's (said so in the file and on the page)
-    added: dict = {"added_from": str(path.resolve())}
-    if not format_hardware(doc["submission"].get("hardware")):
-        added["hardware"] = detect_hardware()
-        added["hardware_source"] = "the machine that ran `skyeyes-bench leaderboard add` (not recorded by the run)"
-        lines.append(f"  hardware: not in the results; recorded this machine's ({format_hardware(added['hardware'])})")
-    # 2. strip frames: the same frames for every method of this protocol and dataset
     base = root / FRAMES_DIR / frames_key(doc)
+    mine = base / name
+    for p in (dest, base / FRAMES_LIST, base / GROUND_TRUTH, mine):
+        safe.confined(p, root)  # again where each is written: this says so before any work
+    if (mine.exists() or mine.is_symlink()) and not force:
+        raise UserError(f"{mine}: strip frames are already saved under {name!r} (no result of that name is filed); "
+                        f"pass --force to replace them or --name to file the result under another name")
+    if mine.exists() and not mine.is_dir():
+        raise UserError(f"{mine}: is a file; expected the folder of {name!r}'s strip frames (or nothing)")
     listed = base / FRAMES_LIST
-    frames = fileio.read_json(listed)["frames"] if listed.is_file() else choose_frames(doc)
-    if not listed.is_file():
-        write_frames_list(listed, frames)
+    frames = checks.frames_list(listed) if listed.is_file() else choose_frames(doc)
     records = {(r["scene"], r["file"]): r for r in doc["frames"]}
+    if not frames:
+        _fail(path, "frames", "is empty; expected the records of the frames that were scored")
     if any((f["scene"], f["file"]) not in records for f in frames):
         raise UserError(f"{path}: field 'frames' lacks the strip frames listed in {listed}: not the dataset the "
                         f"other results of {doc['protocol']['ref']} were scored on")
-    gt = base / GROUND_TRUTH
-    if not gt.is_dir():
-        why = _tiles_from(Path(doc["dataset"].get("root") or "."), frames, records, "gt_sha256", gt, overwrite=False)
-        lines.append(f"  strip: ground truth {'saved' if why is None else 'has no frames (' + why + ')'}")
-    why = _tiles_from(Path(doc["submission"].get("path") or "."), frames, records, "sha256", base / name,
-                      overwrite=force)
-    if why is not None and (base / name).exists():  # --force with frames no longer here: drop the old ones
-        shutil.rmtree(base / name)
-    lines.append(f"  strip: {len(frames)} frames saved to {base / name}" if why is None else
-                 f"  strip: no frames for {name} ({why}); the page says so")
-    # 3. the results file, last (atomic), so a failure above leaves no half-filed row
-    doc[ADD_KEY] = added
-    fileio.write_json(dest, doc)
+    gt, gt_src = base / GROUND_TRUTH, Path(doc["dataset"].get("root") or ".")
+    sub_src = Path(doc["submission"].get("path") or ".")
+    gt_why = None if gt.is_dir() else _tiles_problem(gt_src, frames, records, "gt_sha256")
+    why = _tiles_problem(sub_src, frames, records, "sha256")
+    lines = [f"{dest}: {doc['submission'].get('method')} on {doc['protocol']['ref']}"]
+    # 2. hardware: the run's, else this machine's (said so in the file and on the page)
+    added: dict = {"added_from": str(path.resolve())}
+    if not format_hardware(doc["submission"].get("hardware")):
+        added["hardware"] = _hardware_here()
+        added["hardware_source"] = "the machine that ran `skyeyes-bench leaderboard add` (not recorded by the run)"
+        lines.append(f"  hardware: not in the results; recorded this machine's ({format_hardware(added['hardware'])})")
+    # 3. write: the frames list (once per protocol and dataset), the ground truth's and this
+    # method's strip frames, then the results file, last (atomic). A failure removes what this
+    # call created (and only that), so no half-filed row is left.
+    new_dirs = [d for d in (root / "results", root / FRAMES_DIR, base) if not d.exists()]
+    created: list[Path] = []
+    try:
+        if not listed.is_file():
+            write_frames_list(listed, frames, root=root)
+            created.append(listed)
+        if not gt.is_dir():
+            if gt_why is None:
+                _save_tiles(gt_src, frames, gt, root=root, overwrite=False)
+                created.append(gt)
+            lines.append(f"  strip: ground truth {'saved' if gt_why is None else 'has no frames (' + gt_why + ')'}")
+        if why is None:
+            _save_tiles(sub_src, frames, mine, root=root, overwrite=force)
+            created.append(mine)
+        elif mine.exists() or mine.is_symlink():  # --force with frames no longer here: drop the old ones
+            safe.remove(mine, root=root)
+        lines.append(f"  strip: {len(frames)} frames saved to {mine}" if why is None else
+                     f"  strip: no frames for {name} ({why}); the page says so")
+        doc[ADD_KEY] = added
+        write_results_file(dest, doc, root=root)
+    except BaseException:
+        for p in reversed(created):
+            with contextlib.suppress(UserError):
+                safe.remove(p, root=root)
+        for d in reversed(new_dirs):
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only if empty: a folder this call made and left nothing in
+        raise
     return lines
+
+
+def write_results_file(dest: Path, doc: dict, *, root: Path) -> None:
+    """The filed results JSON (the bytes `fileio.write_json` writes), confined to `root`."""
+    with safe.atomic_file(dest, root=root) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2, sort_keys=False, allow_nan=True) + "\n")

@@ -66,13 +66,17 @@ def render_plot(t: Table, m: str) -> bytes:
     xs = [max(r.run_s, 1e-3) for r in rows]
     ys = [float(r.values[m]) for r in rows]
     front = pareto_front(xs, ys, stats.higher_is_better(m))
-    with plt.rc_context({"font.size": 8, "figure.dpi": 100, "savefig.dpi": 100}):
+    # errstate: values near 1e308 (a hand-edited results file) overflow in matplotlib's tick
+    # arithmetic; the plot is still drawn, without numpy's warnings on stderr
+    with plt.rc_context({"font.size": 8, "figure.dpi": 100, "savefig.dpi": 100}), \
+            np.errstate(over="ignore", invalid="ignore"):
         fig, ax = plt.subplots(figsize=(5.0, 3.4))
         for r, x, v in zip(rows, xs, ys):
             lo, hi = r.intervals.get(m, (v, v))
             err = [[max(v - lo, 0.0) if math.isfinite(lo) else 0.0], [max(hi - v, 0.0) if math.isfinite(hi) else 0.0]]
             ax.errorbar([x], [v], yerr=err, fmt="o", capsize=3, ms=4, color="tab:blue")
-            ax.annotate(r.method, (x, v), textcoords="offset points", xytext=(5, 3), fontsize=7)
+            # parse_math off: a '$' in a method name is text, not mathtext that may fail to parse
+            ax.annotate(r.method, (x, v), textcoords="offset points", xytext=(5, 3), fontsize=7, parse_math=False)
         fx, fy = [xs[i] for i in front], [ys[i] for i in front]
         ax.plot(fx, fy, "-", color="tab:red", lw=1, zorder=3)
         ax.plot(fx, fy, "o", mfc="none", mec="tab:red", ms=10, mew=1.2, zorder=3, label="Pareto front")
@@ -86,7 +90,8 @@ def render_plot(t: Table, m: str) -> bytes:
         ax.legend(loc="best", fontsize=7, frameon=False)
         missing = [r.method for r in t.rows if r.run_s is None and r.values.get(m) is not None]
         if missing:
-            ax.text(0.01, 0.01, "no run time: " + ", ".join(missing), transform=ax.transAxes, fontsize=6)
+            ax.text(0.01, 0.01, "no run time: " + ", ".join(missing), transform=ax.transAxes, fontsize=6,
+                    parse_math=False)
         fig.subplots_adjust(left=0.14, right=0.97, bottom=0.14, top=0.9)  # fixed: tight_layout is slow
         buf = io.BytesIO()
         fig.savefig(buf, format="png", metadata={"Software": None})
@@ -106,9 +111,9 @@ def strip_frames(root: Path, t: Table) -> list[dict] | None:
     p = Path(root) / FRAMES_DIR / t.frames_key / FRAMES_LIST
     if not p.is_file():
         return None
-    from .. import fileio
+    from .checks import frames_list
 
-    return fileio.read_json(p)["frames"]
+    return frames_list(p)
 
 
 def strip_rows(root: Path, t: Table) -> list[tuple[str, Path | None]]:
@@ -175,20 +180,20 @@ def render_strip(root: Path, t: Table) -> bytes | None:
     return buf.getvalue()
 
 
-def save_tile(src: Path, dst: Path) -> None:
-    """Copy frame `src` as a small PNG (longest side at most TILE - 2 px) to `dst`, atomically."""
+def save_tile(src: Path, dst: Path, *, root: Path) -> None:
+    """Copy frame `src` as a small PNG (longest side at most TILE - 2 px) to `dst` (under `root`),
+    atomically, with the user's umask."""
     from PIL import Image
 
-    from .. import fileio
+    from .. import fileio, safe
 
     tile = Image.fromarray(fileio.to_uint8(fileio.read_image(src)))
     tile.thumbnail((TILE - 2, TILE - 2), Image.Resampling.LANCZOS)
-    with fileio.atomic_path(dst) as tmp:
+    with safe.atomic_file(dst, root=root) as tmp:
         tile.save(tmp, format="PNG")
 
 
-def write_frames_list(path: Path, frames: list[dict]) -> None:
-    from .. import fileio
+def write_frames_list(path: Path, frames: list[dict], *, root: Path) -> None:
+    from .. import safe
 
-    with fileio.atomic_path(path) as tmp:
-        tmp.write_text(json.dumps({"frames": frames}, indent=2) + "\n")
+    safe.write_bytes(path, (json.dumps({"frames": frames}, indent=2) + "\n").encode(), root=root)

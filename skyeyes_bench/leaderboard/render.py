@@ -28,6 +28,19 @@ _INTRO = ("Values are `value [lower, upper]`, the interval the results carry (cl
           "connected. Strips: the same fixed test frames for every method (docs/leaderboard.md).")
 
 
+#: Characters that Markdown (GitHub's) reads as markup in a table cell or a line of text: HTML
+#: (`<`, `>`, `&`), a new cell (`|`), code, emphasis, links and strike-through.
+_MD_ESCAPES = {"&": "&amp;", "<": "&lt;", ">": "&gt;", "|": "\\|", "`": "\\`", "\\": "\\\\", "*": "\\*",
+               "_": "\\_", "[": "\\[", "]": "\\]", "~": "\\~", "\n": " ", "\r": " "}
+
+
+def md(text: str) -> str:
+    """`text` (from an input: a name, a version, a note) as literal Markdown: every character that
+    would be markup escaped, line breaks as spaces (the readers refuse them already), so a cell
+    stays one cell and no input adds HTML, links or formatting to README.md."""
+    return "".join(_MD_ESCAPES.get(c, c) for c in str(text))
+
+
 def fmt(m: str, v: float | None, decimals: int | None = None) -> str:
     if v is None:
         return "n/a"
@@ -36,14 +49,15 @@ def fmt(m: str, v: float | None, decimals: int | None = None) -> str:
     return f"{v:.{DIGITS[m] if decimals is None else decimals}f}"
 
 
-def cell(t: Table, i: int, m: str) -> str:
+def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:
+    """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through `escape`."""
     r = t.rows[i]
     text = fmt(m, r.values.get(m))
     if m in r.intervals:
         lo, hi = r.intervals[m]
         text += f" [{fmt(m, lo)}, {fmt(m, hi)}]"
     elif m in r.no_interval and r.values.get(m) is not None:
-        text += f" ({r.no_interval[m]})"
+        text += f" ({escape(r.no_interval[m])})"
     return text
 
 
@@ -59,8 +73,8 @@ def run_time(r) -> str:
     return f"{num(r.run_s)} ({num(r.fit_s)} + {num(r.render_s)})"
 
 
-def hardware(r) -> str:
-    return (r.hardware or "not recorded") + (ADDED if r.hardware_added else "")
+def hardware(r, escape=lambda x: x) -> str:
+    return escape(r.hardware or "not recorded") + (ADDED if r.hardware_added else "")
 
 
 def arrow(m: str) -> str:
@@ -80,12 +94,15 @@ def _footnotes(t: Table) -> list[str]:
     return out
 
 
-def _strip_notes(root: Path, t: Table, files: dict) -> tuple[str | None, str]:
-    """(strip path or None, a sentence on rows without frames)."""
+_NO_STRIP = ("No strip yet: no frames were saved for this protocol and dataset (`leaderboard add` saves them when "
+             "the submission and dataset are on the machine).")
+
+
+def _strip_notes(root: Path, t: Table, files: dict, escape) -> tuple[str | None, str]:
+    """(strip path or None, a sentence on rows without frames, its names passed through `escape`)."""
     if strip_name(t) not in files:
-        return None, ("No strip yet: no frames were saved for this protocol and dataset (`leaderboard add` "
-                      "saves them when the submission and dataset are on the machine).")
-    missing = [label for label, folder in strip_rows(root, t) if folder is None]
+        return None, ""
+    missing = [escape(label) for label, folder in strip_rows(root, t) if folder is None]
     return strip_name(t), (f"The strip has no frames for: {', '.join(missing)} (submission or dataset not on "
                            f"the machine that added it)." if missing else "")
 
@@ -98,26 +115,28 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
            "not edit by hand; `skyeyes-bench leaderboard --check` fails when this file is stale.", "",
            _INTRO, "", "## Measured", ""]
     for t in measured:
-        out += [f"### {t.title}", "", t.note, "", rules_summary(t), ""]
+        out += [f"### {md(t.title)}", "", md(t.note), "", rules_summary(t), ""]
         head = _measured_head(t)
         out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for i, r in enumerate(t.rows):
-            cells = [r.method, r.version]
+            cells = [md(r.method), md(r.version)]
             for m in t.metrics:
-                c = cell(t, i, m)
+                c = cell(t, i, m, md)
                 if i in t.best.get(m, []):
                     c = f"**{c}**" + (f" {DAGGER}" if m in t.not_credible else "")
                 cells.append(c)
-            cells += [run_time(r), hardware(r), num(r.peak_mb)]
+            cells += [run_time(r), hardware(r, md), num(r.peak_mb)]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
         for f in _footnotes(t):
             out += [f, ""]
         plots = [f"![{t.key}: {LABEL[m]} against run time]({plot_name(t, m)})" for m in plot_metrics(t)]
         out += [" ".join(plots) if plots else "No plot: no row records a run time.", ""]
-        strip, note = _strip_notes(root, t, files)
+        strip, note = _strip_notes(root, t, files, md)
         if strip:
             out += [f"![{t.key}: the same test frames, ground truth then each method]({strip})", ""]
+        else:
+            note = _NO_STRIP
         if note:
             out += [note, ""]
     if unmeasured:
@@ -126,15 +145,15 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
                 "with `skyeyes-bench leaderboard add RESULTS.json`, then run `skyeyes-bench leaderboard`.", ""]
     out += ["## Reported in papers (not measured here, not ranked with measured rows)", ""]
     for t in reported:
-        out += [f"### {t.title} ({t.protocol})", "", f"Source: {t.citation}", "", t.note, ""]
+        out += [f"### {md(t.title)} ({md(t.protocol)})", "", f"Source: {md(t.citation)}", "", md(t.note), ""]
         head = ["Method", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Reference"]
         out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for i, r in enumerate(t.rows):
-            cells = [r.method]
+            cells = [md(r.method)]
             for m in t.metrics:
                 c = fmt(m, r.values.get(m), t.decimals)
                 cells.append(f"**{c}**" if i in t.best.get(m, []) else c)
-            out.append("| " + " | ".join([*cells, r.reference]) + " |")
+            out.append("| " + " | ".join([*cells, md(r.reference)]) + " |")
         out.append("")
     return "\n".join(out).rstrip() + "\n"
 
@@ -218,12 +237,14 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
                  for m in plot_metrics(t)]
         out.append(f'<div class="plots">{"".join(plots)}</div>' if plots else
                    "<p>No plot: no row records a run time.</p>")
-        strip, note = _strip_notes(root, t, files)
+        strip, note = _strip_notes(root, t, files, e)  # names escaped here; the sentence has no markup
         if strip:
             out.append(f'<p><img class="strip" src="{e(strip)}" alt="{e(t.key)}: the same test frames, ground truth '
                        f'then each method"></p>')
+        else:
+            note = _md_code(_NO_STRIP)
         if note:
-            out.append(f"<p class=note>{_md_code(note)}</p>")
+            out.append(f"<p class=note>{note}</p>")
     if unmeasured:
         out.append("<p>No measured rows yet for protocol: " + ", ".join(f"<code>{e(p)}</code>" for p in unmeasured) +
                    " (any version). File a results file with "

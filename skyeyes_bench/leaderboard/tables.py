@@ -3,11 +3,9 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import UserError
 from ..metricspec import METRICS
 
 #: Column order, headings and printed decimals: the metric table's (`metricspec`).
@@ -121,11 +119,16 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
 
 def measured_tables(root: Path) -> list[Table]:
     from ..results import read_results
+    from .checks import filed_name, results_fields
 
     groups: dict[tuple, list[tuple[dict, str]]] = {}
     for p in sorted((root / "results").glob("*.json")):
+        # the file name becomes the row's strip folder (frames/<key>/<name>/)
+        filed_name(f"{p}: file name", p.name[: -len(".json")], "a results file named <name>.json")
         doc, _ = read_results(p)
-        ex = tuple(sorted((k, v.get("weights_sha256")) for k, v in doc.get("extractors", {}).items()
+        results_fields(doc, p)
+        # no weights: '' (not None, which does not sort against a sha256)
+        ex = tuple(sorted((k, v.get("weights_sha256") or "") for k, v in doc.get("extractors", {}).items()
                           if v.get("status") == "ok"))
         key = (doc["protocol"]["ref"], doc["protocol"]["sha256"], ex, doc["sha256"]["ground_truth"])
         groups.setdefault(key, []).append((doc, p.name))
@@ -160,27 +163,14 @@ def _reference_note(names: list[str], docs: list[dict]) -> str:
 
 
 def reported_tables(root: Path) -> list[Table]:
+    from .checks import reported_file
+
     tables = []
     for p in sorted((root / "reported").glob("*.toml")):
-        try:
-            raw = tomllib.loads(p.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise UserError(f"{p}: not valid TOML ({e})") from None
-        for k in ("title", "protocol", "status", "citation", "metrics", "rows"):
-            if k not in raw:
-                raise UserError(f"{p}: missing key '{k}'")
-        if raw["status"] != "reported":
-            raise UserError(f"{p}: key 'status' must be \"reported\", got {raw['status']!r}")
+        raw = reported_file(p)  # every field checked: page text plain, scores finite numbers
         metrics = list(raw["metrics"])  # the paper's column order
-        unknown = set(raw["metrics"]) - set(METRIC_ORDER)
-        if unknown:
-            raise UserError(f"{p}: unknown metrics {sorted(unknown)} (known: {', '.join(METRIC_ORDER)})")
-        rows = []
-        for i, r in enumerate(raw["rows"]):
-            if "method" not in r:
-                raise UserError(f"{p}: rows[{i}] has no 'method'")
-            rows.append(Row(method=r["method"], version="", values={m: r.get(m) for m in metrics},
-                            source=p.name, reference=r.get("reference", "")))
+        rows = [Row(method=r["method"], version="", values={m: r.get(m) for m in metrics}, source=p.name,
+                    reference=r.get("reference", "")) for r in raw["rows"]]
         tables.append(Table(p.stem, raw["title"], raw["protocol"], metrics, rows, reported=True,
                             note=raw.get("note", ""), citation=raw["citation"], decimals=raw.get("decimals")))
     return tables

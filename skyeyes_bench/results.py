@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -122,7 +123,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
 
     metrics: dict[str, dict] = {}
     per_seq: dict[str, dict] = {sid: {"frames": int((seqs == i).sum())} for i, sid in enumerate(seq_ids)}
-    with _stage(timing, "bootstrap_s"):
+    # over: means of values near 1e308 (only a hostile part holds them) are +-inf, without a warning
+    with _stage(timing, "bootstrap_s"), np.errstate(over="ignore"):
         for name in FRAME_METRICS:
             if not protocol.metric(name):
                 continue
@@ -221,21 +223,41 @@ _FINAL_SHAPE = {
     "sequences": {str: {str: fields.Optional(fields.Number)}},
     "sha256": {"ground_truth": str, "submission_frames": str},
 }
-_PARTIAL_SHAPE = {"shard": fields.Optional({"index": int, "count": int}), "unavailable": {str: dict}}
+_PARTIAL_SHAPE = {"shard": fields.Optional({"index": int, "count": int}),
+                  "unavailable": {str: {"reason": str, "fix": str}}}
+
+
+def _not_nan(where: str, value) -> None:
+    """Results never hold NaN (an undefined value is null); +-inf is allowed (PSNR of exact frames)."""
+    if isinstance(value, float) and math.isnan(value):
+        fields.fail(where, "expected a number or null, got NaN (results write an undefined value as null)")
+
+
+def _q(text: str) -> str:
+    """A name read from a file, quoted for a one-line message (newlines, bidi overrides escaped)."""
+    return fields._short(text, 120)
 
 
 def _results_problem(doc: dict, path: Path, partial: bool) -> None:
     """Raise a one-line UserError at the first field of a results (or partial) file that this
-    version cannot use: wrong type, missing, or an index outside what the file itself holds."""
+    version cannot use: wrong type, missing, NaN, a frame listed twice, or an index outside what
+    the file itself holds."""
     fields.conform(str(path), doc, {**_RESULTS_SHAPE, **(_PARTIAL_SHAPE if partial else _FINAL_SHAPE)})
     n_seq = len(doc["dataset"]["sequences"])
+    seen: dict[tuple[str, str], int] = {}
     for i, r in enumerate(doc["frames"]):
         fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
+        key = (r["scene"], r["file"])
+        if key in seen:  # pairing (compare) and merging go by frame: one record each
+            fields.fail(f"{path}: field 'frames[{i}]'",
+                        f"frame {_q(key[0] + '/' + key[1])} is listed twice (also frames[{seen[key]}])")
+        seen[key] = i
         for name in FRAME_METRICS:
             if name in r:
                 weighted = metric_def(name).weighted  # a value per region, null when the region is empty
                 fields.conform(str(path), r[name], fields.Optional(fields.Number) if weighted else fields.Number,
                                f"frames[{i}].{name}")
+                _not_nan(f"{path}: field 'frames[{i}].{name}'", r[name])
                 if weighted:
                     fields.integer(f"{path}: field 'frames[{i}].{name}_n'", r.get(f"{name}_n"),
                                    "the frame's pixel count of the region")
@@ -244,13 +266,18 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         fields.integer(f"{path}: field 'shard.count'", shard["count"], "the number of shards", 1, max(n_seq, 1))
         fields.integer(f"{path}: field 'shard.index'", shard["index"], "the shard's number", 0, shard["count"] - 1)
     if not partial:
+        if not isinstance(doc.get("statistics", {}), dict):
+            fields.fail(f"{path}: field 'statistics'", f"expected an object, got {fields._short(doc['statistics'])}")
         for name, m in doc["metrics"].items():
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
+                _not_nan(f"{path}: field 'metrics.{name}.value'", m["value"])
                 # interval: [lo, hi], or null with the reason (too few clusters); replicates likewise
                 for key, shape in (("interval", [fields.Number]), ("replicates", [fields.Optional(fields.Number)])):
                     if m.get(key) is not None:
                         fields.conform(str(path), m[key], shape, f"metrics.{name}.{key}")
+                        for j, v in enumerate(m[key]):
+                            _not_nan(f"{path}: field 'metrics.{name}.{key}[{j}]'", v)
                 if m["kind"] not in ("frame", "set"):
                     fields.fail(f"{path}: field 'metrics.{name}.kind'",
                                 f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
@@ -260,6 +287,12 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
                     seq_shape = fields.Optional(fields.Number) if weighted else fields.Number
                     for sid in doc["dataset"]["sequences"]:
                         fields.conform(str(path), doc["sequences"].get(sid), {name: seq_shape}, f"sequences.{sid}")
+                        _not_nan(f"{path}: field 'sequences.{sid}.{name}'", doc["sequences"][sid][name])
+                    # ... and compared per frame: every frame holds one too (a metric this version
+                    # does not know is checked here, the known ones above)
+                    for i, r in enumerate(doc["frames"]):
+                        fields.conform(str(path), r, {name: seq_shape}, f"frames[{i}]")
+                        _not_nan(f"{path}: field 'frames[{i}].{name}'", r[name])
                 if m["kind"] == "set":
                     fields.conform(str(path), m, {"extractor": str}, f"metrics.{name}")
 
@@ -297,6 +330,10 @@ def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.
                                 f"{list(a.shape)}")
         if seq.dtype.kind not in "iu" or seq.ndim != 1 or (len(seq) and not (0 <= seq.min() and seq.max() < n_seq)):
             raise UserError(f"{where}|seq': expected sequence numbers in 0..{n_seq - 1}")
+        for part, a in (("sub", sub), ("gt", gt)):
+            if not np.isfinite(a).all():  # a network's features are finite; NaN broke the eigensolvers
+                raise UserError(f"{where}|{part}': holds NaN or infinite values (expected the features `evaluate` "
+                                f"writes)")
     return out
 
 
@@ -316,7 +353,8 @@ def read_results(path, *, features: bool = False, partial: bool = False) -> tupl
     if not isinstance(info, dict):
         raise UserError(f"{path}: field 'features' must be an object")
     name = info.get("file", features_path(path).name)
-    fields.name(f"{path}: field 'features.file'", name, "the sidecar's file name beside it")
+    if name != features_path(path).name:  # the name `evaluate` derives from `path` is fine whatever it holds
+        fields.name(f"{path}: field 'features.file'", name, "the sidecar's file name beside it")
     fpath = path.with_name(name)
     if not fpath.is_file():
         raise UserError(f"{fpath}: features sidecar of {path.name} missing (needed to resample set metrics)")
@@ -333,6 +371,99 @@ def _with_device(extractors) -> dict:
     parts written before `evaluate --device` existed carry none, and all of those ran on the CPU."""
     return {ex: {**info, "device": info.get("device", "cpu")} if isinstance(info, dict) and "kind" in info else info
             for ex, info in (extractors or {}).items()}
+
+
+def _frame_records_problems(loaded: list[tuple[Path, dict, dict]]) -> list[str]:
+    """What is wrong with the frame records (and feature rows) of parts that otherwise belong
+    together: each frame in one part only, of a sequence of that part's shard and of its own scene;
+    every frame metric the protocol asks for in every record (or listed unavailable); and all the
+    records together the frames of the submission every part was scored from: their digest must
+    equal `submission.frames_sha256`, which `evaluate` computes from the submitted files."""
+    from .protocol import load_protocol
+
+    first = loaded[0][1]
+    seq_ids = first["dataset"]["sequences"]
+    n = first["shard"]["count"]
+    problems: list[str] = []
+    owner: dict[tuple[str, str], Path] = {}
+    for p, d, feats in loaded:
+        mine = d["shard"]["index"]
+        own: list[str] = []  # this part's problems; the first is reported (one edit, one line)
+        for i, r in enumerate(d["frames"]):
+            key, sid = (r["scene"], r["file"]), seq_ids[r["sequence"]]
+            where = f"{p}: field 'frames[{i}]' (frame {_q(key[0] + '/' + key[1])})"
+            if r["sequence"] % n != mine:
+                own.append(f"{where}: of sequence {_q(sid)}, which shard {mine}/{n} does not score")
+            elif stats.scene_of(sid) != r["scene"]:
+                own.append(f"{where}: not in scene {_q(stats.scene_of(sid))} of its sequence {_q(sid)}")
+            elif key in owner:
+                own.append(f"{where}: also in {owner[key]}")
+            owner.setdefault(key, p)
+        records = np.bincount(np.array([r["sequence"] for r in d["frames"]], dtype=np.int64),
+                              minlength=len(seq_ids))
+        for ex_id, f in feats.items():
+            other = f["seq"][f["seq"] % n != mine]
+            rows = np.bincount(f["seq"], minlength=len(seq_ids))
+            if len(other):
+                own.append(f"{features_path(p)}: array {_q(ex_id + '|seq')} holds rows of sequence "
+                           f"{_q(seq_ids[int(other[0])])}, which shard {mine}/{n} does not score")
+            elif d["extractors"][ex_id].get("kind") == "image" and (rows != records).any():
+                # one feature row per scored frame: a record added or removed afterwards shows here
+                k = int(np.flatnonzero(rows != records)[0])
+                own.append(f"{p}: field 'frames' holds {records[k]} records of sequence {_q(seq_ids[k])}, but "
+                           f"{features_path(p).name} holds features of {rows[k]} of its frames: records were "
+                           f"added or removed")
+        problems += own[:1]
+    if problems:
+        return problems
+    protocol = load_protocol(first["protocol"]["ref"])
+    unavailable = {k for _, d, _ in loaded for k in d["unavailable"]}
+    wanted = [name for name in FRAME_METRICS if protocol.metric(name) and name not in unavailable]
+    for p, d, _ in loaded:
+        for i, r in enumerate(d["frames"]):
+            lack = [name for name in wanted if name not in r]
+            if lack:
+                return [f"{p}: field 'frames[{i}].{lack[0]}' missing (protocol {protocol.ref} scores it and the part "
+                        f"does not list it unavailable)"]
+    want = first["submission"].get("frames_sha256")
+    got = _digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for _, d, _ in loaded for r in d["frames"]])
+    if want is not None and got != want:
+        return [_edited_part(loaded, want, got)]
+    return []
+
+
+def _edited_part(loaded: list[tuple[Path, dict, dict]], want: str, got: str) -> str:
+    """The one line that says which part's frame records do not add up to the submission. When a
+    part's submission folder is here, each record's sha256 is checked against the file it names
+    (only regular files inside that folder) and the first part that differs is named; else every
+    part is, as one of them."""
+    for p, d, _ in loaded:
+        folder = d["submission"].get("path")
+        if not (isinstance(folder, str) and folder and Path(folder, "submission.json").is_file()):
+            continue
+        for i, r in enumerate(d["frames"]):
+            where = f"{p}: field 'frames[{i}]' (frame {_q(r['scene'] + '/' + r['file'])})"
+            try:
+                with fileio.open_regular(Path(folder, r["scene"], r["file"]), root=folder) as fh:
+                    if os.fstat(fh.fileno()).st_size > _MAX_FRAME_BYTES:
+                        continue
+                    h = hashlib.sha256()
+                    while block := fh.read(1 << 20):
+                        h.update(block)
+                    sha = h.hexdigest()
+            except UserError:
+                return (f"{where}: no such frame in the submission {_q(folder)} it was scored from: the record "
+                        f"was edited")
+            if sha != r["sha256"]:
+                return (f"{where}: sha256 {ascii(r['sha256'][:12])[1:-1]}... recorded, {sha[:12]}... in the submission "
+                        f"{_q(folder)}: the record was edited")
+    names = ", ".join(str(p) for p, _, _ in loaded)
+    return (f"merge: the frame records of one of {names} were edited: together they hash to {got[:12]}..., not to "
+            f"the {want[:12]}... of the submission every part records (field 'submission.frames_sha256')")
+
+
+#: A submitted frame is an 8-bit PNG; a larger file named by a part is not hashed (it is not one).
+_MAX_FRAME_BYTES = 1 << 30
 
 
 def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dict:
@@ -384,6 +515,9 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
         missing = sorted(set(range(n)) - set(seen))
         if missing:
             problems.append(f"merge: shards {', '.join(f'{i}/{n}' for i in missing)} missing")
+    if problems:
+        raise ValidationError("merge", problems)
+    problems = _frame_records_problems(loaded)
     if problems:
         raise ValidationError("merge", problems)
     doc = dict(first)

@@ -90,7 +90,7 @@ def replicate_draws(estimate: float, replicates, n_clusters: int) -> np.ndarray:
     r = r[~np.isnan(r)]
     if not math.isfinite(estimate):
         return r
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # values near 1e308 (hostile files): +-inf draws
         d = estimate - half_scale(n_clusters) * (r - estimate)
     return d[~np.isnan(d)]
 
@@ -489,6 +489,18 @@ BAYES_ESTIMAND = ("location mu of a Student-t model of the per-{unit} difference
                   "may differ from the headline advantage when they are not")
 
 
+#: Largest per-cluster difference the Student-t model is fitted to. Its priors span 1000 standard
+#: deviations and emcee's moves square distances between walkers: differences of 1e80 overflowed
+#: float64 there, and from about 1e154 emcee refused to start (a traceback in `compare`). Per-frame
+#: metrics differ by less than 1e3, so nothing real comes near this bound.
+BAYES_MAX_DIFFERENCE = 1e12
+
+
+def _in_model_range(d: np.ndarray) -> bool:
+    """Whether per-cluster differences d [K] are small enough for the Student-t sampler."""
+    return bool(np.abs(d).max() <= BAYES_MAX_DIFFERENCE)
+
+
 def bayes_summary(d: np.ndarray, *, unit: str = "scene", walkers: int, steps: int, burn: int, seed: int) -> dict:
     """Student-t posterior summary of per-cluster advantages d [K] (> 0: A better): P(A better)
     = P(mu > 0) and the 95% HDI of mu, or the reason there is none (too few clusters, infinite
@@ -507,6 +519,10 @@ def bayes_summary(d: np.ndarray, *, unit: str = "scene", walkers: int, steps: in
                          f"does not apply")
         bayes["p_a_better"] = 1.0 if (d > 0).all() else 0.0 if (d < 0).all() else None
         bayes["hdi"] = None
+    elif not _in_model_range(d):
+        bayes.update(note=f"a per-{unit} difference of {float(np.abs(d).max()):.3g} exceeds "
+                          f"{BAYES_MAX_DIFFERENCE:.0e}, the largest the Student-t model is fitted to", p_a_better=None,
+                     hdi=None)
     elif float(np.std(d)) <= 1e-12 * max(1.0, float(np.abs(d).max())):
         # Zero variance: every cluster differs by the same amount (identical methods: 0).
         # A Student-t posterior would collapse to a point (sigma -> 0); report that point.
@@ -549,21 +565,35 @@ def compare_per_sequence(a: np.ndarray, b: np.ndarray, metric: str, *, resamples
 # --------------------------------------------------------------------------- comparing results
 
 
-def _comparable(a: dict, b: dict) -> list[str]:
-    """Why two results files cannot be compared (empty: they can)."""
+def _shown(text, limit: int = 120) -> str:
+    """A string read from a results file, for a one-line message: as it is when printable, else
+    with its control characters and bidi overrides escaped; at most `limit` characters."""
+    s = str(text)
+    s = s if s.isprintable() else ascii(s)[1:-1]
+    return s if len(s) <= limit else s[:limit - 3] + "..."
+
+
+def _comparable(a: dict, b: dict, current_sha256: str | None = None) -> list[str]:
+    """Why two results files cannot be compared (empty: they can). `current_sha256`: that of the
+    protocol file installed now, whose statistics (resamples, seed, cluster unit) the comparison
+    would use; it must be the one both results were scored with."""
     why = []
     pa, pb = a["protocol"], b["protocol"]
     if pa["ref"] != pb["ref"]:
-        why.append(f"A was scored with protocol {pa['ref']}, B with {pb['ref']}: results of different "
+        why.append(f"A was scored with protocol {_shown(pa['ref'])}, B with {_shown(pb['ref'])}: results of different "
                    f"protocols or protocol versions are not comparable")
     elif pa["sha256"] != pb["sha256"]:
-        why.append(f"protocol {pa['ref']} differs between A and B (sha256 {pa['sha256'][:12]}... vs "
-                   f"{pb['sha256'][:12]}...): the protocol file changed between the runs")
+        why.append(f"protocol {_shown(pa['ref'])} differs between A and B (sha256 {_shown(pa['sha256'][:12])}... vs "
+                   f"{_shown(pb['sha256'][:12])}...): the protocol file changed between the runs")
+    elif current_sha256 is not None and current_sha256 != pa["sha256"]:
+        why.append(f"protocol {_shown(pa['ref'])} changed since A and B were scored (sha256 "
+                   f"{_shown(pa['sha256'][:12])}... in both, {current_sha256[:12]}... now): compare would resample "
+                   f"with another file's statistics")
     for ex in sorted(set(a.get("extractors", {})) | set(b.get("extractors", {}))):
         ea, eb = a["extractors"].get(ex, {}), b["extractors"].get(ex, {})
         if ea.get("weights_sha256") != eb.get("weights_sha256") and "ok" == ea.get("status") == eb.get("status"):
-            why.append(f"extractor {ex} used different weights (sha256 {str(ea.get('weights_sha256'))[:12]}... "
-                       f"vs {str(eb.get('weights_sha256'))[:12]}...): features are not comparable")
+            why.append(f"extractor {_shown(ex)} used different weights (sha256 {_shown(ea.get('weights_sha256'))[:12]}"
+                       f"... vs {_shown(eb.get('weights_sha256'))[:12]}...): features are not comparable")
     if a["sha256"]["ground_truth"] != b["sha256"]["ground_truth"] or \
             a["dataset"]["sequences"] != b["dataset"]["sequences"]:
         why.append(f"A and B were scored against different ground truth (dataset {a['dataset']['name']!r} "
@@ -578,9 +608,34 @@ COMPARE_ESTIMAND = ("A and B: each metric's value exactly as `evaluate` reports 
                     "recomputes both values")
 
 
+def _frames_problem(a: dict, b: dict, names: tuple[str, str]) -> str | None:
+    """Why the frame records of two results cannot be paired (None: they can): every frame of A
+    must be in B, and the other way round, in the same sequence with the same ground truth. The
+    recorded ground-truth digests agree even when a record was renamed or dropped afterwards, and
+    pairing would then fail on the missing frame (it was a KeyError)."""
+    ka, kb = ({(r["scene"], r["file"]): r for r in d["frames"]} for d in (a, b))
+    for (src, dst), (na, nb) in (((ka, kb), names), ((kb, ka), names[::-1])):
+        gone = [k for k in src if k not in dst]
+        if gone:
+            more = f" (and {len(gone) - 1} more)" if len(gone) > 1 else ""
+            return (f"{nb}: frame '{_shown(gone[0][0] + '/' + gone[0][1])}' of {na} is not in its field "
+                    f"'frames'{more}: renamed or missing (A and B must score the same frames)")
+    seqs = a["dataset"]["sequences"]  # equal in A and B (`_comparable`)
+    for key, ra in ka.items():
+        rb, frame = kb[key], f"'{_shown(key[0] + '/' + key[1])}'"
+        if ra["sequence"] != rb["sequence"]:
+            return (f"{names[1]}: frame {frame} is in sequence '{_shown(seqs[rb['sequence']])}', in {names[0]} in "
+                    f"'{_shown(seqs[ra['sequence']])}'")
+        if ra["gt_sha256"] != rb["gt_sha256"]:
+            return (f"{names[1]}: frame {frame} was scored against other ground truth (gt_sha256 "
+                    f"{_shown(rb['gt_sha256'][:12])}..., in {names[0]} {_shown(ra['gt_sha256'][:12])}...)")
+    return None
+
+
 def _usable_replicates(doc: dict, m: dict, st, unit: str, k: int) -> list | None:
     """A results file's stored replicates of one metric, if made the way this comparison resamples."""
-    s = doc.get("statistics") or {}
+    s = doc.get("statistics")
+    s = s if isinstance(s, dict) else {}
     reps = m.get("replicates")
     same = (s.get("interval") == INTERVAL_METHOD and s.get("resamples") == st.bootstrap_resamples
             and s.get("seed") == st.seed and s.get("cluster") == unit and s.get("clusters") == k)
@@ -601,7 +656,7 @@ def _frame_values(doc: dict, name: str,
 
 
 def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict | None = None,
-                    *, emcee_steps: int | None = None) -> dict:
+                    *, emcee_steps: int | None = None, names: tuple[str, str] = ("A", "B")) -> dict:
     """Paired comparison of two results of the same protocol and ground truth, metric by metric.
 
     One estimand for A, B and A - B (`COMPARE_ESTIMAND`): A and B are the values `evaluate`
@@ -613,6 +668,8 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     also get the Student-t summary of per-cluster differences (`bayes_summary`; its `estimand`
     says what it describes).
 
+    `names`: how messages name A and B (`compare` passes the two files).
+
     Raises:
         UserError: the results are not comparable (the message says why).
     """
@@ -622,7 +679,11 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     why = _comparable(a, b)
     if why:
         raise UserError("cannot compare: " + "; ".join(why))
-    st = load_protocol(a["protocol"]["ref"]).statistics
+    protocol = load_protocol(a["protocol"]["ref"])
+    why = _comparable(a, b, protocol.sha256) or [p for p in [_frames_problem(a, b, names)] if p]
+    if why:
+        raise UserError("cannot compare: " + "; ".join(why))
+    st = protocol.statistics
     steps = emcee_steps or st.emcee_steps
     burn = min(st.emcee_burn, steps // 3) if emcee_steps else st.emcee_burn
     unit = st.cluster

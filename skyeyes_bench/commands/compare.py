@@ -68,7 +68,7 @@ def run(args) -> int:
         except Exception as e:  # noqa: BLE001 - report and continue with per-frame metrics
             print(f"skyeyes-bench: warning: {e}", file=sys.stderr)
             fa = fb = None
-    res = compare_results(a, b, fa, fb)
+    res = compare_results(a, b, fa, fb, names=(args.a, args.b))
     if args.out:
         fileio.write_json(args.out, res)
     if args.json:

@@ -52,23 +52,18 @@ MAX_PIXELS = 8192 * 8192
 # --------------------------------------------------------------------------- modes
 
 
-_UMASK: int | None = None
-
-
 def umask() -> int:
-    """The process's umask, read once: from /proc/self/status where Linux has it (reading changes
-    nothing), else by setting and at once restoring it."""
-    global _UMASK
-    if _UMASK is None:
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            with open("/proc/self/status") as f:
-                for line in f:
-                    if line.startswith("Umask:"):
-                        _UMASK = int(line.split()[1], 8)
-        if _UMASK is None:
-            _UMASK = os.umask(0o022)
-            os.umask(_UMASK)
-    return _UMASK
+    """The process's umask, read where Linux shows it (/proc/self/status: reading changes
+    nothing), else by setting and at once restoring it. Read at each use, so a later
+    `os.umask` in the same process is honoured."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def file_mode() -> int:

@@ -12,9 +12,8 @@ reported numbers, a committed list of strip frames):
   (every symlink and '..' of its folder) and refuses it unless it lies under the root;
   `atomic_file`, `atomic_folder` and `remove` call it immediately before they touch the file
   system, so a path that was fine when parsed but meets a planted symlink is still refused.
-  They create files with the user's umask (`fileio.atomic_path` uses `tempfile.mkstemp`,
-  whose files are 0600, and `os.replace` keeps that mode) and turn an OS refusal (read-only
-  folder, full disk) into one line.
+  They write through `fileio` (the user's umask) and turn an OS refusal (read-only folder,
+  full disk) into one line.
 
 `fields.NAME` is matched with `re.match` and a `$` that also matches before a trailing newline;
 `plain_name` uses `fullmatch`, so "name\\n" is refused.
@@ -86,31 +85,6 @@ def hex_digest(where: str, value: Any, what: str = "a sha256", n: int = 64) -> s
 # --------------------------------------------------------------------------- confined writes
 
 
-def umask() -> int:
-    """The process umask, read without changing it where Linux shows it (os.umask can only be
-    read by setting it, which races with other threads creating files)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def file_mode() -> int:
-    """Mode of a new file, as `open()` would create it: 0666 less the umask."""
-    return 0o666 & ~umask()
-
-
-def dir_mode() -> int:
-    """Mode of a new folder, as `mkdir` would create it: 0777 less the umask."""
-    return 0o777 & ~umask()
-
-
 def confined(path: str | os.PathLike, root: str | os.PathLike) -> Path:
     """`path` with its folder resolved (symlinks, '..'), if that lies under `root` (resolved too)
     and is not `root` itself; else a one-line UserError. The last component is kept as it is:
@@ -149,12 +123,11 @@ def _os_refusal(path: Path, err: OSError) -> UserError | None:
 @contextlib.contextmanager
 def atomic_file(path: str | os.PathLike, *, root: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """`fileio.atomic_path` for a file that must lie under `root` (checked here, at the point of
-    writing), created with the user's umask; an OS refusal is one line."""
+    writing); an OS refusal is one line."""
     target = confined(path, root)
     try:
-        with fileio.atomic_path(target, suffix=suffix) as tmp:
+        with fileio.atomic_path(target, suffix=suffix) as tmp:  # the umask's mode, at the rename
             yield tmp
-            os.chmod(tmp, file_mode())
     except OSError as e:
         if (err := _os_refusal(Path(path), e)) is None:
             raise
@@ -169,12 +142,11 @@ def write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike
 
 @contextlib.contextmanager
 def atomic_folder(path: str | os.PathLike, *, root: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
-    """`fileio.atomic_dir` for a folder that must lie under `root` (checked here), created with
-    the user's umask (`tempfile.mkdtemp` makes it 0700); an OS refusal is one line."""
+    """`fileio.atomic_dir` for a folder that must lie under `root` (checked here); an OS refusal
+    is one line."""
     target = confined(path, root)
     try:
-        with fileio.atomic_dir(target, overwrite=overwrite) as tmp:
-            os.chmod(tmp, dir_mode())
+        with fileio.atomic_dir(target, overwrite=overwrite) as tmp:  # the umask's mode, at the move
             yield tmp
     except OSError as e:
         if (err := _os_refusal(Path(path), e)) is None:

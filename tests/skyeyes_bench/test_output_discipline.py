@@ -304,8 +304,7 @@ def test_full_disk_during_evaluate_is_one_line_and_writes_nothing(w, tmp_path, m
 # --------------------------------------------------------------------------- 3. the user's umask
 
 
-def test_files_and_folders_get_the_users_umask(w, tmp_path, monkeypatch):
-    monkeypatch.setattr(fileio, "_UMASK", None)
+def test_files_and_folders_get_the_users_umask(w, tmp_path):
     old = os.umask(0o027)
     try:
         run_cli(*_T, str(w / "ds"), "--out", str(tmp_path / "sub"), "--from-ground-truth")

@@ -25,15 +25,13 @@ from .errors import UserError, ValidationError
 from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
-    PARTIAL_FORMAT, RESULTS_FORMAT, _digest, _stage, _tqdm, default_out, features_path, finalize, format_summary,
-    merge, read_results)
+    FEATURES_OUTPUT, PARTIAL_FORMAT, RESULTS_FORMAT, RESULTS_OUTPUT, _digest, _stage, _tqdm, default_out,
+    features_path, finalize, format_summary, merge, read_results, write_results)
 from .submission import expected_frames, frame_relpath, read_submission, validate_submission
 
 _FRAME_BATCH = 16
 
 #: What `evaluate --out` (and `merge --out`) write: --force replaces only these (`fileio.OutputKind`).
-RESULTS_OUTPUT = fileio.OutputKind("a results file", formats=(RESULTS_FORMAT, PARTIAL_FORMAT))
-FEATURES_OUTPUT = fileio.OutputKind("a features sidecar", magic=b"PK")  # any zip: one without arrays starts PK\x05\x06
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -201,18 +199,6 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         with fileio.reading(sub, ds.root):
             write_results(out, doc, features)
     return doc
-
-
-def write_results(out: Path, doc: dict, features: dict) -> None:
-    """Write the results JSON `out` and its features sidecar as one unit (`fileio.write_unit`: under
-    the output's lock, both to temporary names, the sidecar renamed in first and the results last),
-    so two runs never mix their files and a killed run is repeated without --force. The sidecar's
-    bytes depend on the features alone (`fileio.npz_bytes`), so a repeated run writes the same file."""
-    fpath = features_path(out)
-    arrays = {f"{ex_id}|{part}": np.asarray(f[part]) for ex_id, f in features.items() for part in ("sub", "gt", "seq")}
-    blob = fileio.npz_bytes(arrays)
-    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_bytes(blob)}
-    fileio.write_unit(out, fileio.json_bytes(doc), {fpath: blob})
 
 
 def _scoring_device(device):

@@ -196,18 +196,23 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
 # --------------------------------------------------------------------------- I/O
 
 
+#: What `--force` may replace (`fileio.OutputKind`): an earlier results file (final or partial)
+#: and its features sidecar (any zip: one without arrays starts PK\x05\x06).
+RESULTS_OUTPUT = fileio.OutputKind("a results file", formats=(RESULTS_FORMAT, PARTIAL_FORMAT))
+FEATURES_OUTPUT = fileio.OutputKind("a features sidecar", magic=b"PK")
+
+
 def write_results(out: Path, doc: dict, features: dict) -> None:
-    """Write the features sidecar, then the JSON that names it (both atomically)."""
+    """Write the results JSON `out` and its features sidecar as one unit (`fileio.write_unit`: both
+    to temporary names, the sidecar renamed in first and the results last; callers hold the
+    output's lock), so two runs never mix their files and a killed run is repeated without
+    --force. The sidecar's bytes depend on the features alone (`fileio.npz_bytes`), so a repeated
+    run writes the same file."""
     fpath = features_path(out)
-    arrays: dict[str, np.ndarray] = {}
-    for ex_id, f in features.items():
-        for part in ("sub", "gt", "seq"):
-            arrays[f"{ex_id}|{part}"] = np.asarray(f[part])
-    with fileio.atomic_path(fpath, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_file(fpath)}
-    fileio.write_json(out, doc)
+    arrays = {f"{ex_id}|{part}": np.asarray(f[part]) for ex_id, f in features.items() for part in ("sub", "gt", "seq")}
+    blob = fileio.npz_bytes(arrays)
+    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_bytes(blob)}
+    fileio.write_unit(out, fileio.json_bytes(doc), {fpath: blob})
 
 
 _RESULTS_SHAPE = {
@@ -471,9 +476,19 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     equal an unsharded run. Parts whose features were computed on different device types
     (`extractors.<id>.device`; absent = "cpu") are refused: the merged file records one device."""
     out = Path(out) if out is not None else None
+    # Neither the results nor their sidecar may be a part or a part's sidecar (`--out p0` would
+    # write p0.features.npz, part p0.json's sidecar); --force replaces only earlier results.
+    inputs = [*map(Path, parts), *(features_path(Path(p)) for p in parts if Path(p).name)]
+
+    def check_out() -> None:
+        fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=inputs,
+                            inputs_are="the parts being merged (or their sidecars)", kind=RESULTS_OUTPUT,
+                            sidecar_kind=FEATURES_OUTPUT)
+
     if out is not None:
-        fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=parts,
-                            inputs_are="the parts being merged")
+        if not out.name:  # '.', '/': no file name to put the sidecar beside
+            raise UserError(f"{out}: is a folder; expected the path of an output file")
+        check_out()  # before any work
     if not parts:
         raise UserError("merge: no partial results given")
     loaded = [(Path(p), *read_results(p, features=True, partial=True)) for p in parts]
@@ -538,7 +553,11 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     res = finalize(doc, features, timing=timing, progress=progress)
     res["timing_s"] = timing
     if out is not None:
-        write_results(out, res, features)
+        # as evaluate: a second merge to this --out is one line; the inputs are checked again as
+        # the files are renamed in
+        with fileio.output_lock(out), fileio.reading(*inputs):
+            check_out()
+            write_results(out, res, features)
     return res
 
 

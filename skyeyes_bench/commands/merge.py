@@ -15,25 +15,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from pathlib import Path
+    from ..evaluate import format_summary, merge
 
-    from .. import fileio
-    from ..errors import UserError
-    from ..evaluate import FEATURES_OUTPUT, RESULTS_OUTPUT, features_path, format_summary, merge
-
-    out = Path(args.out)
-    if not out.name:  # '.', '/': no file name to put the sidecar beside
-        raise UserError(f"{out}: is a folder; expected the path of an output file")
-    # Before any work: neither the results nor their sidecar may be a part or a part's sidecar
-    # (`--out p0` would write p0.features.npz, the sidecar of part p0.json), and --force replaces
-    # only earlier results (`fileio.check_output`).
-    parts = [Path(p) for p in args.parts]
-    inputs = [*parts, *(features_path(p) for p in parts if p.name)]
-    fileio.check_output(out, force=args.force, sidecars=[features_path(out)], inputs=inputs,
-                        inputs_are="the parts being merged (or their sidecars)", kind=RESULTS_OUTPUT,
-                        sidecar_kind=FEATURES_OUTPUT)
-    with fileio.reading(*inputs):  # checked again as the files are renamed in
-        res = merge(args.parts, out=args.out, force=args.force, progress=not args.quiet)
+    # The output discipline (no part or part's sidecar overwritten, --force for earlier results
+    # only, a lock against a second merge) is `results.merge`'s.
+    res = merge(args.parts, out=args.out, force=args.force, progress=not args.quiet)
     print(format_summary(res))
     print(f"wrote {args.out}")
     return 0

@@ -169,7 +169,13 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
                   + " ".join(f"--set {o}" for o in overrides),
     }
     check_out(out, record, force=force)  # before anything is written to --out
+    # --out may not be, hold or lie inside what the run reads (with or without --force); every
+    # write below checks it again at its rename (`fileio.reading`)
+    inputs = (root, config_d.get("pretrained"))
+    fileio.check_apart(out, *inputs, desc="an input of this run (--data, --pretrained)")
     handlers = _setup_log(out, fresh=force)
+    held = fileio.reading(*inputs)
+    held.__enter__()
     try:
         work = out / "work" / key
         if force and work.exists():
@@ -252,6 +258,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             (out / "figure.png").unlink()  # another run's, replaced with --force
         return res
     finally:
+        held.__exit__(None, None, None)
         lg = logging.getLogger("reference")
         for h in handlers:
             lg.removeHandler(h)

@@ -142,6 +142,14 @@ def _apart(out: Path, inp: Path, desc: str) -> None:
         raise UserError(f"{out}: holds {inp} ({desc}); write the output elsewhere")
 
 
+def check_apart(out: str | os.PathLike, *inputs: str | os.PathLike | None, desc: str = "an input of this command") -> None:
+    """Refuse, in one line, an output folder or file `out` that is, holds or lies inside one of
+    `inputs` (None entries ignored; symlinks resolved as they are now)."""
+    for inp in inputs:
+        if inp is not None:
+            _apart(Path(out), Path(inp), desc)
+
+
 _READING: contextvars.ContextVar[tuple[Path, ...]] = contextvars.ContextVar("skyeyes_reading", default=())
 
 

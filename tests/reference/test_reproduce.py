@@ -235,3 +235,30 @@ def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
     render_priors(ds, ds.split("test"), prior, progress=False)
     assert told == [False]
 
+
+
+def _snapshot(folder) -> dict:
+    import hashlib
+    from pathlib import Path
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir"
+            for p in sorted(Path(folder).rglob("*"))}
+
+
+@pytest.mark.parametrize("where", ["the dataset", "inside the dataset", "the dataset's parent"])
+@pytest.mark.parametrize("force", [False, True])
+def test_out_may_not_be_hold_or_lie_inside_the_data(synthtown_smoke, tmp_path, where, force):
+    """Issue 35: no output is, holds or sits inside an input, with or without --force; refused in
+    one line before any work, nothing written into the dataset or beside it."""
+    import shutil
+
+    data = tmp_path / "parent" / "ds"
+    shutil.copytree(synthtown_smoke, data)
+    out = {"the dataset": data, "inside the dataset": data / "train-0-lane00" / "run",
+           "the dataset's parent": data.parent}[where]
+    before = _snapshot(tmp_path)
+    rc, _, err = run_cli("reproduce", "--method", "mean-frame", "--data", str(data), "--out", str(out), "--quiet",
+                         *(["--force"] if force else []), check=None)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "an input of this run" in err and "write the output elsewhere" in err
+    assert _snapshot(tmp_path) == before

@@ -9,6 +9,9 @@ accelerator) resolve through here.
 
 from __future__ import annotations
 
+import contextlib
+from typing import Iterator
+
 from .errors import UserError
 
 
@@ -42,3 +45,32 @@ def resolve_device(name: str | None = "auto", *, what: str = "--device"):
 def device_name(name: str | None = "auto", *, what: str = "--device") -> str:
     """`resolve_device` as the string configs and results record ("cpu", "cuda", "cuda:1")."""
     return str(resolve_device(name, what=what))
+
+
+@contextlib.contextmanager
+def exact_fp32(device) -> Iterator[None]:
+    """On CUDA, no TF32 within the block for cuDNN convolutions and matrix products (restored
+    after), so float32 work on the GPU agrees with the CPU's to float rounding; elsewhere nothing.
+
+    NOTE: torch rounds cuDNN convolution inputs to TF32's 10-bit mantissa by default, ~1e-3
+    relative. torch >= 2.9 has the `fp32_precision` settings (and refuses some mixes of them with
+    the legacy `allow_tf32` flags), older ones only the flags: whichever this torch has is used.
+    """
+    import torch
+
+    if torch.device(device).type != "cuda":
+        yield
+        return
+    conv, mm = torch.backends.cudnn.conv if hasattr(torch.backends.cudnn, "conv") else None, torch.backends.cuda.matmul
+    if conv is not None and hasattr(conv, "fp32_precision") and hasattr(mm, "fp32_precision"):
+        targets, name, value = (conv, mm), "fp32_precision", "ieee"
+    else:
+        targets, name, value = (torch.backends.cudnn, mm), "allow_tf32", False
+    old = [getattr(t, name) for t in targets]
+    for t in targets:
+        setattr(t, name, value)
+    try:
+        yield
+    finally:
+        for t, v in zip(targets, old):
+            setattr(t, name, v)

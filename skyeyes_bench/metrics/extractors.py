@@ -58,27 +58,12 @@ def current_device(device=None):
     return torch.device(device if device is not None else _DEVICE.get())
 
 
-@contextlib.contextmanager
-def full_fp32(device) -> Iterator[None]:
-    """On CUDA, no TF32 for cuDNN convolutions or matmuls within the block (restored after).
+def full_fp32(device):
+    """No TF32 on CUDA while an extractor runs (`devices.exact_fp32`): fp32 convolutions, so GPU
+    features agree with the CPU reference to float rounding."""
+    from ..devices import exact_fp32
 
-    NOTE: torch enables TF32 for cuDNN convolutions by default (`torch.backends.cudnn.conv.
-    fp32_precision == "tf32"`), which rounds conv inputs to a 10-bit mantissa: features would
-    then differ from the CPU reference by ~1e-3 relative instead of float rounding. Only the new
-    `fp32_precision` API is used (torch refuses a mix of it and the legacy `allow_tf32` flags).
-    """
-    import torch
-
-    if torch.device(device).type != "cuda":
-        yield
-        return
-    conv, mm = torch.backends.cudnn.conv, torch.backends.cuda.matmul
-    old = conv.fp32_precision, mm.fp32_precision
-    conv.fp32_precision, mm.fp32_precision = "ieee", "ieee"
-    try:
-        yield
-    finally:
-        conv.fp32_precision, mm.fp32_precision = old
+    return exact_fp32(device)
 
 
 def _torch_setup():

@@ -80,3 +80,15 @@ def test_scene_fits_run_several_lanes_at_once_on_a_gpu(one_gpu, tmp_path):
     gpu = SuGaR.from_preset("smoke", tmp_path / "b", device="cuda")
     assert default_jobs(cpu) == available_cores()
     assert default_jobs(gpu) == min(available_cores(), GPU_LANES)
+
+
+def test_exact_fp32_turns_tf32_off_on_cuda_only_and_restores_it():
+    from skyeyes_bench.devices import exact_fp32
+
+    conv, mm = torch.backends.cudnn.conv, torch.backends.cuda.matmul
+    before = conv.fp32_precision, mm.fp32_precision
+    with exact_fp32("cpu"):
+        assert (conv.fp32_precision, mm.fp32_precision) == before
+    with exact_fp32("cuda"):  # only flags are set: no kernel runs
+        assert (conv.fp32_precision, mm.fp32_precision) == ("ieee", "ieee")
+    assert (conv.fp32_precision, mm.fp32_precision) == before

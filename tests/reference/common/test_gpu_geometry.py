@@ -27,10 +27,10 @@ CUDA = "cuda"
 def full_fp32():
     """TF32 off for matmuls and cuDNN convolutions (it keeps 10 mantissa bits of float32
     operands, ~1e-3 relative), so both devices compute in float32; restored after."""
-    saved = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
-    yield
-    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = saved
+    from skyeyes_bench.devices import exact_fp32
+
+    with exact_fp32("cuda"):
+        yield
 
 
 def _max_rel_to_scale(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -42,10 +42,10 @@ SMALL_LIKE = dataclasses.replace(
 @pytest.fixture(autouse=True)
 def _exact_fp32():
     """fp32 matrix products on the GPU (no TF32), so CPU and GPU differ by float rounding only."""
-    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
-    yield
-    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+    from skyeyes_bench.devices import exact_fp32
+
+    with exact_fp32("cuda"):
+        yield
 
 
 def _train(tmp: Path, device: str, stop_after: int | None = None, steps: int = 6) -> tuple[dict, dict]:

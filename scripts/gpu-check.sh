@@ -17,11 +17,14 @@
 #      counted), with each stage's seconds and the peak GPU memory (all processes, nvidia-smi);
 #   4. the skyeyes small submission packed (a tar in 15 MB parts) for scoring on a machine that
 #      has the metric weights: `cat skyeyes-small.tar.part-* | tar x`, then `skyeyes-bench evaluate`.
+# A dry run of the plumbing on a CPU machine: DEVICE=cpu SMALL=smoke METHODS="mean-frame sugar skyeyes".
 # Everything it prints goes to $OUT/gpu-check.log; $OUT (default ./gpu-check-out) receives at most
 # 8 files and 64 MB, the limits of what a lent machine hands back; the rest stays in .gpu-check/.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 mode=${1:-all}
+DEVICE=${DEVICE:-cuda}  # cpu: a dry run of this script's plumbing where there is no GPU
+SMALL=${SMALL:-small}   # the preset timed end to end (smoke for a dry run)
 OUT=${OUT:-$PWD/gpu-check-out}
 W=$PWD/.gpu-check  # work folder (git-ignored through .git/info/exclude where the checkout is a clone)
 mkdir -p "$OUT" "$W"
@@ -36,7 +39,7 @@ if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d "$site" ]; then
 fi
 export PYTHONPATH=$site:$PWD${PYTHONPATH:+:$PYTHONPATH}
 export SKYEYES_CACHE=$W/cache
-sb() { python3 -m skyeyes_bench.cli "$@"; }
+sb=(python3 -m skyeyes_bench.cli)  # an array, so `timeout` can run it (it cannot run a function)
 stages=$OUT/stages.tsv
 stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc"
   local name=$1 limit=$2; shift 2
@@ -53,8 +56,8 @@ if [ "$mode" = more ]; then  # the parts the first run left behind (same warm ma
 fi
 
 echo "== gpu-check $mode at $(git rev-parse --short HEAD 2>/dev/null || echo '?') on $(hostname), $(date -u +%FT%TZ)"
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-python3 -c "import torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(0), '| diffusers', diffusers.__version__, '| cores', __import__('os').cpu_count())"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
+python3 -c "import os, torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU', '| diffusers', diffusers.__version__, '| cores', os.cpu_count())"
 
 if [ "$mode" = tests ]; then
   stage gpu-tests 540 python3 -m pytest -q -p no:cacheprovider -m "gpu and not slow" tests
@@ -70,13 +73,13 @@ trap 'kill $sampler 2>/dev/null' EXIT
 
 # 1. data, every core
 cores=$(nproc)
-stage data-smoke 120 sb data synthtown --preset smoke --out "$W/data/smoke" --quiet
-stage data-small 240 sb data synthtown --preset small --out "$W/data/small" --workers "$cores" --quiet
+stage data-smoke 120 "${sb[@]}" data synthtown --preset smoke --out "$W/data/smoke" --quiet
+[ "$SMALL" = smoke ] || stage data-small 240 "${sb[@]}" data synthtown --preset "$SMALL" --out "$W/data/$SMALL" --workers "$cores" --quiet
 
 # 2. every method's smoke on CUDA, 5 at a time, each in its own cache and output
-methods=$(python3 -c "from reference.methods import METHODS; print(' '.join(sorted(METHODS)))")
+methods=${METHODS:-$(python3 -c "from reference.methods import METHODS; print(' '.join(sorted(METHODS)))")}
 smoke_one() {
-  local m=$1 dev=(--device cuda)
+  local m=$1 dev=(--device "$DEVICE")
   [ "$m" = mean-frame ] && dev=()  # the floor runs on the CPU only
   local t0=$SECONDS
   SKYEYES_CACHE=$W/cache-$m timeout 300 python3 -m skyeyes_bench.cli reproduce --method "$m" --preset smoke \
@@ -87,13 +90,13 @@ smoke_one() {
   return $rc
 }
 export -f smoke_one
-export W
+export W DEVICE
 t0=$SECONDS
 printf '%s\n' $methods | xargs -P 5 -I{} bash -c 'smoke_one {}'
 printf 'smokes\t%d\t%d\n' $((SECONDS - t0)) $? | tee -a "$stages"
 
 # 3. skyeyes small end to end on CUDA (data already generated: not counted)
-stage skyeyes-small 480 sb reproduce --method skyeyes --preset small --device cuda --data "$W/data/small" \
+stage skyeyes-small 480 "${sb[@]}" reproduce --method skyeyes --preset "$SMALL" --device "$DEVICE" --data "$W/data/$SMALL" \
   --out "$W/skyeyes-small" --quiet --force
 run=$W/skyeyes-small
 python3 - "$run" "$W/gpumem.log" <<'EOF' | tee "$OUT/skyeyes-small-summary.json"

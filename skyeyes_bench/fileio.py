@@ -634,6 +634,34 @@ def read_json(path: str | os.PathLike, *, root: str | os.PathLike | None = None,
     return obj
 
 
+#: The largest TOML file read (protocols, reported numbers): far above any real one.
+MAX_TOML_BYTES = 1 << 20
+
+
+def read_toml(path: str | os.PathLike, what: str) -> dict:
+    """A small TOML file, read without blocking (`open_regular`: a named pipe or a device is
+    refused), at most `MAX_TOML_BYTES`, UTF-8; every failure is one line naming `path` and saying
+    it expected `what` (e.g. "a protocol TOML file")."""
+    import tomllib
+
+    path = Path(path)
+    try:
+        with open_regular(path) as f:
+            data = f.read(MAX_TOML_BYTES + 1)
+    except OSError as e:
+        raise UserError(f"{path}: cannot read {what} ({e.strerror or e})") from None
+    if len(data) > MAX_TOML_BYTES:
+        raise UserError(f"{path}: more than {MAX_TOML_BYTES} bytes; expected {what}")
+    try:
+        return tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise UserError(f"{path}: not UTF-8 text (byte {e.start}); expected {what}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: not valid TOML ({_one_line(e)})") from None
+    except ValueError as e:  # an integer of more than 4300 digits
+        raise UserError(f"{path}: not valid TOML here ({_one_line(e)})") from None
+
+
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
     with open_regular(path) as f:

@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import json
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,8 +22,6 @@ from .paths import protocols_dir
 #: Largest protocol version (9 digits): a longer number in a file name or a reference is refused in one
 #: line instead of reaching int(), which stops at 4300 digits with a traceback.
 MAX_VERSION = 999_999_999
-#: Largest protocol file read (bytes); ours are a few kB.
-MAX_PROTOCOL_BYTES = 1 << 20
 _VERSION_FILE = re.compile(r"^v([1-9]\d{0,8})\.toml$")  # v1.toml, v2.toml ... (no v01; at most MAX_VERSION)
 _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 
@@ -291,21 +288,7 @@ def load_protocol_file(path: str | Path) -> Protocol:
     path = Path(path)
     if not (path.exists() or path.is_symlink()):
         raise UserError(f"{path}: protocol file not found")
-    try:
-        with fileio.open_regular(path) as f:  # a named pipe or a device would block a plain read
-            data = f.read(MAX_PROTOCOL_BYTES + 1)
-    except OSError as e:
-        raise UserError(f"{path}: cannot read protocol file ({e.strerror or e})") from None
-    if len(data) > MAX_PROTOCOL_BYTES:
-        raise UserError(f"{path}: more than {MAX_PROTOCOL_BYTES} bytes; expected a protocol TOML file")
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as e:
-        raise UserError(f"{path}: not UTF-8 text (byte {e.start}); expected a protocol TOML file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise UserError(f"{path}: not valid TOML ({e})") from None
-    except ValueError as e:  # an integer of more than 4300 digits
-        raise UserError(f"{path}: not valid TOML here ({' '.join(str(e).split())})") from None
+    raw = fileio.read_toml(path, "a protocol TOML file")  # never blocks on a pipe; one line
     proto = parse_protocol(raw, str(path))
     m = _VERSION_FILE.match(path.name)
     if m and (int(m.group(1)) != proto.version or path.parent.name != proto.id):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +34,6 @@ MAX_RUN_S = 1e12
 MAX_STRIP_FRAMES = 32
 #: Most bootstrap resamples the marks' fallback rule draws (each a row of per-sequence values).
 MAX_RESAMPLES = 100_000
-#: Largest file of reported numbers read (bytes).
-MAX_TOML_BYTES = 1 << 20
 
 
 def _where(path, field: str) -> str:
@@ -193,16 +190,7 @@ def frames_list(path: Path) -> list[dict]:
 def reported_file(path: Path) -> dict:
     """A reported-numbers TOML, checked: what reaches the page is plain text, every score a finite
     number, `decimals` a small integer, `metrics` known metric names."""
-    with fileio.open_regular(path) as f:
-        data = f.read(MAX_TOML_BYTES + 1)
-    if len(data) > MAX_TOML_BYTES:
-        raise UserError(f"{path}: more than {MAX_TOML_BYTES} bytes; expected a small TOML of reported numbers")
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as e:
-        raise UserError(f"{path}: not UTF-8 text (byte {e.start}); expected a TOML file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise UserError(f"{path}: not valid TOML ({fileio._one_line(e)})") from None
+    raw = fileio.read_toml(path, "a TOML file of reported numbers")
     w = lambda field: _where(path, field)  # noqa: E731
     for k in ("title", "protocol", "status", "citation", "metrics", "rows"):
         if k not in raw:

@@ -121,17 +121,22 @@ def _os_refusal(path: Path, err: OSError) -> UserError | None:
 
 
 @contextlib.contextmanager
-def atomic_file(path: str | os.PathLike, *, root: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
-    """`fileio.atomic_path` for a file that must lie under `root` (checked here, at the point of
-    writing); an OS refusal is one line."""
+def _confined_write(writer, path: str | os.PathLike, root: str | os.PathLike, **kw) -> Iterator[Path]:
+    """`writer` (`fileio.atomic_path` or `atomic_dir`) of `path`, which must lie under `root`
+    (checked here, at the point of writing); an OS refusal is one line."""
     target = confined(path, root)
     try:
-        with fileio.atomic_path(target, suffix=suffix) as tmp:  # the umask's mode, at the rename
+        with writer(target, **kw) as tmp:  # the umask's mode, at the rename
             yield tmp
     except OSError as e:
         if (err := _os_refusal(Path(path), e)) is None:
             raise
         raise err from None
+
+
+def atomic_file(path: str | os.PathLike, *, root: str | os.PathLike, suffix: str | None = None):
+    """`fileio.atomic_path` for a file that must lie under `root` (`_confined_write`)."""
+    return _confined_write(fileio.atomic_path, path, root, suffix=suffix)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike) -> Path:
@@ -140,18 +145,9 @@ def write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike
     return Path(path)
 
 
-@contextlib.contextmanager
-def atomic_folder(path: str | os.PathLike, *, root: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
-    """`fileio.atomic_dir` for a folder that must lie under `root` (checked here); an OS refusal
-    is one line."""
-    target = confined(path, root)
-    try:
-        with fileio.atomic_dir(target, overwrite=overwrite) as tmp:  # the umask's mode, at the move
-            yield tmp
-    except OSError as e:
-        if (err := _os_refusal(Path(path), e)) is None:
-            raise
-        raise err from None
+def atomic_folder(path: str | os.PathLike, *, root: str | os.PathLike, overwrite: bool = False):
+    """`fileio.atomic_dir` for a folder that must lie under `root` (`_confined_write`)."""
+    return _confined_write(fileio.atomic_dir, path, root, overwrite=overwrite)
 
 
 def remove(path: str | os.PathLike, *, root: str | os.PathLike) -> None:

@@ -157,12 +157,16 @@ PRESETS: dict[str, SkyeyesConfig] = {
 
 
 #: A preset's training where the diffusion stages run on CUDA (`--device cuda`, or "auto" on a
-#: machine with a GPU), unless `--set` names the field: the same frames seen, in a quarter of the
-#: steps at four times the batch. NOTE: on one H200 a `small` ACM step cost 0.051 s at batch 16
-#: (launch overhead: the model is far too small to fill a GPU; ../MEASURED.md, b99d601), about
-#: what a CPU step costs at batch 1, so a GPU's width is spent on batch, not steps. The CPU
-#: presets stay as they are. Quality at this shape is not yet measured on a GPU (docs/gpu.md).
-GPU_TRAINING = {"small": dict(acm_steps=3000, acm_anneal=750, acm_batch=64, vcm_steps=750, vcm_batch=4)}
+#: machine with a GPU), unless `--set` names the field: the same frames seen, in half the steps at
+#: twice the batch. NOTE: on one H200 a `small` ACM step cost 0.051 s at batch 16 (launch
+#: overhead: the model is far too small to fill a GPU; ../MEASURED.md, b99d601), so steps, not
+#: batch, set a GPU run's time: 12000 steps alone are ~10 min there. Measured on this CPU at
+#: `smoke` (docs/gpu.md, against the preset's 600 steps at batch 8, FID 324.5): 300 steps at
+#: batch 16 FID 344.9 (LPIPS +0.023 worse), 150 at batch 32 FID 404.2, the same with the rates
+#: doubled FID 404.8, each credibly worse: fewer steps cost quality even at equal frames seen,
+#: so the trade is the mildest one. Whether `small` at this shape is credibly worse than its
+#: CPU row is for a GPU run to show (docs/gpu.md); the CPU presets stay as they are.
+GPU_TRAINING = {"small": dict(acm_steps=6000, acm_anneal=1500, acm_batch=32, vcm_steps=1500, vcm_batch=2)}
 
 #: Training of the baselines built from `PRESETS` (ip2p, gvg, controlnet) where it differs from
 #: Skyeyes': their leaderboard rows were measured at the 3000 constant-rate fp32 ACM steps `small`

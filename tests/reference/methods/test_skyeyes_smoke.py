@@ -13,13 +13,7 @@ from reference.methods.skyeyes import Skyeyes, SkyeyesNoVCM  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 
 
-def _render_all(m, ds):
-    out = {}
-    for scene in ds.split("test"):
-        m.fit_scene(scene)
-        for seq in scene.sequences.values():
-            out[seq.id] = np.stack(list(m.render_sequence(scene, seq)))
-    return out
+from builders.skyeyes import render_all as _render_all  # noqa: E402
 
 
 @pytest.mark.slow

@@ -31,8 +31,6 @@ from .submission import expected_frames, frame_relpath, read_submission, validat
 
 _FRAME_BATCH = 16
 
-#: What `evaluate --out` (and `merge --out`) write: --force replaces only these (`fileio.OutputKind`).
-
 
 # --------------------------------------------------------------------------- small helpers
 

@@ -84,6 +84,18 @@ def _cannot_write(path: Path, e: OSError) -> UserError:
     return UserError(f"{path}: cannot write ({e.strerror or _one_line(e)}); nothing was written there")
 
 
+@contextlib.contextmanager
+def _full_disk_is_one_line(path: Path) -> Iterator[None]:
+    """Within the block (a caller's writing into a temporary file or folder for `path`), a full
+    disk is `_cannot_write`'s one line; any other OSError passes as it is."""
+    try:
+        yield
+    except OSError as e:
+        if e.errno in _FULL:
+            raise _cannot_write(path, e) from None
+        raise
+
+
 # --------------------------------------------------------------------------- output discipline
 
 
@@ -249,12 +261,8 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         raise _cannot_write(path, e) from None
     tmp_path = Path(tmp)
     try:
-        try:
+        with _full_disk_is_one_line(path):
             yield tmp_path
-        except OSError as e:
-            if e.errno in _FULL:
-                raise _cannot_write(path, e) from None
-            raise
         guard(path)
         try:
             os.chmod(tmp_path, file_mode())
@@ -303,12 +311,8 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False, kind: Output
     except OSError as e:
         raise _cannot_write(path, e) from None
     try:
-        try:
+        with _full_disk_is_one_line(path):
             yield tmp
-        except OSError as e:
-            if e.errno in _FULL:
-                raise _cannot_write(path, e) from None
-            raise
         check()
         try:
             os.chmod(tmp, folder_mode())

@@ -30,14 +30,18 @@ def _is_flow(sched) -> bool:
     return isinstance(sched, FlowMatchEulerDiscreteScheduler)
 
 
-def _start(sched, shape, generator: torch.Generator, strength: float, init: torch.Tensor | None,
-           flow_noise: float = 1.0):
+def _start(sched, shape, generator: torch.Generator | None, strength: float, init: torch.Tensor | None,
+           flow_noise: float = 1.0, noise: torch.Tensor | None = None):
     """The starting sample and the timesteps still to run. strength 1: pure noise (of std
     `flow_noise` for the flow: a residual model then starts at its prior plus that noise), every step.
     strength s < 1 (SDEdit, Meng et al. 2022): `init` (zeros when None: for a residual model,
     the condition itself) noised to the first scheduled timestep below s T, and the steps from
-    there. Noise is drawn on the CPU from `generator` (identical frames on every device)."""
-    noise = torch.randn(shape, generator=generator, device=generator.device)
+    there. The noise is `noise` when given (`frame_noise`), else drawn on the CPU from `generator`
+    (identical frames on every device)."""
+    if noise is None:
+        noise = torch.randn(shape, generator=generator, device=generator.device)
+    elif tuple(noise.shape) != tuple(shape):
+        raise ValueError(f"noise of shape {tuple(noise.shape)} for samples of shape {tuple(shape)}")
     flow = _is_flow(sched)
     scale = flow_noise if flow else sched.init_noise_sigma
     if strength >= 1.0:
@@ -69,23 +73,35 @@ def _timesteps(t, n: int, dev) -> torch.Tensor:
     return torch.full((n,), int(t), dtype=torch.long, device=dev)
 
 
+def frame_noise(seed: int, shape: tuple[int, ...], batch: int = 16) -> torch.Tensor:
+    """The starting noise of every frame of a sequence, [N, C, h, w] for `shape`: one CPU generator
+    seeded by `seed`, drawn `batch` frames at a time (as the frame-by-frame sampler always drew it).
+    Frame i's noise depends on (seed, i, batch) alone, so the ACM frame by frame and the VCM clip by
+    clip start frame i from the same noise (`skyeyes` and `skyeyes-no-vcm` are paired)."""
+    g = torch.Generator().manual_seed(int(seed))
+    n, rest = shape[0], tuple(shape[1:])
+    return torch.cat([torch.randn((min(batch, n - i), *rest), generator=g) for i in range(0, n, batch)]) \
+        if n else torch.zeros((0, *rest))
+
+
 @torch.no_grad()
-def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, generator: torch.Generator,
+def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, generator: torch.Generator | None = None,
          shape: tuple[int, ...] | None = None, strength: float = 1.0,
-         init: torch.Tensor | None = None) -> torch.Tensor:
+         init: torch.Tensor | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
     """Denoise noise into model-space samples with deterministic DDIM (eta = 0).
 
     Args:
         conds: [N, C, h, w] conditions (model space), or None for an uncontrolled model.
         shape: [N, C, h, w] of the output when `conds` is None.
         strength, init: SDEdit start (see `_start`).
+        noise: the starting noise [N, C, h, w] (`frame_noise`); else drawn from `generator`.
 
     Returns:
         [N, C, h, w] the generated samples (on the CPU).
     """
     sched = _scheduler(model.cfg, steps)
     shape = sample_shape(tuple(conds.shape), model.cfg) if conds is not None else tuple(shape)
-    x, timesteps = _start(sched, shape, generator, strength, init, model.cfg.flow_noise)
+    x, timesteps = _start(sched, shape, generator, strength, init, model.cfg.flow_noise, noise)
     dev = device_of(model)
     x = x.to(dev)
     c = conds.to(dev) if conds is not None else None
@@ -97,9 +113,10 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
 @torch.no_grad()
 def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, seed: int,
                   batch: int = 16, strength: float = 1.0) -> torch.Tensor:
-    """ACM alone: every frame independently. conds [N, C, h, w] -> [N, C, h, w]."""
-    g = torch.Generator().manual_seed(int(seed))
-    out = [ddim(model, conds[i:i + batch], steps=steps, generator=g, strength=strength)
+    """ACM alone: every frame independently, frame i from `frame_noise(seed)[i]`.
+    conds [N, C, h, w] -> [N, C, h, w]."""
+    noise = frame_noise(seed, sample_shape(tuple(conds.shape), model.cfg), batch)
+    out = [ddim(model, conds[i:i + batch], steps=steps, noise=noise[i:i + batch], strength=strength)
            for i in range(0, len(conds), batch)]
     return torch.cat(out)
 
@@ -110,16 +127,18 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
     """Skyeyes inference (Sec. 3.3 and supplement Sec. 2.2): frame 1 from the ACM alone, then
     clips of `clip` frames whose first frame is the last frame generated so far.
 
-    conds [N, C, h, w] -> [N, C, h, w]. Each clip generates up to `clip - 1` new frames.
+    conds [N, C, h, w] -> [N, C, h, w]. Each clip generates up to `clip - 1` new frames. Frame i
+    starts from `frame_noise(seed)[i]`, the noise `sample_frames` gives it: frame 1 is the ACM's
+    frame exactly, and every other frame differs from the ACM's only by what the VCM does.
     """
-    g = torch.Generator().manual_seed(int(seed))
     n = len(conds)
-    out = [ddim(acm, conds[:1], steps=steps, generator=g, strength=strength)[0]]
+    noise = frame_noise(seed, sample_shape(tuple(conds.shape), acm.cfg))
+    out = [ddim(acm, conds[:1], steps=steps, noise=noise[:1], strength=strength)[0]]
     i = 1
     while i < n:
         m = min(clip - 1, n - i)
         c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
-        new = ddim_clip(vcm, c, out[-1], steps=steps, generator=g, strength=strength)
+        new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength)
         out.extend(new)
         i += m
         if progress is not None:
@@ -129,12 +148,13 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
 
 @torch.no_grad()
 def ddim_clip(model: ControlledUNet, conds: torch.Tensor, first: torch.Tensor, *, steps: int,
-              generator: torch.Generator, strength: float = 1.0) -> torch.Tensor:
+              generator: torch.Generator | None = None, strength: float = 1.0,
+              noise: torch.Tensor | None = None) -> torch.Tensor:
     """One clip: conds [F, C, h, w] (the first is the given frame's), first [C, h, w] clean ->
-    the F - 1 new frames [F - 1, C, h, w]."""
+    the F - 1 new frames [F - 1, C, h, w], from `noise` [F - 1, C, h, w] (else drawn from `generator`)."""
     sched = _scheduler(model.cfg, steps)
     f = len(conds)
-    x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None, model.cfg.flow_noise)
+    x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None, model.cfg.flow_noise, noise)
     dev = device_of(model)
     x, first, c = x.to(dev), first.to(dev), conds.to(dev)
     with clip_frames(model, f):

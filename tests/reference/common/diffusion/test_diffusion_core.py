@@ -148,6 +148,48 @@ def test_sample_sequence_is_autoregressive():
     assert clips == [(0, 1, 2, 3), (3, 4, 5, 6), (6, 7, 8, 9)]  # each starts from the last generated
 
 
+class Shrink(OracleModel):
+    """Per-frame and noise-dependent: predicts eps = x_t / 2 (each row alone), so DDIM's output
+    is a fixed linear function of each frame's starting noise."""
+
+    def forward(self, x_t, t, cond=None):
+        self.calls.append((x_t.clone(), t.clone()))
+        return x_t / 2
+
+
+def test_frame_noise_is_the_frame_by_frame_draw():
+    """`sample_frames` starts each batch from the generator's next draw, as it always did (the
+    filed rows of the frame-by-frame methods stay reproducible); `frame_noise` is that draw."""
+    m = Shrink(torch.zeros(1))
+    c = torch.zeros(21, 3, 8, 8)
+    g = torch.Generator().manual_seed(5)
+    want = torch.cat([sample.ddim(m, c[i:i + 8], steps=4, generator=g) for i in range(0, 21, 8)])
+    got = sample.sample_frames(m, c, steps=4, seed=5, batch=8)
+    assert torch.equal(got, want)
+    g = torch.Generator().manual_seed(5)
+    draws = torch.cat([torch.randn(8, 3, 8, 8, generator=g), torch.randn(8, 3, 8, 8, generator=g),
+                       torch.randn(5, 3, 8, 8, generator=g)])
+    assert torch.equal(sample.frame_noise(5, (21, 3, 8, 8), batch=8), draws)
+    with pytest.raises(ValueError, match="noise of shape"):
+        sample.ddim(m, c[:2], steps=4, noise=torch.zeros(3, 3, 8, 8))
+
+
+def test_sequence_sampler_is_paired_with_the_frame_sampler():
+    """With a VCM that ignores the clip (a per-frame model), the clip sampler gives every frame
+    exactly the frame-by-frame sampler's output: frame i starts from the same noise in both, so
+    `skyeyes` minus `skyeyes-no-vcm` is the VCM's doing alone. Another seed changes the frames."""
+    acm, vm = Shrink(torch.zeros(1)), Shrink(torch.zeros(1))
+    # 75 values a frame: not a whole number of torch's 16-value normal blocks, so drawing a clip's
+    # noise on its own (as this sampler once did) gives other numbers than the batched draw
+    c = torch.zeros(30, 3, 5, 5)
+    frames = sample.sample_frames(acm, c, steps=5, seed=11)
+    seq = sample.sample_sequence(acm, vm, c, steps=5, seed=11, clip=12)
+    torch.testing.assert_close(seq, frames, rtol=0, atol=1e-6)
+    assert (frames.std(dim=0) > 0.1).all()  # the frames do differ from one another
+    other = sample.sample_sequence(acm, vm, c, steps=5, seed=12, clip=12)
+    assert (other - frames).abs().mean() > 0.1
+
+
 # --------------------------------------------------------------------------- model
 
 

@@ -8,11 +8,12 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("leaderboard", help="regenerate leaderboard/README.md, index.html, plots and strips; "
-                       "`leaderboard add` files a result",
+    p = sub.add_parser("leaderboard", help="regenerate leaderboard/README.md, index.html, plots, strips and "
+                       "sequence animations; `leaderboard add` files a result",
                        description="Regenerate leaderboard/README.md, leaderboard/index.html, "
-                       "leaderboard/plots/*.png and leaderboard/strips/*.png from leaderboard/results/*.json "
-                       "(measured), leaderboard/frames/ (strip frames) and leaderboard/reported/*.toml (numbers "
+                       "leaderboard/plots/*.png, leaderboard/strips/*.png and the test sequence's animation "
+                       "leaderboard/strips/*-sequence.webp from leaderboard/results/*.json (measured), "
+                       "leaderboard/frames/ (strip frames, sequences) and leaderboard/reported/*.toml (numbers "
                        "from papers, never ranked with measured rows). With --check, write nothing and exit 1 "
                        "if the files on disk are stale. `leaderboard add RESULTS.json` files a result first.")
     p.add_argument("--root", metavar="DIR", help="leaderboard folder (default: leaderboard/ of this checkout)")
@@ -22,8 +23,9 @@ def register(sub) -> None:
     a = acts.add_parser("add", help="check a results file and file it as leaderboard/results/<name>.json",
                         description="Check RESULTS.json (complete results of a known protocol with the "
                         "submission's run time) and file it as <root>/results/<name>.json; save the strip frames "
-                        "(fixed test frames of the submission and, once per protocol and dataset, the ground "
-                        "truth) into <root>/frames/<protocol>_<dataset digest>/ when they are on this machine. "
+                        "and one fixed test sequence as an animated WebP (of the submission and, once per protocol "
+                        "and dataset, of the ground truth) into <root>/frames/<protocol>_<dataset digest>/ when "
+                        "they are on this machine. "
                         "Then run `skyeyes-bench leaderboard` to regenerate the page.")
     a.add_argument("results", metavar="RESULTS.json", help="a results file written by `evaluate` or `merge`")
     a.add_argument("--name", help="name to file it under (default: the submission's method name)")

@@ -1,6 +1,7 @@
 """`skyeyes-bench leaderboard add RESULTS.json`: check a results file and file it as
-`results/<name>.json`, with the strip frames (`frames/<key>/...`) when the submission and the
-dataset it was scored against are on this machine."""
+`results/<name>.json`, with the strip frames and the test sequence's animation
+(`frames/<key>/...`) when the submission and the dataset it was scored against are on this
+machine."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from .. import fileio, safe
 from ..errors import UserError
 from . import checks
 from .plots import FRAMES_DIR, FRAMES_LIST, GROUND_TRUTH, save_tile, write_frames_list
+from .sequence import SEQUENCE_FILE, save_sequence
 from .tables import ADD_KEY, format_hardware, frames_key
 
 #: Frames per strip (columns).
@@ -43,6 +45,26 @@ def choose_frames(doc: dict, k: int = K_FRAMES) -> list[dict]:
         out.append({"scene": r["scene"], "file": r["file"], "sequence": seq_ids[q], "index": r["index"],
                     "label": f"{seq_ids[q]} #{r['index']}", "tile": f"{j}.png"})
     return out
+
+
+def choose_sequence(doc: dict, frames: list[dict]) -> dict | None:
+    """The test sequence shown as an animation, chosen like the strip frames from the dataset's
+    description alone: the sequence of the first strip frame, its first MAX_SEQUENCE_FRAMES frames
+    in index order (all of them in synthtown's 32-frame sequences).
+
+    Returns {"scene", "sequence", "label", "frames": [{"file", "index"}]}; None when the first
+    strip frame is not among the results' frame records.
+    """
+    first = frames[0] if frames else None
+    rec = next((r for r in doc["frames"] if first and (r["scene"], r["file"]) == (first["scene"], first["file"])),
+               None)
+    if rec is None:
+        return None
+    mine = sorted((r for r in doc["frames"] if r["sequence"] == rec["sequence"] and r["scene"] == rec["scene"]),
+                  key=lambda r: r["index"])[:checks.MAX_SEQUENCE_FRAMES]
+    sid = doc["dataset"]["sequences"][rec["sequence"]]
+    return {"scene": rec["scene"], "sequence": sid, "label": f"{sid} #{mine[0]['index']}–#{mine[-1]['index']}",
+            "frames": [{"file": r["file"], "index": r["index"]} for r in mine]}
 
 
 def _fail(path: Path, field: str, msg: str):
@@ -94,10 +116,21 @@ def _tiles_problem(folder: Path, frames: list[dict], records: dict, sha_key: str
     return None
 
 
-def _save_tiles(folder: Path, frames: list[dict], dst: Path, *, root: Path, overwrite: bool) -> None:
+def _save_frames(folder: Path, frames: list[dict], sequence: dict | None, dst: Path, *, root: Path,
+                 overwrite: bool) -> int | None:
+    """Save the strip tiles of `frames` and (unless None) the sequence's animation from `folder`
+    as the folder `dst`, atomically; returns the animation's size in bytes (None: not saved)."""
+    size = None
     with safe.atomic_folder(dst, root=root, overwrite=overwrite) as tmp:
         for f in frames:
             save_tile(folder / f["scene"] / f["file"], tmp / f["tile"], root=root)
+        if sequence is not None:
+            size = save_sequence(folder, sequence, tmp / SEQUENCE_FILE, root=root)
+    return size
+
+
+def _kb(size: int | None) -> str:
+    return f"{(size or 0) / 1024:.0f} KB"
 
 
 def _hardware_here() -> dict:
@@ -113,9 +146,10 @@ def _hardware_here() -> dict:
 
 
 def add_result(results_path, *, root, name: str | None = None, force: bool = False) -> list[str]:
-    """File `results_path` as `<root>/results/<name>.json` and save its strip frames.
+    """File `results_path` as `<root>/results/<name>.json` and save its strip frames and the test
+    sequence's animation.
 
-    Returns the lines to print (what was filed, what the strip has or lacks).
+    Returns the lines to print (what was filed, what the strip and the animation have or lack).
     Raises UserError (one line) for a file the leaderboard cannot use or an existing name; then
     nothing is left behind: every check runs before the first write, and what this call created
     is removed if a write fails. Every path written or deleted is checked to lie under `root`
@@ -143,7 +177,7 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
                         f"to file it under another name")
     base = root / FRAMES_DIR / frames_key(doc)
     mine = base / name
-    for p in (dest, base / FRAMES_LIST, base / GROUND_TRUTH, mine):
+    for p in (dest, base / FRAMES_LIST, base / GROUND_TRUTH, base / GROUND_TRUTH / SEQUENCE_FILE, mine):
         safe.confined(p, root)  # again where each is written: this says so before any work
     if (mine.exists() or mine.is_symlink()) and not force:
         raise UserError(f"{mine}: strip frames are already saved under {name!r} (no result of that name is filed); "
@@ -151,17 +185,29 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
     if mine.exists() and not mine.is_dir():
         raise UserError(f"{mine}: is a file; expected the folder of {name!r}'s strip frames (or nothing)")
     listed = base / FRAMES_LIST
-    frames = checks.frames_list(listed) if listed.is_file() else choose_frames(doc)
+    frames, seq = checks.frames_file(listed) if listed.is_file() else (choose_frames(doc), None)
     records = {(r["scene"], r["file"]): r for r in doc["frames"]}
     if not frames:
         _fail(path, "frames", "is empty; expected the records of the frames that were scored")
     if any((f["scene"], f["file"]) not in records for f in frames):
         raise UserError(f"{path}: field 'frames' lacks the strip frames listed in {listed}: not the dataset the "
                         f"other results of {doc['protocol']['ref']} were scored on")
+    # a list written before sequences were saved gets one (its strip frames unchanged)
+    add_seq = seq is None
+    seq = seq or choose_sequence(doc, frames)
+    assert seq is not None  # the first strip frame is among the records (checked above)
+    seq_frames = [{"scene": seq["scene"], "file": f["file"]} for f in seq["frames"]]
+    if any((f["scene"], f["file"]) not in records for f in seq_frames):
+        raise UserError(f"{path}: field 'frames' lacks the test sequence's frames listed in {listed}: not the "
+                        f"dataset the other results of {doc['protocol']['ref']} were scored on")
     gt, gt_src = base / GROUND_TRUTH, Path(doc["dataset"].get("root") or ".")
+    gt_seq = gt / SEQUENCE_FILE
     sub_src = Path(doc["submission"].get("path") or ".")
     gt_why = None if gt.is_dir() else _tiles_problem(gt_src, frames, records, "gt_sha256")
+    has_gt_seq = gt_seq.exists() or gt_seq.is_symlink()
+    gt_seq_why = None if has_gt_seq else _tiles_problem(gt_src, seq_frames, records, "gt_sha256")
     why = _tiles_problem(sub_src, frames, records, "sha256")
+    seq_why = _tiles_problem(sub_src, seq_frames, records, "sha256")
     lines = [f"{dest}: {doc['submission'].get('method')} on {doc['protocol']['ref']}"]
     # 2. hardware: the run's, else this machine's (said so in the file and on the page)
     added: dict = {"added_from": str(path.resolve())}
@@ -169,33 +215,54 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
         added["hardware"] = _hardware_here()
         added["hardware_source"] = "the machine that ran `skyeyes-bench leaderboard add` (not recorded by the run)"
         lines.append(f"  hardware: not in the results; recorded this machine's ({format_hardware(added['hardware'])})")
-    # 3. write: the frames list (once per protocol and dataset), the ground truth's and this
-    # method's strip frames, then the results file, last (atomic). A failure removes what this
-    # call created (and only that), so no half-filed row is left.
+    # 3. write: the frames list (once per protocol and dataset; the sequence added to an older
+    # one), the ground truth's and this method's strip frames and animation, then the results
+    # file, last (atomic). A failure removes what this call created and restores the list it
+    # changed (and only that), so no half-filed row is left.
     new_dirs = [d for d in (root / "results", root / FRAMES_DIR, base) if not d.exists()]
     created: list[Path] = []
+    restore: list[tuple[Path, bytes]] = []
     try:
-        if not listed.is_file():
-            write_frames_list(listed, frames, root=root)
-            created.append(listed)
+        if not listed.is_file() or add_seq:
+            if listed.is_file():
+                with fileio.open_regular(listed) as f:
+                    restore.append((listed, f.read(fileio.MAX_JSON_BYTES)))
+            else:
+                created.append(listed)
+            write_frames_list(listed, frames, root=root, sequence=seq)
+        n_seq, gt_size = f"{len(seq['frames'])} frames of {seq['sequence']}", None
         if not gt.is_dir():
-            if gt_why is None:
-                _save_tiles(gt_src, frames, gt, root=root, overwrite=False)
+            if gt_why is None or gt_seq_why is None:
+                gt_size = _save_frames(gt_src, frames if gt_why is None else [], seq if gt_seq_why is None else None,
+                                       gt, root=root, overwrite=False)
                 created.append(gt)
             lines.append(f"  strip: ground truth {'saved' if gt_why is None else 'has no frames (' + gt_why + ')'}")
-        if why is None:
-            _save_tiles(sub_src, frames, mine, root=root, overwrite=force)
+        elif gt_seq_why is None and not has_gt_seq:
+            gt_size = save_sequence(gt_src, seq, gt_seq, root=root)
+            created.append(gt_seq)
+        if not has_gt_seq:
+            lines.append(f"  sequence: ground truth saved ({n_seq}, {_kb(gt_size)})" if gt_seq_why is None else
+                         f"  sequence: ground truth has no animation ({gt_seq_why})")
+        size = None
+        if why is None or seq_why is None:
+            size = _save_frames(sub_src, frames if why is None else [], seq if seq_why is None else None, mine,
+                                root=root, overwrite=force)
             created.append(mine)
         elif mine.exists() or mine.is_symlink():  # --force with frames no longer here: drop the old ones
             safe.remove(mine, root=root)
         lines.append(f"  strip: {len(frames)} frames saved to {mine}" if why is None else
                      f"  strip: no frames for {name} ({why}); the page says so")
+        lines.append(f"  sequence: {n_seq} saved to {mine / SEQUENCE_FILE} ({_kb(size)})" if seq_why is None else
+                     f"  sequence: no animation for {name} ({seq_why}); the page says so")
         doc[ADD_KEY] = added
         write_results_file(dest, doc, root=root)
     except BaseException:
         for p in reversed(created):
             with contextlib.suppress(UserError):
                 safe.remove(p, root=root)
+        for p, old in restore:
+            with contextlib.suppress(UserError):
+                safe.write_bytes(p, old, root=root)
         for d in reversed(new_dirs):
             with contextlib.suppress(OSError):
                 d.rmdir()  # only if empty: a folder this call made and left nothing in

@@ -1,6 +1,7 @@
 """Every field of the leaderboard's inputs that becomes a path or page text, checked where it is
 read (issue 35): results files (`add`, and `results/*.json` when the page is built), the committed
-strip-frame lists (`frames/<key>/frames.json`) and the reported-numbers TOML (`reported/*.toml`).
+strip-frame lists with their test sequence (`frames/<key>/frames.json`) and the reported-numbers
+TOML (`reported/*.toml`).
 
 `results.read_results` checks that fields have the right JSON types; this adds what the
 leaderboard needs on top: names that become folders are plain names, text that reaches the page
@@ -32,6 +33,9 @@ REF = re.compile(r"(?=.{1,64}@)[a-z0-9][a-z0-9_-]*(?:\.[a-z0-9_-]+)*@[1-9][0-9]{
 MAX_RUN_S = 1e12
 #: Most strip frames (columns) a frames.json may list (`add` chooses 4).
 MAX_STRIP_FRAMES = 32
+#: Most frames of the test sequence a frames.json may list (`add` lists the first this many of a
+#: longer sequence: 8 s at 8 frames per second).
+MAX_SEQUENCE_FRAMES = 64
 #: Most bootstrap resamples the marks' fallback rule draws (each a row of per-sequence values).
 MAX_RESAMPLES = 100_000
 
@@ -162,9 +166,19 @@ def results_fields(doc: dict, path) -> None:
 
 
 def frames_list(path: Path) -> list[dict]:
-    """The strip frames listed in `frames/<key>/frames.json`, checked: 1..MAX_STRIP_FRAMES records
-    {scene, file, sequence, index, label, tile}, where scene and file name a frame inside a scene
-    folder, label is plain text and tile a plain PNG file name (unique)."""
+    """The strip frames listed in `frames/<key>/frames.json` (`frames_file`)."""
+    return frames_file(path)[0]
+
+
+def frames_file(path: Path) -> tuple[list[dict], dict | None]:
+    """The strip frames and the test sequence (None in a list written before sequences were
+    saved) of `frames/<key>/frames.json`, checked.
+
+    frames: 1..MAX_STRIP_FRAMES records {scene, file, sequence, index, label, tile}, where scene
+    and file name a frame inside a scene folder, label is plain text and tile a plain PNG file name
+    (unique). sequence: {scene, sequence, label, frames: 1..MAX_SEQUENCE_FRAMES records {file,
+    index}}, each file a frame inside the scene folder (unique), label plain text.
+    """
     raw = fileio.read_json(path)
     frames = raw.get("frames") if isinstance(raw, dict) else None
     if not (isinstance(frames, list) and 1 <= len(frames) <= MAX_STRIP_FRAMES):
@@ -184,7 +198,32 @@ def frames_list(path: Path) -> list[dict]:
         if not tile.endswith(".png") or tile in tiles:
             raise UserError(f"{w('tile')}: expected a file name ending in '.png', unique in the list, got {tile!r}")
         tiles.add(tile)
-    return frames
+    return frames, _sequence(path, raw.get("sequence"))
+
+
+def _sequence(path: Path, seq: Any) -> dict | None:
+    if seq is None:
+        return None
+    if not isinstance(seq, dict):
+        raise UserError(f"{_where(path, 'sequence')}: expected the test sequence (an object), got {safe._short(seq)}")
+    safe.plain_name(_where(path, "sequence.scene"), seq.get("scene"), "a scene name")
+    safe.plain_text(_where(path, "sequence.sequence"), seq.get("sequence"), "a sequence id", max_len=1000, empty=False)
+    safe.plain_text(_where(path, "sequence.label"), seq.get("label"), "the sequence's label", max_len=1000)
+    frames = seq.get("frames")
+    if not (isinstance(frames, list) and 1 <= len(frames) <= MAX_SEQUENCE_FRAMES):
+        raise UserError(f"{_where(path, 'sequence.frames')}: expected a list of 1..{MAX_SEQUENCE_FRAMES} frames of "
+                        f"the sequence, got {safe._short(frames)}")
+    files = set()
+    for i, f in enumerate(frames):
+        w = lambda field: _where(path, f"sequence.frames[{i}]{field}")  # noqa: E731
+        if not isinstance(f, dict):
+            raise UserError(f"{w('')}: expected an object {{file, index}}, got {safe._short(f)}")
+        _rel_path(w(".file"), f.get("file"), "the frame's file in its scene")
+        fields.integer(w(".index"), f.get("index"), "the frame's index in its sequence")
+        if f["file"] in files:
+            raise UserError(f"{w('.file')}: {f['file']!r} is listed twice; expected each frame of the sequence once")
+        files.add(f["file"])
+    return seq
 
 
 def reported_file(path: Path) -> dict:

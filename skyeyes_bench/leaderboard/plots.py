@@ -193,7 +193,15 @@ def save_tile(src: Path, dst: Path, *, root: Path) -> None:
         tile.save(tmp, format="PNG")
 
 
-def write_frames_list(path: Path, frames: list[dict], *, root: Path) -> None:
+def frames_list_bytes(frames: list[dict], sequence: dict | None = None) -> bytes:
+    """frames.json: the strip frames and (when chosen) the test sequence."""
+    doc: dict = {"frames": frames}
+    if sequence is not None:
+        doc["sequence"] = sequence
+    return (json.dumps(doc, indent=2) + "\n").encode()
+
+
+def write_frames_list(path: Path, frames: list[dict], *, root: Path, sequence: dict | None = None) -> None:
     from .. import safe
 
-    safe.write_bytes(path, (json.dumps({"frames": frames}, indent=2) + "\n").encode(), root=root)
+    safe.write_bytes(path, frames_list_bytes(frames, sequence), root=root)

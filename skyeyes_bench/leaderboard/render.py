@@ -9,6 +9,7 @@ from pathlib import Path
 from .. import stats
 from .marks import rules_summary
 from .plots import plot_metrics, plot_name, strip_name, strip_rows
+from .sequence import FRAME_MS, sequence_name, sequence_rows, table_sequence
 from .tables import DIGITS, LABEL, Table
 
 DAGGER = "†"
@@ -25,7 +26,8 @@ _INTRO = ("Values are `value [lower, upper]`, the interval the results carry (cl
           "per-sequence differences and set metrics non-overlapping intervals. Each table says which rule "
           "marked each column. Run time = fit + render seconds as the submission reports them. Plots: each "
           "metric against run time (log scale), the Pareto front (methods no other beats on both) ringed and "
-          "connected. Strips: the same fixed test frames for every method (docs/leaderboard.md).")
+          "connected. Strips: the same fixed test frames for every method; under each, one fixed test sequence as "
+          "an animation, every method in step with the ground truth, so flicker is seen (docs/leaderboard.md).")
 
 
 #: Characters that Markdown (GitHub's) reads as markup in a table cell or a line of text: HTML
@@ -107,6 +109,21 @@ def _strip_notes(root: Path, t: Table, files: dict, escape) -> tuple[str | None,
                            f"the machine that added it)." if missing else "")
 
 
+def _sequence_notes(root: Path, t: Table, files: dict, escape, code) -> tuple[str | None, str]:
+    """(composite animation path or None, a sentence naming the sequence and the rows without a
+    saved one), text from inputs passed through `escape`, a command through `code`."""
+    name = sequence_name(t) if sequence_name(t) in files else None
+    missing = [escape(label) for label, p in sequence_rows(root, t) if p is None]
+    why = (f"no saved sequence for: {', '.join(missing)} (filed before {code('leaderboard add')} saved one, or the "
+           f"submission or dataset was not on the machine that added it)." if missing else "")
+    if name is None:
+        return None, "No sequence animation yet: " + why if why else ""
+    seq = table_sequence(root, t)
+    return name, (f"Animation: test sequence {escape(seq['label'])} ({len(seq['frames'])} frames at "
+                  f"{1000 / FRAME_MS:g} per second, looping), ground truth first, every row in step. "
+                  + (why[0].upper() + why[1:] if why else ""))
+
+
 def render_markdown(root: Path, measured: list[Table], reported: list[Table], unmeasured: list[str],
                     files: dict) -> str:
     out = ["# Leaderboard", "",
@@ -139,6 +156,11 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
             note = _NO_STRIP
         if note:
             out += [note, ""]
+        animation, note = _sequence_notes(root, t, files, md, lambda c: f"`{c}`")
+        if animation:
+            out += [f"![{t.key}: one test sequence, ground truth then each method, in step]({animation})", ""]
+        if note:
+            out += [note.strip(), ""]
     if unmeasured:
         out += ["No measured rows yet for protocol: " + ", ".join(f"`{p}`" for p in unmeasured) +
                 " (any version). File a results file "
@@ -245,6 +267,12 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
             note = _md_code(_NO_STRIP)
         if note:
             out.append(f"<p class=note>{note}</p>")
+        animation, note = _sequence_notes(root, t, files, e, lambda c: f"<code>{e(c)}</code>")
+        if animation:
+            out.append(f'<p><img class="strip sequence" src="{e(animation)}" alt="{e(t.key)}: one test sequence, '
+                       f'ground truth then each method, in step"></p>')
+        if note:
+            out.append(f"<p class=note>{note.strip()}</p>")
     if unmeasured:
         out.append("<p>No measured rows yet for protocol: " + ", ".join(f"<code>{e(p)}</code>" for p in unmeasured) +
                    " (any version). File a results file with "

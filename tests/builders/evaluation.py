@@ -158,3 +158,16 @@ def blurred_submission(ds, out: Path, sigma=1.0, method="blur") -> Path:
             w.add(scene, f, gaussian_filter(f.image(), (sigma, sigma, 0)))
         w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
     return out
+
+
+def indexed_submission(ds, out: Path, method="indexed", step=10) -> Path:
+    """A submission whose frame of index i is the ground truth squeezed into a third of the range
+    plus a brightness of 20 + step * i levels: a frame's mean brightness says which it is (frame
+    order visible after lossy compression)."""
+    from skyeyes_bench.submission import SubmissionWriter, expected_frames
+
+    with SubmissionWriter(out, dataset=ds, method=method, method_version="1", config={"step": step}) as w:
+        for scene, f in expected_frames(ds):
+            w.add(scene, f, np.clip(f.image() / 3 + (20 + step * int(f.index)) / 255, 0, 1))
+        w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
+    return out

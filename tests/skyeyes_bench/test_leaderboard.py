@@ -139,7 +139,8 @@ def test_add_files_a_result_with_its_frames_and_refuses_overwrite(board, tmp_pat
     seqs = original["dataset"]["sequences"]
     assert [(f["sequence"], f["index"]) for f in chosen] == [(seqs[q], 8) for q in (0, 1, 3, 4)]
     for who in ("ground-truth", "sharp", "blurry", "blurry-twin"):
-        assert sorted(p.name for p in (root / "frames" / key / who).iterdir()) == [f"{j}.png" for j in range(4)]
+        assert sorted(p.name for p in (root / "frames" / key / who).iterdir()) == [f"{j}.png" for j in range(4)] + [
+            "sequence.webp"]  # the test sequence's animation: test_leaderboard_sequence.py
     gt = np.asarray(__import__("PIL.Image").Image.open(root / "frames" / key / "ground-truth" / "0.png"))
     from skyeyes_bench import fileio
 

@@ -4,7 +4,8 @@ Every hostile case must exit 2 with exactly one line on stderr, write nothing (i
 the leaderboard folder: the snapshot of the whole test folder, siblings of the root included, is
 unchanged) and destroy no input (the results file, the dataset and the submission it names).
 Classes: fields that become paths (hashes, `protocol.ref`, names, committed `frames.json` tile
-names), a result named `ground-truth`, folders not its own, symlinks planted to leave the root,
+names and the test sequence's frames), a result named `ground-truth`, folders not its own, symlinks
+planted to leave the root, saved animations that are not one (a link out, a pipe, not a WebP),
 text that would break or spoof the page, run times and scores that are not numbers a page can
 show, and a read-only root. Then what must work: the same odd text filed and escaped (Markdown
 and HTML), files created with the user's umask, and stale plots removed only inside the root.
@@ -127,6 +128,21 @@ def _tile(c: Case, name: str):
     p.write_text(json.dumps(raw))
 
 
+def _sequence(c: Case, key: str, value):
+    """Edit the test sequence recorded in the committed frames.json."""
+    p = c.frames / "frames.json"
+    raw = json.loads(p.read_text())
+    _set(key, value)(raw["sequence"])
+    p.write_text(json.dumps(raw))
+
+
+def _animation(c: Case, make):
+    """Replace blur's saved animation (`frames/<key>/blur/sequence.webp`) with what `make(path)` puts there."""
+    p = c.frames / "blur" / "sequence.webp"
+    p.unlink()
+    make(p)
+
+
 def _reported(c: Case, old: str, new: str):
     p = c.lb / "reported" / "skyeyes-wacv2025-table1-citysample.toml"
     text = p.read_text()
@@ -190,6 +206,8 @@ CASES = {
                                "field 'frames[0].file'"),
     "add-committed-tile-escapes": (lambda c, mp: (_tile(c, "../../../../escape.png"), c.add(*NEW))[1],
                                    "field 'frames[0].tile'"),
+    "add-committed-sequence-file-escapes": (lambda c, mp: (_sequence(c, "frames.0.file", "../../../../etc/passwd"),
+                                                           c.add(*NEW))[1], "field 'sequence.frames[0].file'"),
     # ---------------------------------------------------------------- add: names
     "add-method-newline": (lambda c, mp: c.add(edit=_set("submission.method", "blur\n")), "field 'submission.method'"),
     "add-method-path": (lambda c, mp: c.add(edit=_set("submission.method", "../blur")), "field 'submission.method'"),
@@ -238,6 +256,20 @@ CASES = {
                                                            c.lb / "results" / "ground-truth.json"), c.page())[1],
                                 "ground-truth.json: file name"),
     "page-tile-escapes": (lambda c, mp: (_tile(c, "../../../../x.png"), c.page())[1], "field 'frames[0].tile'"),
+    "page-sequence-file-escapes": (lambda c, mp: (_sequence(c, "frames.0.file", "../../x.png"), c.page())[1],
+                                   "field 'sequence.frames[0].file'"),
+    "page-sequence-label-bidi": (lambda c, mp: (_sequence(c, "label", "yaw000\u202e"), c.page())[1],
+                                 "field 'sequence.label'"),
+    "page-sequence-frames-huge": (lambda c, mp: (_sequence(c, "frames", [{"file": f"g/{i}.png", "index": i}
+                                                                         for i in range(10_000)]), c.page())[1],
+                                  "field 'sequence.frames'"),
+    "page-animation-link-outside": (lambda c, mp: (_animation(c, lambda p: p.symlink_to(
+        c.parent / "outside" / "keep.txt")), c.page())[1], "leaves"),
+    "page-animation-not-webp": (lambda c, mp: (_animation(c, lambda p: p.write_bytes(b"GIF89a" * 10)), c.page())[1],
+                                "not a WebP file"),
+    "page-animation-truncated": (lambda c, mp: (_animation(c, lambda p: p.write_bytes(
+        (c.world / "lb" / p.relative_to(c.lb)).read_bytes()[:80])), c.page())[1], "cannot decode WebP"),
+    "page-animation-fifo": (lambda c, mp: (_animation(c, os.mkfifo), c.page())[1], "named pipe"),
     "check-ref-path": (lambda c, mp: (c.filed(_set("protocol.ref", "../../../../../up@1")), c.page("--check"))[1],
                        "field 'protocol.ref'"),
     "page-reported-string-score": (lambda c, mp: (_reported(c, "psnr = 27.79", 'psnr = "27.79"'), c.page())[1],

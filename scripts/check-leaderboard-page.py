@@ -2,12 +2,15 @@
 """Open the leaderboard page in headless Chromium and check what a reader would see.
 
     .venv/bin/python scripts/check-leaderboard-page.py [PAGE] [--screenshot PNG] [--expect-measured]
+                                                       [--expect-animation]
 
 PAGE defaults to leaderboard/index.html of this checkout. Checks: the page loads with no console
 error (a missing image is one: "Failed to load resource"), every <img> decoded (naturalWidth >
-0), at least one table with rows (and a measured table with --expect-measured), and a click on a
-column heading sorts without an error. Writes a full-page screenshot (default: a temporary file;
-never commit it) and prints its path.
+0), every sequence animation (`<img class="sequence">`) is an animated WebP of more than one
+frame (its file, opened with Pillow) and decoded in the browser, at least one table with rows (and
+a measured table with --expect-measured, a sequence animation with --expect-animation), and a
+click on a column heading sorts without an error. Writes a full-page screenshot (default: a
+temporary file; never commit it) and prints its path.
 
 Needs Debian's `chromium` and `chromium-driver` and the `selenium` package (the `dev` extra).
 When one is missing: exit 1 if CI=true (CI must run the check), else say so and exit 0.
@@ -55,7 +58,30 @@ def _driver(width: int, height: int):
     return webdriver.Chrome(options=opts, service=Service(shutil.which(DRIVER)))
 
 
-def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, timeout: float = 30.0) -> list[str]:
+def animation_problem(page: Path, src: str) -> str | None:
+    """Why the image `src` (relative to `page`) is not an animation of several frames (None: it is
+    one). Pillow reads the file: a browser decodes a still image just as well."""
+    from urllib.parse import unquote, urlsplit
+
+    from PIL import Image, UnidentifiedImageError
+
+    parts = urlsplit(src)
+    path = (page.parent / unquote(parts.path)).resolve()
+    if parts.scheme or parts.netloc or not path.is_relative_to(page.parent.resolve()):
+        return f"{page}: animation {src} is not a file beside the page"
+    try:
+        with Image.open(path) as im:
+            fmt, frames = im.format, getattr(im, "n_frames", 1)
+    except (OSError, UnidentifiedImageError) as e:
+        return f"{page}: animation {src} cannot be read ({e})"
+    if fmt != "WEBP" or frames < 2:
+        return (f"{page}: animation {src} is a {fmt} of {frames} frame{'s' * (frames != 1)}; expected an "
+                f"animated WebP of the test sequence (more than one frame)")
+    return None
+
+
+def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, expect_animation: bool = False,
+               timeout: float = 30.0) -> list[str]:
     """Problems found on `page` (empty: it passed); writes `screenshot`."""
     from selenium.webdriver.common.by import By
 
@@ -74,6 +100,15 @@ def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, t
         images = drv.execute_script("return Array.from(document.images).map(function (i) { "
                                     "return [i.getAttribute('src'), i.naturalWidth]; })")
         problems += [f"{page}: image {src} did not load (naturalWidth 0)" for src, w in images if not w]
+        animations = drv.execute_script("return Array.from(document.querySelectorAll('img.sequence')).map("
+                                        "function (i) { return [i.getAttribute('src'), i.naturalWidth]; })")
+        for src, w in animations:
+            if not w:
+                problems.append(f"{page}: animation {src} was not decoded by the browser (naturalWidth 0)")
+            problems += [p for p in [animation_problem(page, src)] if p]
+        if expect_animation and not animations:
+            problems.append(f"{page}: no sequence animation (expected an <img class=\"sequence\">: run "
+                            f"`skyeyes-bench leaderboard` after `leaderboard add` saved a test sequence)")
         tables = drv.find_elements(By.CSS_SELECTOR, "table")
         if not tables:
             problems.append(f"{page}: no table")
@@ -93,7 +128,8 @@ def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, t
         screenshot.parent.mkdir(parents=True, exist_ok=True)
         if not drv.save_screenshot(str(screenshot)):
             problems.append(f"{screenshot}: screenshot not written")
-        print(f"{page}: {len(tables)} tables, {len(images)} images; screenshot {screenshot}")
+        print(f"{page}: {len(tables)} tables, {len(images)} images ({len(animations)} animations); "
+              f"screenshot {screenshot}")
     finally:
         drv.quit()
     return problems
@@ -104,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("page", nargs="?", default=str(ROOT / "leaderboard" / "index.html"), help="the HTML page")
     ap.add_argument("--screenshot", help="where to write the full-page PNG (default: a temporary file)")
     ap.add_argument("--expect-measured", action="store_true", help="fail unless a measured table is shown")
+    ap.add_argument("--expect-animation", action="store_true", help="fail unless a sequence animation is shown")
     args = ap.parse_args(argv)
     page = Path(args.page)
     if not page.is_file():
@@ -117,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"leaderboard page check skipped: {missing}", file=sys.stderr)
         return 0
     shot = Path(args.screenshot) if args.screenshot else Path(tempfile.mkdtemp(prefix="leaderboard-page-")) / "page.png"
-    problems = check_page(page, shot, expect_measured=args.expect_measured)
+    problems = check_page(page, shot, expect_measured=args.expect_measured, expect_animation=args.expect_animation)
     for p in problems:
         print(p, file=sys.stderr)
     print("leaderboard page check " + ("FAILED" if problems else "passed"), file=sys.stderr if problems else sys.stdout)

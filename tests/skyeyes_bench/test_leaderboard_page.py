@@ -1,5 +1,6 @@
 """The leaderboard page in a real headless browser (scripts/check-leaderboard-page.py): a board
-with measured rows, plots and a strip loads without console errors and every image decodes.
+with measured rows, plots, a strip and the sequence animation loads without console errors, every
+image decodes and the animation has several frames.
 Slow tier: starts Chromium. Fails (never skips) when CI=true and Chromium is missing."""
 
 import importlib.util
@@ -45,13 +46,34 @@ def test_page_with_measured_rows_loads_in_chromium(tmp_path, monkeypatch):
         run_cli("leaderboard", "add", str(tmp_path / f"{name}.json"), "--root", str(root))
     run_cli("leaderboard", "--root", str(root))
     shot = tmp_path / "page.png"
-    problems = mod.check_page(root / "index.html", shot, expect_measured=True)
+    problems = mod.check_page(root / "index.html", shot, expect_measured=True, expect_animation=True)
     assert problems == []
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the check can fail: an animation of one frame (a still WebP: every frame the same)
+    animation = root / "strips" / "evaltest@1-sequence.webp"
+    from PIL import Image
+
+    moving = animation.read_bytes()
+    with Image.open(animation) as im:
+        im.seek(1)
+        im.convert("RGB").save(animation, format="WEBP")
+    problems = mod.check_page(root / "index.html", shot, expect_animation=True)
+    assert problems == [f"{root / 'index.html'}: animation strips/evaltest@1-sequence.webp is a WEBP of 1 frame; "
+                        f"expected an animated WebP of the test sequence (more than one frame)"]
+    animation.write_bytes(moving)
     # the check can fail: a missing plot is a console error and an image of naturalWidth 0
     next((root / "plots").glob("*.png")).unlink()
     problems = mod.check_page(root / "index.html", shot, expect_measured=True)
     assert any("did not load" in p for p in problems) and any("console error" in p for p in problems)
+    # ... and so is a missing animation: not decoded by the browser, not readable
+    animation.unlink()
+    problems = mod.check_page(root / "index.html", shot)
+    assert any("animation strips/evaltest@1-sequence.webp was not decoded" in p for p in problems)
+    assert any("animation strips/evaltest@1-sequence.webp cannot be read" in p for p in problems)
+    # a page without an animation fails only when one is expected
+    (root / "index.html").write_text((root / "index.html").read_text().replace('class="strip sequence"', 'hidden'))
+    problems = mod.check_page(root / "index.html", shot, expect_animation=True)
+    assert any("no sequence animation" in p for p in problems)
 
 
 def test_committed_page_loads_in_chromium(tmp_path):

@@ -75,6 +75,12 @@ class SkyeyesConfig:
     vcm_batch: int = 1
     vcm_lr: float = 2e-4
     clip_frames: int = 12  # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames"
+    # Which frames a frame attends to in the rewired self-attention (`vcm.KEYS`: "clip", every
+    # frame of its clip, the paper's; "previous", its own and the previous frame's tokens).
+    vcm_keys: str = "clip"
+    # Local attention of each token over the previous frame's window x window neighbourhood after
+    # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
+    vcm_local: int = 0
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -407,10 +413,13 @@ class Skyeyes(Method):
         seqs = [q for q in seqs if len(q) >= 2]
         f_clip = min(c.clip_frames, min(len(q) for q in seqs))
         vmodel = copy.deepcopy(model)
-        vcm.install_vcm(vmodel)
+        vcm.install_vcm(vmodel, vcm.ClipContext(keys=c.vcm_keys), local_window=c.vcm_local, seed=self.seed + 2)
         params = core.trainable(vmodel, vcm.vcm_parameter_names(vmodel))
         vcm_key = {"acm": {**acm_key, "steps": c.acm_steps}, "batch": c.vcm_batch, "lr": c.vcm_lr,
-                   "frames": f_clip, "layers": list(vcm.VCM_BLOCKS)}
+                   "frames": f_clip, "layers": list(vcm.VCM_BLOCKS),
+                   # the paper's wiring keeps the keys its stages had before these existed
+                   **({"keys": c.vcm_keys} if c.vcm_keys != "clip" else {}),
+                   **({"local": c.vcm_local} if c.vcm_local else {})}
 
         def vcm_loss(net, g, part):
             rows = []

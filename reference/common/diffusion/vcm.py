@@ -25,11 +25,26 @@ import torch.nn.functional as F
 from torch import nn
 
 
-class ClipContext:
-    """Shared, mutable number of frames per clip, read by every installed processor."""
+#: Which frames a frame's queries attend to (`ClipContext.keys`). "clip": every frame of the clip
+#: (Skyeyes Sec. 3.3). "previous": its own and the frame before it (the first frame: its own), the
+#: sparse-causal attention of vid2vid-zero (Wang et al. 2023) without its first-frame term, which a
+#: 2-frame clip already has; a frame then copies from the frame it most resembles.
+KEYS = ("clip", "previous")
 
-    def __init__(self, frames: int = 1):
-        self.frames = frames
+
+class ClipContext:
+    """Shared, mutable number of frames per clip (and which frames are keys), read by every
+    installed processor and local layer."""
+
+    def __init__(self, frames: int = 1, keys: str = "clip"):
+        if keys not in KEYS:
+            raise ValueError(f"VCM keys {keys!r}: expected one of {', '.join(KEYS)}")
+        self.frames, self.keys = frames, keys
+
+
+def _previous(x: torch.Tensor) -> torch.Tensor:
+    """x [B, F, ...] -> the frame before each frame (the first frame's is itself)."""
+    return torch.cat([x[:, :1], x[:, :-1]], dim=1)
 
 
 class ClipSelfAttnProcessor:
@@ -57,7 +72,12 @@ class ClipSelfAttnProcessor:
         q, k, v = attn.to_q(clip), attn.to_k(clip), attn.to_v(clip)  # [B, F*L, D]
         heads = attn.heads
         d = q.shape[-1] // heads
-        q, k, v = (x.view(b, f * length, heads, d).transpose(1, 2) for x in (q, k, v))  # [B, h, F*L, d]
+        if self.ctx.keys == "previous":  # per frame: [previous frame's tokens, own tokens]
+            q, k, v = (x.view(b, f, length, heads, d) for x in (q, k, v))
+            k, v = (torch.cat([_previous(x), x], dim=2) for x in (k, v))  # [B, F, 2L, h, d]
+            q, k, v = (x.reshape(b * f, -1, heads, d).transpose(1, 2) for x in (q, k, v))
+        else:
+            q, k, v = (x.view(b, f * length, heads, d).transpose(1, 2) for x in (q, k, v))  # [B, h, F*L, d]
         out = F.scaled_dot_product_attention(q, k, v, scale=attn.scale)
         out = out.transpose(1, 2).reshape(bf, length, heads * d)  # back to [B*F, L, D]
         out = attn.to_out[1](attn.to_out[0](out))
@@ -81,22 +101,92 @@ def self_attention_layers(model: nn.Module, prefixes: tuple[str, ...] | None = N
             if n.endswith("attn1") and (prefixes is None or n.startswith(prefixes))}
 
 
-def install_vcm(model: nn.Module, ctx: ClipContext | None = None) -> ClipContext:
-    """Replace the processor of every `attn1` of the UNet's down and up blocks (`VCM_BLOCKS`).
-    Returns the context."""
+class LocalFrameAttention(nn.Module):
+    """Attention of each token over the previous frame's `window` x `window` neighbourhood of its
+    position and its own token (the first frame of a clip: its own token alone), for the UNet's
+    finer levels, which have no self-attention to rewire: a learned, local correspondence that can
+    copy a frame's detail into the next one where the camera moved a little. One head; a new layer
+    whose output projection starts at zero, so the model starts as the ACM (AnimateDiff's and
+    Control-A-Video's temporal layers start so too)."""
+
+    def __init__(self, channels: int, ctx: ClipContext, window: int, groups: int):
+        super().__init__()
+        if window < 1 or window % 2 == 0:
+            raise ValueError(f"VCM local window {window}: expected an odd number >= 1")
+        self.ctx, self.window = ctx, window
+        self.norm = nn.GroupNorm(groups, channels, eps=1e-6)
+        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
+        self.out = nn.Conv2d(channels, channels, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:  # [B*F, C, H, W]
+        bf, c, hh, ww = h.shape
+        f = self.ctx.frames
+        assert bf % f == 0, f"batch {bf} is not a whole number of {f}-frame clips"
+        q, k, v = self.qkv(self.norm(h)).chunk(3, dim=1)  # [B*F, C, H, W]
+        r = self.window
+        prev = [_previous(x.view(bf // f, f, c, hh, ww)).reshape(bf, c, hh, ww) for x in (k, v)]
+        kn, vn = (F.unfold(x, r, padding=r // 2).view(bf, c, r * r, hh * ww) for x in prev)  # [B*F, C, r*r, HW]
+        first = torch.zeros(bf // f, f, 1, 1, dtype=torch.bool, device=h.device)
+        first[:, 0] = True  # the first frame has no previous frame: its neighbourhood is masked out
+        q, k, v = (x.reshape(bf, c, 1, hh * ww) for x in (q, k, v))
+        logits = torch.cat([(q * kn).sum(1), (q * k).sum(1)], dim=1) / c ** 0.5  # [B*F, r*r + 1, HW]
+        mask = first.view(bf, 1, 1).expand(bf, r * r + 1, 1).clone()
+        mask[:, -1] = False
+        logits = logits.masked_fill(mask, float("-inf"))
+        w = torch.softmax(logits.float(), dim=1).to(q.dtype)
+        out = (torch.cat([vn, v], dim=2) * w[:, None]).sum(2).view(bf, c, hh, ww)
+        return h + self.out(out)
+
+
+class _WithLocal(nn.Module):
+    """A resnet of the UNet followed by a `LocalFrameAttention` on its output."""
+
+    def __init__(self, resnet: nn.Module, local: LocalFrameAttention):
+        super().__init__()
+        self.resnet, self.local = resnet, local
+
+    def forward(self, *args, **kwargs):
+        return self.local(self.resnet(*args, **kwargs))
+
+
+def _plain_blocks(model: nn.Module) -> list[tuple[str, nn.Module]]:
+    """(name, block) of the UNet's down and up blocks that have no attention (its finer levels)."""
+    unet = model.unet
+    return [(f"unet.{kind}.{i}", blk) for kind in ("down_blocks", "up_blocks")
+            for i, blk in enumerate(getattr(unet, kind)) if not hasattr(blk, "attentions")]
+
+
+def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_window: int = 0,
+                seed: int = 0) -> ClipContext:
+    """Replace the processor of every `attn1` of the UNet's down and up blocks (`VCM_BLOCKS`);
+    with `local_window`, also follow every resnet of the down and up blocks without attention by
+    a `LocalFrameAttention` (new layers, initialised from `seed`, outputs at zero). Returns the
+    context."""
     ctx = ctx or ClipContext()
     layers = self_attention_layers(model, VCM_BLOCKS)
     assert layers, "model has no self-attention layers in its down or up blocks"
     proc = ClipSelfAttnProcessor(ctx)
     for m in layers.values():
         m.set_processor(proc)
+    if local_window:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            for _, blk in _plain_blocks(model):
+                for j, res in enumerate(blk.resnets):
+                    groups = res.norm2.num_groups
+                    local = LocalFrameAttention(res.out_channels, ctx, local_window, groups)
+                    blk.resnets[j] = _WithLocal(res, local.to(next(res.parameters()).device))
     model._vcm_context = ctx  # noqa: SLF001  (found again by `clip_frames`)
     return ctx
 
 
 def vcm_parameter_names(model: nn.Module) -> list[str]:
-    """Prefixes of the parameters VCM trains: the projections of the `attn1` layers it rewires."""
-    return [f"{n}." for n in self_attention_layers(model, VCM_BLOCKS)]
+    """Prefixes of the parameters VCM trains: the projections of the `attn1` layers it rewires
+    and its local layers, where installed."""
+    local = [f"{n}." for n, m in model.named_modules() if isinstance(m, LocalFrameAttention)]
+    return [f"{n}." for n in self_attention_layers(model, VCM_BLOCKS)] + local
 
 
 @contextlib.contextmanager

@@ -80,8 +80,9 @@ def frame_noise(seed: int, shape: tuple[int, ...], batch: int = 16) -> torch.Ten
     clip start frame i from the same noise (`skyeyes` and `skyeyes-no-vcm` are paired)."""
     g = torch.Generator().manual_seed(int(seed))
     n, rest = shape[0], tuple(shape[1:])
-    return torch.cat([torch.randn((min(batch, n - i), *rest), generator=g) for i in range(0, n, batch)]) \
-        if n else torch.zeros((0, *rest))
+    # drawn on the CPU, the generator's device, on purpose: the same frames on every device
+    return torch.cat([torch.randn((min(batch, n - i), *rest), generator=g, device=g.device)
+                      for i in range(0, n, batch)]) if n else torch.zeros((0, *rest), device=g.device)
 
 
 @torch.no_grad()

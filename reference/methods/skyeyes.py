@@ -74,13 +74,19 @@ class SkyeyesConfig:
     vcm_steps: int = 40
     vcm_batch: int = 1
     vcm_lr: float = 2e-4
-    clip_frames: int = 12  # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames"
+    # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames". 1: no VCM stage, the ACM frame by
+    # frame in sequence order (what `vcm_warp` alone does).
+    clip_frames: int = 12
     # Which frames a frame attends to in the rewired self-attention (`vcm.KEYS`: "clip", every
     # frame of its clip, the paper's; "previous", its own and the previous frame's tokens).
     vcm_keys: str = "clip"
     # Local attention of each token over the previous frame's window x window neighbourhood after
     # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
     vcm_local: int = 0
+    # Warped sampling (`diffusion.warp`; 0: none): the clip's first frame, moved into each new
+    # frame by the prior's depth and the poses, holds the pixels it reaches for this many of the
+    # `sample_steps` DDIM steps. Sampling only (no stage key); needs a prior with depth (`sugar`).
+    vcm_warp: int = 0
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -238,6 +244,11 @@ class Skyeyes(Method):
         if not 0 <= config.acm_anneal < max(config.acm_steps, 1):
             raise ValueError(f"acm_anneal {config.acm_anneal}: expected 0 <= acm_anneal < acm_steps "
                              f"({config.acm_steps}); the decay follows at least one constant-rate step")
+        if config.clip_frames < 1:
+            raise ValueError(f"clip_frames {config.clip_frames}: expected >= 1")
+        if not 0 <= config.vcm_warp <= config.sample_steps or (config.vcm_warp and not config.vcm):
+            raise ValueError(f"vcm_warp {config.vcm_warp}: expected 0 <= vcm_warp <= sample_steps "
+                             f"({config.sample_steps}), and the VCM on (vcm=true) when it is not 0")
         if config.condition == "aerial" and config.core.residual:
             # the residual from a view taken elsewhere means nothing: diffuse the frames
             config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
@@ -249,6 +260,7 @@ class Skyeyes(Method):
         self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, 3]
         self.training: dict[str, Any] = {}
         self._figure_written = False
+        self._warp = None  # the sequence's warped-sampling targets (`vcm_warp`), set per sequence
 
     @classmethod
     def configure(cls, preset: str, sets: list[str] | tuple = (), *, values: dict | None = None,
@@ -407,7 +419,7 @@ class Skyeyes(Method):
 
         # 4. VCM: clip attention in the UNet's down and up blocks of a copy of the frozen ACM;
         # only those layers' projections are trained (the ACM keeps its own, for frame 1).
-        if not c.vcm:
+        if not c.vcm or c.clip_frames == 1:  # 1-frame clips: the ACM frame by frame (`vcm_warp` holds)
             return
         seqs = [[frames.index((s, f)) for f in q.frames] for s in scenes for q in s.sequences.values()]
         seqs = [q for q in seqs if len(q) >= 2]
@@ -474,6 +486,11 @@ class Skyeyes(Method):
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
         self.conds.update(self._conditions(None, scenes))
+        if self.config.vcm_warp:  # the prior's depth moves frames: its scene models (cached renders fit none)
+            if self.config.prior_method not in ("sugar", "gaussians3d"):
+                raise ValueError(f"vcm_warp: the prior {self.config.prior_method!r} is not Gaussians "
+                                 "(sugar, gaussians3d), whose depth moves the frames")
+            self.prior.fit_scenes([s for s in scenes if s.name not in self.prior._scene_models])
 
     # ---------------------------------------------------------------- render
     def _generate(self, conds):
@@ -483,7 +500,8 @@ class Skyeyes(Method):
         acm = self._sampling_model(self.acm)
         if c.vcm:
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed,
-                                          clip=c.clip_frames, strength=c.sample_strength)
+                                          clip=c.clip_frames, strength=c.sample_strength,
+                                          warp=self._warp, hold=c.vcm_warp)
         return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
@@ -495,6 +513,7 @@ class Skyeyes(Method):
         cc = core.encode_cond(self._to_model(priors), cfg, self.device)
         # Seed per sequence from its id, so frames do not depend on rendering order.
         self._seq_seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
+        self._warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
         x = core.from_diffused(self._generate(cc), cc, cfg)
         imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
         out = []
@@ -509,6 +528,17 @@ class Skyeyes(Method):
             write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
                          condition=self.config.condition)
         yield from out
+
+
+    def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
+        """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the
+        poses at the model's resolution."""
+        from ..common.diffusion import warp
+
+        res = self.config.core.resolution
+        depths = [warp.prior_depth(self.prior, scene, f, res, res) for f in sequence.frames]
+        cams = [warp.scaled_camera(f.camera(), res, res) for f in sequence.frames]
+        return warp.WarpTargets(cc, depths, cams, self.config.core)
 
 
 def _resize_hw(images, h: int, w: int):

@@ -53,10 +53,16 @@ def _start(sched, shape, generator: torch.Generator | None, strength: float, ini
     if len(steps) == 0:
         raise ValueError(f"strength {strength} leaves no sampling step")
     init = torch.zeros(shape, device=noise.device) if init is None else init.to(noise.device)
-    if flow:
-        tau = float(steps[0]) / sched.config.num_train_timesteps
-        return (1.0 - tau) * init + tau * scale * noise, steps
-    return sched.add_noise(init, noise, steps[:1].expand(shape[0])), steps
+    return _noised(sched, init, noise, steps[0], scale), steps
+
+
+def _noised(sched, z0: torch.Tensor, noise: torch.Tensor, t, scale: float) -> torch.Tensor:
+    """z0 [N, ...] noised to the scheduler's timestep t with `noise` (the forward process: DDPM's
+    q(z_t | z0), or the flow's straight line with noise of std `scale`)."""
+    if _is_flow(sched):
+        tau = float(t) / sched.config.num_train_timesteps
+        return (1.0 - tau) * z0 + tau * scale * noise
+    return sched.add_noise(z0, noise, torch.as_tensor(t).reshape(1).expand(z0.shape[0]))
 
 
 def _step(sched, out: torch.Tensor, t, x: torch.Tensor) -> torch.Tensor:
@@ -88,7 +94,8 @@ def frame_noise(seed: int, shape: tuple[int, ...], batch: int = 16) -> torch.Ten
 @torch.no_grad()
 def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, generator: torch.Generator | None = None,
          shape: tuple[int, ...] | None = None, strength: float = 1.0,
-         init: torch.Tensor | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
+         init: torch.Tensor | None = None, noise: torch.Tensor | None = None,
+         held: tuple[torch.Tensor, torch.Tensor] | None = None, hold: int = 0) -> torch.Tensor:
     """Denoise noise into model-space samples with deterministic DDIM (eta = 0).
 
     Args:
@@ -96,6 +103,7 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
         shape: [N, C, h, w] of the output when `conds` is None.
         strength, init: SDEdit start (see `_start`).
         noise: the starting noise [N, C, h, w] (`frame_noise`); else drawn from `generator`.
+        held, hold: targets held for the first steps (`_hold`).
 
     Returns:
         [N, C, h, w] the generated samples (on the CPU).
@@ -106,9 +114,24 @@ def ddim(model: ControlledUNet, conds: torch.Tensor | None, *, steps: int, gener
     dev = device_of(model)
     x = x.to(dev)
     c = conds.to(dev) if conds is not None else None
-    for t in timesteps:
+    for k, t in enumerate(timesteps):
         x = _step(sched, model(x, _timesteps(t, shape[0], dev), c).float(), t, x)
+        x = _hold(sched, x, k, timesteps, held, hold, noise, model.cfg)
     return x.cpu()
+
+
+def _hold(sched, x: torch.Tensor, k: int, timesteps, held, hold: int, noise, cfg) -> torch.Tensor:
+    """After step k of the first `hold`: where held's mask is 1, x is held's target noised to the
+    next timestep with the samples' own starting `noise` (the target itself after the last step;
+    `warp.WarpTargets` makes them). held: (targets, masks) of x's shape, or None."""
+    if held is None or k >= hold:
+        return x
+    if noise is None:
+        raise ValueError("held samples need their starting noise")
+    target, mask = (h.to(x.device) for h in held)
+    scale = cfg.flow_noise if _is_flow(sched) else 1.0
+    nxt = _noised(sched, target, noise.to(x.device), timesteps[k + 1], scale) if k + 1 < len(timesteps) else target
+    return mask * nxt + (1.0 - mask) * x
 
 
 @torch.no_grad()
@@ -124,22 +147,35 @@ def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, see
 
 @torch.no_grad()
 def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tensor, *, steps: int,
-                    seed: int, clip: int = 12, strength: float = 1.0, progress=None) -> torch.Tensor:
+                    seed: int, clip: int = 12, strength: float = 1.0, progress=None,
+                    warp=None, hold: int = 0) -> torch.Tensor:
     """Skyeyes inference (Sec. 3.3 and supplement Sec. 2.2): frame 1 from the ACM alone, then
     clips of `clip` frames whose first frame is the last frame generated so far.
 
     conds [N, C, h, w] -> [N, C, h, w]. Each clip generates up to `clip - 1` new frames. Frame i
     starts from `frame_noise(seed)[i]`, the noise `sample_frames` gives it: frame 1 is the ACM's
     frame exactly, and every other frame differs from the ACM's only by what the VCM does.
+    `warp` (`warp.WarpTargets`) and `hold`: the clip's first frame, warped into each new frame,
+    holds the pixels it reaches for the first `hold` steps (`ddim_clip`). `vcm` None: every frame
+    from the ACM alone, one at a time, held by the previous frame's warp (`ddim`).
     """
     n = len(conds)
     noise = frame_noise(seed, sample_shape(tuple(conds.shape), acm.cfg))
     out = [ddim(acm, conds[:1], steps=steps, noise=noise[:1], strength=strength)[0]]
     i = 1
+    while i < n and vcm is None:  # no VCM: the ACM frame by frame, each held by the last one's warp
+        held = warp(out[-1], i - 1, [i]) if warp is not None and hold > 0 else None
+        out.append(ddim(acm, conds[i:i + 1], steps=steps, noise=noise[i:i + 1], strength=strength,
+                        held=held, hold=hold)[0])
+        i += 1
+        if progress is not None:
+            progress(1)
     while i < n:
         m = min(clip - 1, n - i)
         c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
-        new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength)
+        held = warp(out[-1], i - 1, list(range(i, i + m))) if warp is not None and hold > 0 else None
+        new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength,
+                        held=held, hold=hold)
         out.extend(new)
         i += m
         if progress is not None:
@@ -150,20 +186,25 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
 @torch.no_grad()
 def ddim_clip(model: ControlledUNet, conds: torch.Tensor, first: torch.Tensor, *, steps: int,
               generator: torch.Generator | None = None, strength: float = 1.0,
-              noise: torch.Tensor | None = None) -> torch.Tensor:
+              noise: torch.Tensor | None = None,
+              held: tuple[torch.Tensor, torch.Tensor] | None = None, hold: int = 0) -> torch.Tensor:
     """One clip: conds [F, C, h, w] (the first is the given frame's), first [C, h, w] clean ->
-    the F - 1 new frames [F - 1, C, h, w], from `noise` [F - 1, C, h, w] (else drawn from `generator`)."""
+    the F - 1 new frames [F - 1, C, h, w], from `noise` [F - 1, C, h, w] (else drawn from `generator`).
+
+    held: (targets, masks) [F - 1, C, h, w] (`warp.WarpTargets`): after each of the first `hold`
+    steps, where a mask is 1 the frame is its target noised to the next timestep with the frame's
+    own starting noise (the target itself after the last step)."""
     sched = _scheduler(model.cfg, steps)
     f = len(conds)
     x, timesteps = _start(sched, (f - 1, *first.shape), generator, strength, None, model.cfg.flow_noise, noise)
     dev = device_of(model)
     x, first, c = x.to(dev), first.to(dev), conds.to(dev)
     with clip_frames(model, f):
-        for t in timesteps:
+        for k, t in enumerate(timesteps):
             # 1. the clean first frame enters at timestep 0, the others at t; 2. predict the
             # clip's noise; 3. step only the frames being generated.
             tt = _timesteps(t, f, dev)
             tt[0] = 0
             out = model(torch.cat([first[None], x]), tt, c)[1:].float()
-            x = _step(sched, out, t, x)
+            x = _hold(sched, _step(sched, out, t, x), k, timesteps, held, hold, noise, model.cfg)
     return x.cpu()

@@ -1,0 +1,114 @@
+"""Warped sampling: the frame already generated, moved into the next frame's view by the prior's
+depth and the two poses, holds the pixels it reaches for the first DDIM steps (`vcm_warp`).
+
+The view consistency module's inference side (Skyeyes Sec. 3.3 carries content from frame to
+frame; issue 36). What the paper's VCM learns through attention, this enforces with geometry,
+which the task gives at inference: the ground poses, and the depth of the 3D prior the ACM is
+conditioned on (never the ground truth's). The held pixels are the previous frame's, noised to
+the step's timestep with the new frame's own starting noise (as RePaint replaces the known
+region, Lugmayr et al. CVPR 2022; as Control-A-Video and vid2vid-zero start frames from
+shared or motion-aligned noise); after `hold` steps the model denoises the whole frame alone, so
+it restores the detail the bilinear warp blurs and fills what the previous frame did not see.
+
+Here: the backward warp of a generated image (`warp_coords` of the warp metric, on the prior's
+depth), a validity mask in model space (`encode_mask`), and the target of the hold
+(`WarpTargets`), which the samplers take as a callable.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from skyeyes_bench.cameras import Camera
+from skyeyes_bench.metrics.geometry import warp_coords
+
+from .core import CoreConfig, decode, encode, from_diffused, to_diffused
+
+#: Relative depth tolerance of the correspondence test between the prior's two depths (they come
+#: from one model, so they agree to its rasterisation; wider than the metric's 0.01 for the
+#: alpha-blended depth at edges).
+DEPTH_TOL = 0.03
+
+
+def scaled_camera(cam: Camera, width: int, height: int) -> Camera:
+    """`cam` with its intrinsics scaled to an image of width x height (the model's square)."""
+    K = np.array(cam.K, dtype=np.float64)
+    K[0] *= width / cam.width
+    K[1] *= height / cam.height
+    return Camera(K, cam.c2w, width, height)
+
+
+@torch.no_grad()
+def prior_depth(prior, scene, frame, width: int, height: int) -> np.ndarray:
+    """The expected planar depth (m) of a Gaussian prior's fitted scene (`sugar`, `gaussians3d`:
+    `scene_model(scene)[0]` is its `GaussianModel`) seen from `frame`'s pose with its intrinsics
+    scaled to width x height: float64 [height, width], +inf where the Gaussians cover less than
+    half the pixel (the sky and the background: a direction, as the warp metric reads it)."""
+    from reference.common.gaussians import rasterize
+
+    model = prior.scene_model(scene)[0]
+    cam = scaled_camera(frame.camera(), width, height)
+    dev = model.means.device
+    out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh,
+                    torch.tensor(cam.w2c, dtype=torch.float32, device=dev),
+                    torch.tensor(cam.K, dtype=torch.float32, device=dev), width, height,
+                    sh_degree=prior.config.sh_degree, near=prior.config.render_near_m)
+    depth = out["depth"].double().cpu().numpy()
+    return np.where((out["alpha"].cpu().numpy() > 0.5) & (depth > 0), depth, np.inf)
+
+
+def warp_image(src: torch.Tensor, uv: np.ndarray, valid: np.ndarray) -> torch.Tensor:
+    """Backward warp: src [C, H, W] sampled bilinearly at uv [H, W, 2] (pixel coordinates, centres
+    at +0.5, as `warp_coords` gives them) -> [C, H, W], zeros where not `valid` [H, W]."""
+    c, h, w = src.shape
+    uv = np.where(valid[..., None], uv, 0.0)
+    grid = torch.as_tensor(np.stack([2.0 * uv[..., 0] / w - 1.0, 2.0 * uv[..., 1] / h - 1.0], -1),
+                           dtype=src.dtype, device=src.device)
+    out = F.grid_sample(src[None], grid[None], mode="bilinear", padding_mode="border", align_corners=False)[0]
+    return out * torch.as_tensor(valid, device=src.device, dtype=src.dtype)
+
+
+def encode_mask(valid: torch.Tensor, cfg: CoreConfig, channels: int) -> torch.Tensor:
+    """A pixel mask [N, 1, res, res] (bool) -> [N, channels, h, w] float in model space: 1 where
+    every pixel the model-space value stands for is valid (an unshuffled patch, or a latent cell
+    of a pretrained VAE's 8x8), else 0."""
+    m = valid.to(torch.float32)
+    if cfg.pretrained:
+        m = (F.avg_pool2d(m, 8) > 0.999).to(torch.float32)
+        return m.expand(-1, channels, -1, -1)
+    if cfg.patch > 1:
+        m = F.pixel_unshuffle(m, cfg.patch)  # channel k of a patch: pixel k (order of `encode`)
+        m = m.amin(dim=1, keepdim=True)  # the whole patch, so that each folded value is a pixel's
+    return m.expand(-1, channels, -1, -1).contiguous()
+
+
+class WarpTargets:
+    """The hold targets of a sequence: `(z, i, js)` -> (targets [len(js), C, h, w], masks alike),
+    frame i's sample z [C, h, w] (model space, clean) warped into each frame j of `js`.
+
+    Args:
+        conds: [N, Cc, h, w] the sequence's conditions in model space (`encode_cond`).
+        depths: N arrays [res, res], the prior's planar depth at the model's resolution (+inf:
+            a direction).
+        cameras: N cameras scaled to res x res (`scaled_camera`).
+    """
+
+    def __init__(self, conds: torch.Tensor, depths: list[np.ndarray], cameras: list[Camera], cfg: CoreConfig,
+                 *, tol: float = DEPTH_TOL):
+        if not (len(conds) == len(depths) == len(cameras)):
+            raise ValueError(f"{len(conds)} conditions, {len(depths)} depths, {len(cameras)} cameras")
+        self.conds, self.depths, self.cameras, self.cfg, self.tol = conds, depths, cameras, cfg, tol
+
+    def __call__(self, z: torch.Tensor, i: int, js: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        cfg = self.cfg
+        img = decode(from_diffused(z[None].float().cpu(), self.conds[i:i + 1].cpu(), cfg), cfg)[0]  # [3, res, res]
+        targets, masks = [], []
+        for j in js:
+            uv, valid = warp_coords(self.depths[j], self.cameras[j], self.depths[i], self.cameras[i], self.tol)
+            warped = warp_image(img, uv, valid)
+            targets.append(to_diffused(encode(warped[None], cfg), self.conds[j:j + 1].cpu(), cfg)[0])
+            masks.append(torch.as_tensor(valid)[None, None])
+        m = encode_mask(torch.cat(masks), cfg, z.shape[0])
+        return torch.stack(targets) * m, m

@@ -1,0 +1,227 @@
+"""Warped sampling (`vcm_warp`, issue 36): the backward warp against scipy's bilinear lookup and a
+closed-form shift, the model-space mask against a loop, the held DDIM steps against the closed
+form of the forward process, the sequence sampler's wiring, and the prior's depth of a plane."""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+
+from reference.common.diffusion import core, sample, vcm, warp
+from reference.common.gaussians.model import GaussianModel
+from skyeyes_bench.cameras import Camera, intrinsics
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest: tiny tensors, one thread
+
+
+def _cam(x: float = 0.0, yaw: float = 0.0, size: int = 16, fov: float = 60.0) -> Camera:
+    """OpenCV axes as the world's (x right, y down, z ahead), turned by `yaw` degrees about y and
+    moved x metres right."""
+    a = np.deg2rad(yaw)
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]]
+    c2w[0, 3] = x
+    return Camera(intrinsics(fov, size, size), c2w, size, size)
+
+
+def test_warp_of_a_plane_is_the_closed_form_shift():
+    """A fronto-parallel plane at depth d, the camera moved b sideways: every pixel's source lies
+    f b / d pixels over, and a linear ramp warps to the ramp shifted by exactly that."""
+    d, b, size = 4.0, 0.25, 16
+    src_cam, dst_cam = _cam(0.0), _cam(b)
+    depth = np.full((size, size), d)
+    uv, valid = warp.warp_coords(depth, dst_cam, depth, src_cam, warp.DEPTH_TOL)
+    f = src_cam.K[0, 0]
+    u = np.arange(size) + 0.5
+    shift = f * b / d
+    want_valid = np.broadcast_to((u + shift <= size - 0.5)[None, :], (size, size))
+    np.testing.assert_array_equal(valid, want_valid)
+    np.testing.assert_allclose(uv[valid][:, 0], np.broadcast_to(u + shift, (size, size))[valid], atol=1e-9)
+    ramp = torch.as_tensor(np.broadcast_to(0.03 * u, (size, size)).copy(), dtype=torch.float64)[None]
+    out = warp.warp_image(ramp, uv, valid)[0].numpy()
+    np.testing.assert_allclose(out[valid], (0.03 * (u + shift))[None, :].repeat(size, 0)[valid], atol=1e-9)
+    assert (out[~valid] == 0).all()
+
+
+def test_warp_image_is_scipys_bilinear_lookup():
+    rng = np.random.default_rng(0)
+    img = torch.as_tensor(rng.random((3, 12, 12)))
+    cam0, cam1 = _cam(0.0, size=12), _cam(0.1, yaw=4.0, size=12)
+    depth0 = 3.0 + rng.random((12, 12))
+    depth1 = np.full((12, 12), 3.4)
+    uv, valid = warp.warp_coords(depth1, cam1, depth0, cam0, 1.0)  # wide tolerance: many valid pixels
+    assert 20 < valid.sum() < valid.size
+    got = warp.warp_image(img, uv, valid).numpy()
+    for c in range(3):  # scipy indexes pixel centres at integers: (v - 0.5, u - 0.5)
+        want = ndimage.map_coordinates(img[c].numpy(), [uv[valid][:, 1] - 0.5, uv[valid][:, 0] - 0.5], order=1)
+        np.testing.assert_allclose(got[c][valid], want, atol=1e-12)
+
+
+def test_mask_in_model_space_needs_the_whole_patch():
+    cfg = core.CoreConfig(resolution=8, patch=2)
+    valid = torch.ones(1, 1, 8, 8, dtype=torch.bool)
+    valid[0, 0, 3, 4] = False  # patch (1, 2)
+    valid[0, 0, 7, 0] = False  # patch (3, 0)
+    m = warp.encode_mask(valid, cfg, 12)
+    assert m.shape == (1, 12, 4, 4)
+    want = np.ones((4, 4))
+    for i in range(4):
+        for j in range(4):
+            want[i, j] = float(valid[0, 0, 2 * i:2 * i + 2, 2 * j:2 * j + 2].all())
+    for c in range(12):
+        np.testing.assert_array_equal(m[0, c].numpy(), want)
+    assert want.sum() == 14
+
+
+class Shrink(torch.nn.Module):
+    """eps = x_t / 2, each row alone; records its inputs (a noise-dependent, per-frame model)."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg, self.calls = cfg, []
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self._vcm_context = vcm.ClipContext()  # what `clip_frames` sets (a VCM's)
+
+    def forward(self, x_t, t, cond=None):
+        self.calls.append((x_t.clone(), t.clone()))
+        return x_t / 2
+
+
+def _alpha_bar(cfg) -> np.ndarray:
+    betas = np.linspace(cfg.beta_start, cfg.beta_end, cfg.train_timesteps, dtype=np.float64)
+    return np.cumprod(1.0 - betas)
+
+
+CFG = core.CoreConfig(resolution=8, prediction="epsilon")
+
+
+def test_held_steps_are_the_forward_process_of_the_target():
+    """After each of the first `hold` steps the masked pixels are sqrt(ab_t) target + sqrt(1 -
+    ab_t) noise at the next timestep (closed form), the others the model's own; after them the
+    model runs free. hold = steps ends on the target; a zero mask changes nothing."""
+    steps, f = 5, 3
+    g = torch.Generator().manual_seed(0)
+    first = torch.randn(3, 8, 8, generator=g)
+    noise = torch.randn(f - 1, 3, 8, 8, generator=g)
+    target = torch.randn(f - 1, 3, 8, 8, generator=g)
+    mask = torch.zeros(f - 1, 3, 8, 8)
+    mask[..., :4] = 1.0
+    conds = torch.zeros(f, 3, 8, 8)
+    free_model = Shrink(CFG)
+    free = sample.ddim_clip(free_model, conds, first, steps=steps, noise=noise)
+    for hold in (1, 3):
+        m = Shrink(CFG)
+        out = sample.ddim_clip(m, conds, first, steps=steps, noise=noise, held=(target, mask), hold=hold)
+        ab = _alpha_bar(CFG)
+        for k in range(1, hold + 1):  # the model's input at step k: held through step k - 1
+            x_t, t = m.calls[k]
+            a = ab[int(t[1])]
+            want = np.sqrt(a) * target.double().numpy() + np.sqrt(1 - a) * noise.double().numpy()
+            np.testing.assert_allclose(x_t[1:][..., :4].numpy(), want[..., :4], rtol=1e-5, atol=1e-5)
+        assert not torch.allclose(out[..., :4], target[..., :4])  # the free steps move off it
+        # the unmasked half runs as it would: it depends on its own rows only (a per-pixel model)
+        torch.testing.assert_close(out[..., 4:], free[..., 4:], rtol=0, atol=0)
+    full = sample.ddim_clip(Shrink(CFG), conds, first, steps=steps, noise=noise, held=(target, mask), hold=steps)
+    assert torch.equal(full[..., :4], target[..., :4])
+    none = sample.ddim_clip(Shrink(CFG), conds, first, steps=steps, noise=noise,
+                            held=(target, torch.zeros_like(mask)), hold=steps)
+    assert torch.equal(none, free)
+    with pytest.raises(ValueError, match="starting noise"):
+        sample.ddim_clip(Shrink(CFG), conds, first, steps=steps, generator=g, held=(target, mask), hold=1)
+
+
+def test_sequence_sampler_warps_each_clip_from_its_first_frame():
+    """The warp is asked for the last generated frame (clean) into the clip's new frames; frame 1
+    is the ACM's alone; hold = steps puts the targets in place; hold = 0 never calls it."""
+    n, clip, steps = 7, 3, 4
+    conds = torch.zeros(n, 3, 8, 8)
+    calls = []
+
+    def fake_warp(z, i, js):
+        calls.append((z.clone(), i, list(js)))
+        return torch.full((len(js), 3, 8, 8), float(i + 1)), torch.ones(len(js), 3, 8, 8)
+
+    free = sample.sample_sequence(Shrink(CFG), Shrink(CFG), conds, steps=steps, seed=3, clip=clip)
+    out = sample.sample_sequence(Shrink(CFG), Shrink(CFG), conds, steps=steps, seed=3, clip=clip,
+                                 warp=fake_warp, hold=steps)
+    assert [(i, js) for _, i, js in calls] == [(0, [1, 2]), (2, [3, 4]), (4, [5, 6])]
+    assert torch.equal(out[0], free[0])
+    assert torch.equal(calls[0][0], free[0])
+    for i, js in ((0, [1, 2]), (2, [3, 4]), (4, [5, 6])):
+        for j in js:
+            assert torch.equal(out[j], torch.full((3, 8, 8), float(i + 1)))
+    calls.clear()
+    again = sample.sample_sequence(Shrink(CFG), Shrink(CFG), conds, steps=steps, seed=3, clip=clip,
+                                   warp=fake_warp, hold=0)
+    assert calls == [] and torch.equal(again, free)
+
+
+def test_warp_targets_round_trip_under_a_still_camera():
+    """Same camera and depth: the target is the frame itself in model space (decode, warp,
+    encode, residual from the new frame's condition), through a patch fold and a residual."""
+    cfg = core.CoreConfig(resolution=8, patch=2, conditioning="concat", residual=True, residual_scale=2.0, coords=True)
+    g = torch.Generator().manual_seed(1)
+    imgs = torch.rand(2, 3, 8, 8, generator=g) * 0.8 + 0.1
+    cc = core.encode_cond(imgs, cfg)
+    want = torch.rand(1, 3, 8, 8, generator=g) * 0.8 + 0.1
+    z = core.to_diffused(core.encode(want, cfg), cc[:1], cfg)[0]
+    cam = _cam(size=8)
+    depth = np.full((8, 8), 5.0)
+    targets, masks = warp.WarpTargets(cc, [depth, depth], [cam, cam], cfg)(z, 0, [1])
+    assert masks.shape == (1, 12, 4, 4) and bool((masks == 1).all())
+    back = core.decode(core.from_diffused(targets, cc[1:2], cfg), cfg)
+    torch.testing.assert_close(back, want, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="depths"):
+        warp.WarpTargets(cc, [depth], [cam, cam], cfg)
+
+
+def test_prior_depth_of_an_opaque_plane():
+    """A wall of small opaque Gaussians 6 m ahead: planar depth 6 where it covers the pixel, +inf
+    (a direction) where nothing does, at the asked size with the intrinsics scaled to it."""
+    xs, ys = np.meshgrid(np.linspace(-3, 3, 61), np.linspace(-3, 0, 31))
+    xyz = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 6.0)], -1)  # the upper half of the view
+    model = GaussianModel.from_points(xyz, np.full_like(xyz, 0.5), 0, opacity=0.99)
+    scene = object()
+    prior = types.SimpleNamespace(scene_model=lambda s: (model,) if s is scene else None,
+                                  config=types.SimpleNamespace(sh_degree=0, render_near_m=0.1))
+    frame = types.SimpleNamespace(camera=lambda: _cam(size=32, fov=40.0))
+    depth = warp.prior_depth(prior, scene, frame, 16, 12)
+    assert depth.shape == (12, 16)
+    np.testing.assert_allclose(depth[1:5, 3:13], 6.0, rtol=1e-3)  # the wall (y < 0 is up)
+    assert np.isinf(depth[8:]).all()  # below it: nothing
+
+
+def test_skyeyes_checks_vcm_warp(tmp_path):
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    smoke = PRESETS["smoke"]
+    with pytest.raises(ValueError, match="vcm_warp"):
+        Skyeyes(dataclasses.replace(smoke, vcm_warp=smoke.sample_steps + 1), tmp_path)
+    with pytest.raises(ValueError, match="vcm_warp"):
+        Skyeyes(dataclasses.replace(smoke, vcm=False, vcm_warp=2), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, vcm_warp=smoke.sample_steps), tmp_path)
+
+
+def test_without_a_vcm_each_frame_is_held_by_the_previous_one():
+    """`vcm` None (1-frame clips): the ACM frame by frame in order; unheld, the frame sampler's
+    frames (the same noise); held, each frame asks for the previous frame's warp alone."""
+    n, steps = 5, 4
+    conds = torch.zeros(n, 3, 6, 6)
+    frames = sample.sample_frames(Shrink(CFG), conds, steps=steps, seed=9)
+    seq = sample.sample_sequence(Shrink(CFG), None, conds, steps=steps, seed=9)
+    torch.testing.assert_close(seq, frames, rtol=0, atol=1e-6)
+    calls = []
+
+    def fake_warp(z, i, js):
+        calls.append((i, list(js)))
+        return z[None] + 1.0, torch.ones(1, 3, 6, 6)
+
+    held = sample.sample_sequence(Shrink(CFG), None, conds, steps=steps, seed=9, warp=fake_warp, hold=steps)
+    assert calls == [(i, [i + 1]) for i in range(n - 1)]
+    for i in range(1, n):
+        torch.testing.assert_close(held[i], held[i - 1] + 1.0, rtol=0, atol=1e-6)

@@ -225,3 +225,19 @@ def test_without_a_vcm_each_frame_is_held_by_the_previous_one():
     assert calls == [(i, [i + 1]) for i in range(n - 1)]
     for i in range(1, n):
         torch.testing.assert_close(held[i], held[i - 1] + 1.0, rtol=0, atol=1e-6)
+
+
+def test_frame_by_frame_methods_keep_the_vcm_fields_at_their_defaults():
+    """`skyeyes` small carries the warped VCM; the methods without a VCM keep the fields that mean
+    nothing to them at the dataclass defaults, so their configs (and filed rows) do not follow it."""
+    from reference.methods import get_method_class
+    from reference.methods.skyeyes import VCM_ONLY, SkyeyesConfig
+
+    defaults = {f.name: f.default for f in dataclasses.fields(SkyeyesConfig)}
+    small = get_method_class("skyeyes").presets["small"]
+    assert small.vcm and small.vcm_warp > 0 and small.clip_frames == 2
+    for name in ("skyeyes-no-vcm", "controlnet", "ip2p", "gvg"):
+        for preset in ("smoke", "small", "paper"):
+            cfg = get_method_class(name).presets[preset]
+            assert not cfg.vcm, (name, preset)
+            assert {k: getattr(cfg, k) for k in VCM_ONLY} == {k: defaults[k] for k in VCM_ONLY}, (name, preset)

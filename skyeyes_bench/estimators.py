@@ -134,3 +134,14 @@ def mmd(xs: np.ndarray, xg: np.ndarray, settings, seed: int) -> float:
     protocol's random subsets (drawn with `seed`)."""
     return sets.kernel_mmd(xs, xg, subset_size=settings.subset_size, num_subsets=settings.num_subsets or 1,
                            seed=seed)
+
+
+def frechet_inf(xs: np.ndarray, xg: np.ndarray, settings, seed: int) -> float:
+    """FID∞ / FVD∞ (Chong & Forsyth 2020; `frechet_inf`): the Fréchet distance of the paired rows
+    xs [N, D], xg [N, D] extrapolated to 1 / N = 0 from random subsets of the protocol's
+    `num_sizes` sizes from `min_fraction` N to N (`num_subsets` subsets a size, drawn with `seed`).
+    NaN below 3 rows (no line to fit)."""
+    from .frechet_inf import FrechetInfinity
+
+    w = np.ones(len(xs))
+    return FrechetInfinity.from_features(xs, xg, np.zeros(len(xs), np.int64), 1, settings, seed)(w, w)

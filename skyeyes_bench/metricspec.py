@@ -32,12 +32,13 @@ class MetricDef:
     per_frame: str | None = None
     # kind "set": the point estimate f(xs [N, D], xg [N, D], settings, seed: int) -> float ...
     estimator: str | None = None
-    # ... and its bootstrap: f(xs [N, D], xg [N, D], seq [N], n_sequences) -> fn(w1, w2) -> float,
+    # ... and its bootstrap: f(xs [N, D], xg [N, D], seq [N], n_sequences, settings, seed) -> fn(w1, w2) -> float,
     #   the same quantity recomputed under resampling weights (see stats.set_metric_bootstrap).
     bootstrap: str | None = None
     # the smallest value the metric can take (Fréchet distances: 0); a bias-corrected interval
     # that reaches below it is clipped there (the true value cannot lie below it)
     lower_bound: float | None = None
+    min_rows: int = 2  # set metrics: with fewer rows (frames or clips) the metric is unavailable
     # kind "frame" computed a sequence at a time from the ground truth's depth and poses (the
     # metrics naming one entry point are computed together):
     #   f(seq: estimators.SequenceData, specs: list[protocol.MetricSpec]) -> {name: (values [T], weights [T] | None)}
@@ -59,6 +60,12 @@ _CLIP_KEYS = frozenset({"extractor", "resize", "clip_length", "clip_stride"})
 _FRECHET = dict(estimator="skyeyes_bench.estimators:frechet",
                 bootstrap="skyeyes_bench.stats:FrechetBootstrap.from_features", lower_bound=0.0)
 _MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.stats:MMDBootstrap.from_features")
+# FID∞ / FVD∞ (Chong & Forsyth 2020): the Fréchet distance extrapolated to 1 / N = 0 from random subsets of
+# `num_sizes` sizes from `min_fraction` N to N, `num_subsets` subsets a size (docs/metrics.md, "FID∞ and FVD∞")
+_INF_KEYS = frozenset({"extractor", "resize", "num_sizes", "min_fraction", "num_subsets"})
+_FRECHET_INF = dict(estimator="skyeyes_bench.estimators:frechet_inf",
+                    bootstrap="skyeyes_bench.frechet_inf:FrechetInfinity.from_features", lower_bound=0.0,
+                    min_rows=3)  # two subset sizes at least: a line to extrapolate
 _SSIM_KEYS = frozenset({"window", "sigma", "k1", "k2"})
 _DEPTH = frozenset({"depth_tolerance"})
 # Seen / unseen regions of the ground views (docs/metrics.md): masks from the depth test against
@@ -78,8 +85,11 @@ METRICS: dict[str, MetricDef] = {m.name: m for m in (
               per_frame="skyeyes_bench.estimators:lpips"),
     MetricDef("fid", "set", False, frozenset({"extractor", "resize"}), "FID", 2, extractor=True,
               features="image", **_FRECHET),
+    MetricDef("fid_inf", "set", False, _INF_KEYS, "FID∞", 2, extractor=True, features="image", **_FRECHET_INF),
     MetricDef("kid", "set", False, _KID_KEYS, "KID", 4, extractor=True, features="image", **_MMD),
     MetricDef("fvd", "set", False, _CLIP_KEYS, "FVD", 2, extractor=True, features="clip", **_FRECHET),
+    MetricDef("fvd_inf", "set", False, _CLIP_KEYS | _INF_KEYS, "FVD∞", 2, extractor=True, features="clip",
+              **_FRECHET_INF),
     MetricDef("kvd", "set", False, _CLIP_KEYS | _KID_KEYS, "KVD", 2, extractor=True, features="clip", **_MMD),
     MetricDef("psnr_seen", "frame", True, _DEPTH, "PSNR seen", 2, weighted=True, pool="mse", **_REGIONS),
     MetricDef("psnr_unseen", "frame", True, _DEPTH, "PSNR unseen", 2, weighted=True, pool="mse", **_REGIONS),

@@ -73,6 +73,8 @@ class MetricSpec:
     clip_length: int | None = None  # FVD/KVD clip length in frames
     clip_stride: int | None = None  # frames between clip starts within a sequence
     depth_tolerance: float | None = None  # relative depth tolerance of the visibility / occlusion tests
+    num_sizes: int | None = None  # FID∞/FVD∞: how many subset sizes the line in 1/N is fitted to (>= 2)
+    min_fraction: float | None = None  # FID∞/FVD∞: the smallest subset size as a share of all rows, in (0, 1)
 
 
 @dataclass(frozen=True)
@@ -249,10 +251,13 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     if not capture.ground_step_m > 0:
         raise UserError(f"{file}: key 'capture.ground_step_m' must be > 0, got {capture.ground_step_m}")
     for m in metrics:
-        for key in ("window", "subset_size", "num_subsets", "clip_stride"):
+        for key, least in (("window", 1), ("subset_size", 1), ("num_subsets", 1), ("clip_stride", 1), ("num_sizes", 2)):
             v = getattr(m, key)
-            if v is not None and v < 1:
-                raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must be >= 1, got {v}")
+            if v is not None and v < least:
+                raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must be >= {least}, got {v}")
+        if m.min_fraction is not None and not 0 < m.min_fraction < 1:
+            raise UserError(f"{file}: key 'metrics.{m.name}.min_fraction' must lie in (0, 1) (the smallest subset "
+                            f"size as a share of all rows), got {m.min_fraction}")
     proto = Protocol(
         id=raw["id"], version=raw["version"], title=raw["title"], description=raw["description"],
         reference=raw["reference"], data=data, capture=sections["capture"],

@@ -115,7 +115,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         if iv is None:
             out.update(interval=None, interval_note="no replicate is defined")
         else:
-            out["interval"] = [iv[0] if floor is None else max(iv[0], floor), iv[1]]
+            # clipped at the floor, but never above the value (FID∞ extrapolates and may lie below 0)
+            out["interval"] = [iv[0] if floor is None else max(iv[0], min(floor, value)), iv[1]]
             if iv[2]:
                 out["interval_note"] = ("interval widened to contain the value: the half-sample draws lie on one "
                                         "side of it (a small-sample bias of this metric larger than its spread)")
@@ -168,10 +169,10 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         f = features[m.extractor]
         xs, xg = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64)
         cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
-        if len(xs) < 2:
+        if len(xs) < spec.min_rows:
             what = "clips" if spec.features == "clip" else "frames"
-            metrics[m.name] = {"status": "unavailable",
-                               "reason": f"{len(xs)} {what} of {m.clip_length or 1} frames; need at least 2",
+            metrics[m.name] = {"status": "unavailable", "reason": f"{len(xs)} {what} of {m.clip_length or 1} "
+                               f"frames; need at least {spec.min_rows}",
                                "fix": "sequences must hold at least clip_length frames"}
             continue
         with _stage(timing, "set_metrics_s"):
@@ -179,7 +180,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         reps = None
         if counts is not None:
             with _stage(timing, "bootstrap_s"):
-                fn = stats.set_metric_bootstrap(m.name, xs, xg, cl, k)
+                fn = stats.set_metric_bootstrap(m.name, xs, xg, cl, k, m, st.seed)
                 bar = _tqdm(progress, total=len(counts), desc=f"resample {m.name}", unit="replicate")
                 with bar:
                     reps = stats.set_metric_samples(fn, cl, cl, counts, progress=bar.update)

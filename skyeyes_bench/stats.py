@@ -289,7 +289,7 @@ class FrechetBootstrap:
             self.g12 = self.x1 @ self.x2.T  # [N1, N2]
 
     @classmethod
-    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int) -> FrechetBootstrap:
+    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int, *_) -> FrechetBootstrap:
         """The metric table's bootstrap factory (`set_metric_bootstrap`); rows are weighted one by one."""
         return cls(sub, gt)
 
@@ -377,7 +377,7 @@ class MMDBootstrap:
         self.sxy, _ = self._block_sums(x, y, clusters_x, clusters_y, k, kw, diag=False)
 
     @classmethod
-    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int) -> MMDBootstrap:
+    def from_features(cls, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int, *_) -> MMDBootstrap:
         """The metric table's bootstrap factory: sub [N, D] and gt [N, D] rows of sequences seq [N]."""
         return cls(sub, gt, seq, seq, n_clusters)
 
@@ -406,13 +406,13 @@ class MMDBootstrap:
         return float(sxx / (n * (n - 1)) + syy / (m * (m - 1)) - 2 * sxy / (n * m))
 
 
-def set_metric_bootstrap(metric: str, sub: np.ndarray, gt: np.ndarray, seq: np.ndarray, n_clusters: int):
+def set_metric_bootstrap(metric: str, sub, gt, seq, n_clusters: int, settings=None, seed: int = 0):
     """The resampled version of a set metric, as its `metricspec` entry names it.
 
     Args:
         metric: a set metric's name ("fid", "kid", ...).
         sub: [N, D] submission features; gt: [N, D] ground-truth features of the same frames / clips.
-        seq: [N] sequence id (0..n_clusters-1) of each row.
+        seq: [N] sequence id (0..n_clusters-1) of each row. settings, seed: the protocol's MetricSpec and seed (FID∞).
     Returns:
         A callable for `set_metric_samples` (FrechetBootstrap, MMDBootstrap, ...).
     """
@@ -420,7 +420,7 @@ def set_metric_bootstrap(metric: str, sub: np.ndarray, gt: np.ndarray, seq: np.n
 
     spec = metric_def(metric)
     assert spec.kind == "set" and spec.bootstrap, metric
-    return load_entry_point(spec.bootstrap)(sub, gt, seq, n_clusters)
+    return load_entry_point(spec.bootstrap)(sub, gt, seq, n_clusters, settings, seed)
 
 
 def set_metric_samples(fn, clusters1: np.ndarray, clusters2: np.ndarray, counts: np.ndarray,
@@ -739,7 +739,7 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
                     reps = []
                     for f in (feats_a[ex], feats_b[ex]):
                         cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
-                        fn = set_metric_bootstrap(name, f["sub"], f["gt"], cl, k)
+                        fn = set_metric_bootstrap(name, f["sub"], f["gt"], cl, k, protocol.metric(name), st.seed)
                         reps.append(set_metric_samples(fn, cl, cl, counts))
                 else:
                     out["metrics"][name] = {"status": "skipped", "a": va, "b": vb, "advantage": adv,

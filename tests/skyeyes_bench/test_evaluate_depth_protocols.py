@@ -1,7 +1,8 @@
 """carla-town04@2 and citysample-region5@2 end to end: a capture with ground and aerial depth
 (builders.depth_captures) through the importer, a submission scored under v1 and v2. v2 scores
-v1's data: the dataset says @1, new submissions say @2, v1 submissions are scored by both, v2's
-v1 metrics are v1's, and the depth metrics are there and finite."""
+v1's data: the dataset says @1, v1 submissions are scored by both, v2's v1 metrics are v1's, and
+the depth metrics are there and finite. New submissions say the latest version, v3 (v2 plus
+FID∞ and FVD∞), which scores the same data."""
 
 import json
 import math
@@ -22,6 +23,7 @@ from skyeyes_bench.protocol import current_for_data, load_protocol, load_protoco
 from skyeyes_bench.submission import write_template
 
 V1_METRICS = ["psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"]
+V3_METRICS = ["fid_inf", "fvd_inf"]  # what v3 adds to v2
 #: sha256 of the v1 files: adding v2 must leave them (and results filed with them) as they were.
 V1_SHA256 = {"carla-town04": "9c3a751b6c19792c32fd4a9ec478a8c5db63afb7f335a8f3109a31f30c038262",
              "citysample-region5": "02c9056c4cb57ee56328d8b97594d2f7af9dcdd16bbf69b28abd148325b2c4c6"}
@@ -40,8 +42,8 @@ def _import(source, tmp):
 @pytest.fixture(scope="module", params=[("carla", "carla-town04"), ("matrixcity", "citysample-region5")],
                 ids=["carla", "citysample"])
 def scored(request, tmp_path_factory):
-    """The imported dataset and results of one blurred submission: written now (v2), the same
-    frames as a v1 submission scored by v1 and by v2, and the ground truth (v2)."""
+    """The imported dataset and results of one blurred submission: written now (v3, the latest),
+    the same frames as a v1 submission scored by v1 and by v2, and the ground truth (v3)."""
     from skyeyes_bench.metrics.extractors import get_extractor
 
     source, pid = request.param
@@ -83,12 +85,19 @@ def test_v2_is_v1_plus_the_depth_metrics_and_v1_is_unchanged(scored):
     assert v2.metrics[:len(v1.metrics)] == v1.metrics
     assert [m.name for m in v2.metrics[len(v1.metrics):]] == list(SEQUENCE_METRICS)
     assert {m.depth_tolerance for m in v2.metrics[len(v1.metrics):]} == {0.01}
-    assert load_protocol(pid).ref == f"{pid}@2" and current_for_data(f"{pid}@1") == f"{pid}@2"
+    # v3: v2 and FID∞ / FVD∞ on FID's and FVD's features; the latest, so new submissions say it
+    v3 = load_protocol_file(ROOT / "protocols" / pid / "v3.toml")
+    assert v3.data == v2.data and v3.capture == v2.capture and v3.statistics == v2.statistics
+    assert v3.metrics[:len(v2.metrics)] == v2.metrics and [m.name for m in v3.metrics[len(v2.metrics):]] == V3_METRICS
+    assert v3.metric("fid_inf").extractor == v3.metric("fid").extractor
+    assert (v3.metric("fvd_inf").extractor, v3.metric("fvd_inf").clip_length, v3.metric("fvd_inf").clip_stride) == (
+        v3.metric("fvd").extractor, v3.metric("fvd").clip_length, v3.metric("fvd").clip_stride)
+    assert load_protocol(pid).ref == f"{pid}@3" and current_for_data(f"{pid}@1") == f"{pid}@3"
 
 
 def test_importer_writes_v1_data_with_ground_and_aerial_depth(scored):
     pid, ds, truth, _ = scored
-    assert ds.protocol == f"{pid}@1"  # imported with the default --protocol, the latest (v2)
+    assert ds.protocol == f"{pid}@1"  # imported with the default --protocol, the latest (v3)
     for name in ds.splits["test"]:
         scene = ds.scenes[name]
         assert scene.layers()["ground_depth"] and scene.layers()["aerial_depth"] and scene.aerial
@@ -103,13 +112,17 @@ def test_importer_writes_v1_data_with_ground_and_aerial_depth(scored):
             np.testing.assert_allclose(cam.K, t["camera"].K, rtol=1e-12)
 
 
-def test_new_submissions_say_v2_and_old_ones_are_scored_by_both(scored):
+def test_new_submissions_say_the_latest_and_old_ones_are_scored_by_both(scored):
     pid, _, _, res = scored
-    assert res["new"]["protocol"]["ref"] == f"{pid}@2" and res["new"]["submission"]["protocol"] == f"{pid}@2"
+    assert res["new"]["protocol"]["ref"] == f"{pid}@3" and res["new"]["submission"]["protocol"] == f"{pid}@3"
     assert res["v1"]["protocol"]["ref"] == f"{pid}@1" and list(res["v1"]["metrics"]) == V1_METRICS
     assert res["v1 as v2"]["protocol"]["ref"] == f"{pid}@2" and res["v1 as v2"]["submission"]["protocol"] == f"{pid}@1"
-    assert list(res["new"]["metrics"]) == V1_METRICS + list(SEQUENCE_METRICS)
-    assert res["v1 as v2"]["metrics"] == res["new"]["metrics"]
+    assert list(res["v1 as v2"]["metrics"]) == V1_METRICS + list(SEQUENCE_METRICS)
+    assert list(res["new"]["metrics"]) == V1_METRICS + list(SEQUENCE_METRICS) + V3_METRICS
+    assert res["v1 as v2"]["metrics"] == {k: res["new"]["metrics"][k] for k in res["v1 as v2"]["metrics"]}
+    # no Inception weights and no 16-frame clips here: FID∞ and FVD∞ are unavailable where FID and FVD are
+    for name in V3_METRICS:
+        assert res["new"]["metrics"][name]["status"] == "unavailable" == res["new"]["metrics"][name[:3]]["status"]
 
 
 def test_v1_metrics_of_v2_equal_v1(scored):

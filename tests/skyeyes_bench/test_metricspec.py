@@ -37,9 +37,10 @@ def test_shipped_protocols_name_only_table_metrics():
 
 def test_table_is_complete_and_consistent():
     regions = ("psnr_seen", "psnr_unseen", "ssim_seen", "ssim_unseen", "lpips_seen", "lpips_unseen", "unseen_share")
-    assert tuple(METRICS) == ("psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd", *regions, "warp", "warp_floor")
+    assert tuple(METRICS) == ("psnr", "ssim", "lpips", "fid", "fid_inf", "kid", "fvd", "fvd_inf", "kvd", *regions,
+                              "warp", "warp_floor")
     assert FRAME_METRICS == ("psnr", "ssim", "lpips", *regions, "warp", "warp_floor")
-    assert SET_METRICS == ("fid", "kid", "fvd", "kvd")
+    assert SET_METRICS == ("fid", "fid_inf", "kid", "fvd", "fvd_inf", "kvd")
     assert SEQUENCE_METRICS == (*regions, "warp", "warp_floor")
     settings = {f.name for f in dataclasses.fields(protocol.MetricSpec)} - {"name"}
     for name, m in METRICS.items():
@@ -58,8 +59,8 @@ def test_table_is_complete_and_consistent():
             assert ("clip_length" in m.keys) == (m.features == "clip")
     # the readers derive from the table, not from copies of it
     assert protocol.METRIC_KEYS == {n: m.keys for n, m in METRICS.items()}
-    assert stats.LOWER_IS_BETTER == {"lpips", "fid", "kid", "fvd", "kvd", "lpips_seen", "lpips_unseen", "unseen_share",
-                                     "warp", "warp_floor"}
+    assert stats.LOWER_IS_BETTER == {"lpips", "fid", "fid_inf", "kid", "fvd", "fvd_inf", "kvd", "lpips_seen",
+                                     "lpips_unseen", "unseen_share", "warp", "warp_floor"}
     assert {n for n, m in METRICS.items() if m.reference} == {"unseen_share", "warp_floor"}
     assert [stats.higher_is_better(n) for n in METRICS] == [m.higher_is_better for m in METRICS.values()]
     assert leaderboard.METRIC_ORDER == tuple(METRICS)
@@ -72,6 +73,8 @@ def test_unknown_metric_lists_the_known_ones():
 
 
 def test_set_metric_bootstrap_follows_the_table():
+    from skyeyes_bench.frechet_inf import FrechetInfinity
+
     rng = np.random.default_rng(0)
     k = 4
     seq = np.repeat(np.arange(k), 5)
@@ -79,7 +82,8 @@ def test_set_metric_bootstrap_follows_the_table():
     w = np.ones(k)
     for name in SET_METRICS:
         fn = stats.set_metric_bootstrap(name, x, y, seq, k)
-        kind = stats.FrechetBootstrap if name in ("fid", "fvd") else stats.MMDBootstrap
+        kind = {"fid": stats.FrechetBootstrap, "fvd": stats.FrechetBootstrap, "fid_inf": FrechetInfinity,
+                "fvd_inf": FrechetInfinity}.get(name, stats.MMDBootstrap)
         assert type(fn) is kind
         # all sequences drawn once: the bootstrap equals the point estimate on the full sets
         full = stats.set_metric_samples(fn, seq, seq, w[None, :])[0]

@@ -121,8 +121,8 @@ def import_carla(src: str | Path, out: str | Path, *, protocol: str = "carla-tow
     scenes, split_of = plan_carla(src, proto, split)
     meta = {"source": "carla", "importer": "skyeyes-bench data import-carla", "src": str(src),
             "world": "CARLA world with y negated (right-handed, z up, metres)"}
-    # The protocol whose data this is: carla-town04@2 (the default, the latest) scores
-    # carla-town04@1's frames, so the dataset says carla-town04@1 and both versions score it.
+    # The protocol whose data this is: carla-town04@2 and @3 (the default, the latest) score
+    # carla-town04@1's frames, so the dataset says carla-town04@1 and every version scores it.
     out = write_plan(Path(out), scenes, name=name or Path(out).name, protocol=proto.data_ref,
                      splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress,
                      inputs=[src])

@@ -485,7 +485,7 @@ def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "city
                                              convention=convention, depth_root=depth_root,
                                              aerial_radius_m=aerial_radius_m, regions=regions, include=include)
     meta = {**meta, "importer": "skyeyes-bench data import-matrixcity", "src": str(src)}
-    # The protocol whose data this is (citysample-region5@2 scores citysample-region5@1's frames).
+    # The protocol whose data this is (citysample-region5@2 and @3 score citysample-region5@1's frames).
     out = write_plan(Path(out), scenes, name=name or Path(out).name, protocol=proto.data_ref,
                      splits=ordered_splits(scenes, split_of), meta=meta, force=force, progress=progress,
                      inputs=[src, *meta["depth_roots"]], inputs_are=_INPUTS_ARE)

@@ -165,7 +165,8 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
         out += ["No measured rows yet for protocol: " + ", ".join(f"`{p}`" for p in unmeasured) +
                 " (any version). File a results file "
                 "with `skyeyes-bench leaderboard add RESULTS.json`, then run `skyeyes-bench leaderboard`.", ""]
-    out += ["## Reported in papers (not measured here, not ranked with measured rows)", ""]
+    out += ["## Reported in papers (not measured here, not ranked with measured rows)", "",
+            f"{REPORTED_NOTE} ([What the paper leaves open]({METRICS_DOC}))", ""]
     for t in reported:
         out += [f"### {md(t.title)} ({md(t.protocol)})", "", f"Source: {md(t.citation)}", "", md(t.note), ""]
         head = ["Method", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Reference"]
@@ -178,6 +179,14 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
             out.append("| " + " | ".join([*cells, md(r.reference)]) + " |")
         out.append("")
     return "\n".join(out).rstrip() + "\n"
+
+
+#: The one line above the papers' tables (issue 39): why their numbers, PSNR above all, do not
+#: read against the measured tables. The link is relative to leaderboard/ (README.md, index.html).
+REPORTED_NOTE = ("The paper leaves its metric settings open (clips, resolution, frame set, implementations), and "
+                 "its PSNR, 27.8-33.4 dB for every method, cannot be 10 log10(1/MSE) on [0, 1] frames as ours "
+                 "(13-17 dB on the measured rows): do not compare these numbers with the measured tables.")
+METRICS_DOC = "../docs/metrics.md#what-the-paper-leaves-open"
 
 
 _JS = """
@@ -278,6 +287,7 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
                    " (any version). File a results file with "
                    "<code>skyeyes-bench leaderboard add RESULTS.json</code>.</p>")
     out.append("<h2>Reported in papers (not measured here, not ranked with measured rows)</h2>")
+    out.append(f'<p class=note>{e(REPORTED_NOTE)} (<a href="{e(METRICS_DOC)}">What the paper leaves open</a>)</p>')
     for t in reported:
         out += [f"<h3 class=reported>{e(t.title)} ({e(t.protocol)})</h3>",
                 f"<p class=note>Source: {e(t.citation)}<br>{e(t.note)}</p>",

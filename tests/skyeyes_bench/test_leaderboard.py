@@ -101,7 +101,13 @@ def test_generate_mark_and_check(board):
     measured, reported = md.split("## Reported in papers")
     assert "Skyeyes" not in measured and "| Skyeyes | 54.73 | **32.22** |" in reported
     assert "No measured rows yet for protocol: `carla-town04`, `citysample-region5`, `synthtown`" in measured
+    # the papers' tables open with the one line on why their PSNR does not read against ours
+    assert "(13-17 dB on the measured rows)" in reported.split("### ")[0]
+    assert "](../docs/metrics.md#what-the-paper-leaves-open)" in reported.split("### ")[0]
     html = (root / "index.html").read_text()
+    reported_html = html.split("Reported in papers")[1].split("<h3")[0]
+    assert "(13-17 dB on the measured rows)" in reported_html
+    assert 'href="../docs/metrics.md#what-the-paper-leaves-open"' in reported_html
     assert "<script>" in html and 'class="sortable measured"' in html and "http" not in html.replace("http-equiv", "")
     for m in ("psnr", "ssim", "fid", "kid", "fvd", "kvd"):  # lpips: unavailable without weights
         assert (root / "plots" / f"evaltest@1-{m}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -228,14 +228,16 @@ def test_without_a_vcm_each_frame_is_held_by_the_previous_one():
 
 
 def test_frame_by_frame_methods_keep_the_vcm_fields_at_their_defaults():
-    """`skyeyes` small carries the warped VCM; the methods without a VCM keep the fields that mean
-    nothing to them at the dataclass defaults, so their configs (and filed rows) do not follow it."""
+    """The methods without a VCM keep the fields that mean nothing to them at the dataclass
+    defaults, so their configs (and filed rows) do not follow Skyeyes' VCM settings."""
     from reference.methods import get_method_class
-    from reference.methods.skyeyes import VCM_ONLY, SkyeyesConfig
+    from reference.methods.skyeyes import PRESETS, VCM_ONLY, SkyeyesConfig, frame_by_frame
 
     defaults = {f.name: f.default for f in dataclasses.fields(SkyeyesConfig)}
-    small = get_method_class("skyeyes").presets["small"]
-    assert small.vcm and small.vcm_warp > 0 and small.clip_frames == 2
+    warped = dataclasses.replace(PRESETS["small"], clip_frames=2, vcm_local=5, vcm_warp=9, vcm_keys="previous")
+    plain = frame_by_frame(warped)
+    assert not plain.vcm and {k: getattr(plain, k) for k in VCM_ONLY} == {k: defaults[k] for k in VCM_ONLY}
+    assert plain.acm_steps == warped.acm_steps and plain.vcm_steps == warped.vcm_steps  # nothing else moves
     for name in ("skyeyes-no-vcm", "controlnet", "ip2p", "gvg"):
         for preset in ("smoke", "small", "paper"):
             cfg = get_method_class(name).presets[preset]

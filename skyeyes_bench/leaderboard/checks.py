@@ -181,24 +181,31 @@ def frames_file(path: Path) -> tuple[list[dict], dict | None]:
     """
     raw = fileio.read_json(path)
     frames = raw.get("frames") if isinstance(raw, dict) else None
-    if not (isinstance(frames, list) and 1 <= len(frames) <= MAX_STRIP_FRAMES):
-        raise UserError(f"{_where(path, 'frames')}: expected a list of 1..{MAX_STRIP_FRAMES} strip frames, got "
-                        f"{safe._short(frames)}")
     tiles = set()
-    for i, f in enumerate(frames):
-        w = lambda field: _where(path, f"frames[{i}].{field}")  # noqa: E731
-        if not isinstance(f, dict):
-            raise UserError(f"{_where(path, f'frames[{i}]')}: expected an object, got {safe._short(f)}")
+    for f, w in _records(path, "frames", frames, MAX_STRIP_FRAMES, "strip frames"):
         safe.plain_name(w("scene"), f.get("scene"), "a scene name")
-        _rel_path(w("file"), f.get("file"), "the frame's file in its scene")
         safe.plain_text(w("sequence"), f.get("sequence"), "a sequence id", max_len=1000)
-        fields.integer(w("index"), f.get("index"), "the frame's index in its sequence")
         safe.plain_text(w("label"), f.get("label"), "the column's label", max_len=1000)
         tile = safe.plain_name(w("tile"), f.get("tile"), "the tile's file name")
         if not tile.endswith(".png") or tile in tiles:
             raise UserError(f"{w('tile')}: expected a file name ending in '.png', unique in the list, got {tile!r}")
         tiles.add(tile)
     return frames, _sequence(path, raw.get("sequence"))
+
+
+def _records(path: Path, field: str, records: Any, most: int, what: str):
+    """`records` checked as a list of 1..`most` frame objects, each with `file` (a frame inside
+    its scene folder) and `index` (an integer): yields (record, where), where(name) naming the
+    record's field `name` in errors."""
+    if not (isinstance(records, list) and 1 <= len(records) <= most):
+        raise UserError(f"{_where(path, field)}: expected a list of 1..{most} {what}, got {safe._short(records)}")
+    for i, f in enumerate(records):
+        if not isinstance(f, dict):
+            raise UserError(f"{_where(path, f'{field}[{i}]')}: expected an object, got {safe._short(f)}")
+        w = lambda name, i=i: _where(path, f"{field}[{i}].{name}")  # noqa: E731
+        _rel_path(w("file"), f.get("file"), "the frame's file in its scene")
+        fields.integer(w("index"), f.get("index"), "the frame's index in its sequence")
+        yield f, w
 
 
 def _sequence(path: Path, seq: Any) -> dict | None:
@@ -209,19 +216,10 @@ def _sequence(path: Path, seq: Any) -> dict | None:
     safe.plain_name(_where(path, "sequence.scene"), seq.get("scene"), "a scene name")
     safe.plain_text(_where(path, "sequence.sequence"), seq.get("sequence"), "a sequence id", max_len=1000, empty=False)
     safe.plain_text(_where(path, "sequence.label"), seq.get("label"), "the sequence's label", max_len=1000)
-    frames = seq.get("frames")
-    if not (isinstance(frames, list) and 1 <= len(frames) <= MAX_SEQUENCE_FRAMES):
-        raise UserError(f"{_where(path, 'sequence.frames')}: expected a list of 1..{MAX_SEQUENCE_FRAMES} frames of "
-                        f"the sequence, got {safe._short(frames)}")
     files = set()
-    for i, f in enumerate(frames):
-        w = lambda field: _where(path, f"sequence.frames[{i}]{field}")  # noqa: E731
-        if not isinstance(f, dict):
-            raise UserError(f"{w('')}: expected an object {{file, index}}, got {safe._short(f)}")
-        _rel_path(w(".file"), f.get("file"), "the frame's file in its scene")
-        fields.integer(w(".index"), f.get("index"), "the frame's index in its sequence")
+    for f, w in _records(path, "sequence.frames", seq.get("frames"), MAX_SEQUENCE_FRAMES, "frames of the sequence"):
         if f["file"] in files:
-            raise UserError(f"{w('.file')}: {f['file']!r} is listed twice; expected each frame of the sequence once")
+            raise UserError(f"{w('file')}: {f['file']!r} is listed twice; expected each frame of the sequence once")
         files.add(f["file"])
     return seq
 

@@ -545,7 +545,6 @@ class Skyeyes(Method):
                          condition=self.config.condition)
         yield from out
 
-
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the
         poses at the model's resolution."""

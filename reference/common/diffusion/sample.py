@@ -163,19 +163,16 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
     noise = frame_noise(seed, sample_shape(tuple(conds.shape), acm.cfg))
     out = [ddim(acm, conds[:1], steps=steps, noise=noise[:1], strength=strength)[0]]
     i = 1
-    while i < n and vcm is None:  # no VCM: the ACM frame by frame, each held by the last one's warp
-        held = warp(out[-1], i - 1, [i]) if warp is not None and hold > 0 else None
-        out.append(ddim(acm, conds[i:i + 1], steps=steps, noise=noise[i:i + 1], strength=strength,
-                        held=held, hold=hold)[0])
-        i += 1
-        if progress is not None:
-            progress(1)
     while i < n:
-        m = min(clip - 1, n - i)
-        c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
+        m = 1 if vcm is None else min(clip - 1, n - i)  # no VCM: the ACM, one frame at a time
         held = warp(out[-1], i - 1, list(range(i, i + m))) if warp is not None and hold > 0 else None
-        new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength,
-                        held=held, hold=hold)
+        if vcm is None:
+            new = ddim(acm, conds[i:i + 1], steps=steps, noise=noise[i:i + 1], strength=strength,
+                       held=held, hold=hold)
+        else:
+            c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
+            new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength,
+                            held=held, hold=hold)
         out.extend(new)
         i += m
         if progress is not None:

@@ -115,3 +115,24 @@ def metric_def(name: str) -> MetricDef:
     from .registry import lookup
 
     return lookup(METRICS, name, "metric")
+
+
+#: Why differing sample counts matter (issue 39; docs/metrics.md, "FID∞ and FVD∞").
+COUNTS_WHY = ("a Fréchet distance's bias shrinks like 1/N (Chong & Forsyth 2020), so FID/FVD of different counts "
+              "are not on one scale (FID∞/FVD∞ are; KID/KVD are unbiased, their spread differs): docs/metrics.md")
+
+
+def sample_count_warning(named: list[tuple[str, dict]]) -> str | None:
+    """One line when results scored a set metric on different sample counts, else None.
+
+    named: (label, a results document's "metrics") pairs; each set metric's `n` (frames or clips)
+    is read where its status is "ok". E.g. "set metrics on different sample counts: FVD 128 clips (A),
+    256 clips (B); a Fréchet distance's bias ...". Possible across protocols, or when a
+    submission was scored in part."""
+    parts = []
+    for name in SET_METRICS:
+        counts = [(label, m["n"], m.get("unit") or "row") for label, metrics in named
+                  if (m := (metrics or {}).get(name)) and m.get("status") == "ok" and m.get("n") is not None]
+        if len({n for _, n, _ in counts}) > 1:
+            parts.append(f"{METRICS[name].label} " + ", ".join(f"{n} {unit}s ({label})" for label, n, unit in counts))
+    return f"set metrics on different sample counts: {'; '.join(parts)}; {COUNTS_WHY}" if parts else None

@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from .bayes import StudentTPosterior, hdi, student_t_posterior  # noqa: F401  (re-exported)
-from .metricspec import FRAME_METRICS, METRICS, SET_METRICS, metric_def  # noqa: F401  (re-exported)
+from .metricspec import FRAME_METRICS, METRICS, SET_METRICS, metric_def, sample_count_warning  # noqa: F401  (re-exported)
 
 #: Metrics for which a lower value is better (everything else: higher is better).
 LOWER_IS_BETTER = frozenset(n for n, m in METRICS.items() if not m.higher_is_better)
@@ -676,13 +676,14 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     from .errors import UserError
     from .protocol import load_protocol
 
+    count_note = sample_count_warning([(names[0], a["metrics"]), (names[1], b["metrics"])])
     why = _comparable(a, b)
     if why:
-        raise UserError("cannot compare: " + "; ".join(why))
+        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
     protocol = load_protocol(a["protocol"]["ref"])
     why = _comparable(a, b, protocol.sha256) or [p for p in [_frames_problem(a, b, names)] if p]
-    if why:
-        raise UserError("cannot compare: " + "; ".join(why))
+    if why:  # e.g. a submission scored in part: its counts are said too
+        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
     st = protocol.statistics
     steps = emcee_steps or st.emcee_steps
     burn = min(st.emcee_burn, steps // 3) if emcee_steps else st.emcee_burn
@@ -698,6 +699,8 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
            "interval": INTERVAL_METHOD, "level": st.interval, "estimand": COMPARE_ESTIMAND,
            "sign": "advantage of A: A - B where higher is better, B - A where lower is better; > 0 means A is better",
            "metrics": {}}
+    if count_note:  # the same frames and protocol leave no way to this today; a guard, said once
+        out["warnings"] = [count_note]
     for name, ma in a["metrics"].items():
         mb = b["metrics"].get(name)
         if ma.get("reference") or (name in METRICS and METRICS[name].reference):

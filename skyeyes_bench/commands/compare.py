@@ -69,6 +69,8 @@ def run(args) -> int:
             print(f"skyeyes-bench: warning: {e}", file=sys.stderr)
             fa = fb = None
     res = compare_results(a, b, fa, fb, names=(args.a, args.b))
+    for w in res.get("warnings", []):
+        print(f"skyeyes-bench: warning: {w}", file=sys.stderr)
     if args.out:
         fileio.write_json(args.out, res)
     if args.json:

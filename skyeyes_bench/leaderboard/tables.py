@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..metricspec import METRICS
+from ..metricspec import METRICS, sample_count_warning
 
 #: Column order, headings and printed decimals: the metric table's (`metricspec`).
 METRIC_ORDER = tuple(METRICS)
@@ -59,6 +59,7 @@ class Table:
     best: dict[str, list[int]] = field(default_factory=dict)
     not_credible: set[str] = field(default_factory=set)
     rules: dict[str, str] = field(default_factory=dict)  # metric -> the rule that decided its mark
+    counts: dict = field(default_factory=dict)  # measured: a row's "metrics" (set metrics' sample counts `n`)
 
     @property
     def file_key(self) -> str:
@@ -146,8 +147,11 @@ def measured_tables(root: Path) -> list[Table]:
         note = (f"protocol sha256 {sha[:12]}…; extractors {exs}; dataset {d0['dataset']['name']} "
                 f"({len(d0['dataset']['sequences'])} sequences, {len(d0['frames'])} frames)")
         note += _reference_note([m for m in present if METRICS[m].reference], [d for d, _ in docs])
+        # rows of one table share protocol and frames: a guard
+        differ = sample_count_warning([(name.removesuffix(".json"), d["metrics"]) for d, name in docs])
+        note += f". Warning: {differ}" if differ else ""
         tables.append(Table(key, f"{ref} — measured", ref, metrics, rows, reported=False, note=note, gt_sha=gt,
-                            frames_key=frames_key(d0)))
+                            frames_key=frames_key(d0), counts=d0["metrics"]))
     return tables
 
 

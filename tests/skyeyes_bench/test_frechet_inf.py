@@ -252,3 +252,24 @@ def test_compare_recomputes_the_same_replicates_from_features(inf_scored):
         want = stored["metrics"][name]["bootstrap_interval"]
         assert stored["metrics"][name]["status"] == "ok" and want
         assert again["metrics"][name]["bootstrap_interval"] == pytest.approx(want, rel=1e-4)
+
+
+def test_compare_says_when_sample_counts_differ(inf_scored):
+    """Issue 39: one line naming each set metric's counts when A and B differ; in the refusal when
+    the protocols differ, as a warning otherwise; nothing when they agree."""
+    import copy
+
+    from skyeyes_bench.errors import UserError
+
+    res, tmp = inf_scored
+    with protocol_env(tmp, INF_PROTOCOL):
+        a, b = res["b1"], res["b2"]
+        assert "warnings" not in stats.compare_results(a, b, emcee_steps=60)
+        b2 = copy.deepcopy(b)
+        b2["metrics"]["fvd_inf"]["n"] = 48  # as if scored on twice the clips
+        out = stats.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))
+        (w,) = out["warnings"]
+        assert "FVD∞ 24 clips (a.json), 48 clips (b.json)" in w and "FID " not in w and "1/N" in w
+        b2["protocol"]["ref"] = "evalinf@2"
+        with pytest.raises(UserError, match=r"different protocols.*FVD∞ 24 clips \(a.json\), 48 clips \(b.json\)"):
+            stats.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))

@@ -346,3 +346,27 @@ def test_a_lone_row_is_not_bold(board, tmp_path):
     assert len(t.rows) == 1 and t.metrics
     assert t.best == {} and not t.not_credible
     assert all(t.rules[m] == marks.RULE_ONE_ROW for m in t.metrics if t.rows[0].values.get(m) is not None)
+
+
+def test_differing_sample_counts_are_said_in_one_line(board, tmp_path):
+    """Issue 39: a set metric scored on different sample counts gets one warning line, in the
+    table whose rows differ and across tables; equal counts get none."""
+    lb = _fresh(board, tmp_path)
+    run_cli("leaderboard", "--root", str(lb))
+    assert "different sample counts" not in (lb / "README.md").read_text()
+    d = json.loads((lb / "results" / "blurry-twin.json").read_text())
+    n = d["metrics"]["fvd"]["n"]
+    d["metrics"]["fvd"]["n"] = 2 * n  # as if scored on twice the clips
+    (lb / "results" / "blurry-twin.json").write_text(json.dumps(d))
+    (t,) = leaderboard.load_tables(lb)[0]
+    assert f"FVD {2 * n} clips (blurry-twin), {n} clips (blurry)" in t.note  # file order and "1/N" in t.note
+    # ... and across tables: the twin under another protocol version is a table of its own
+    d["protocol"]["ref"] = "evaltest@2"
+    (lb / "results" / "blurry-twin.json").write_text(json.dumps(d))
+    tables = leaderboard.load_tables(lb)[0]
+    assert [t.key for t in tables] == ["evaltest@1", "evaltest@2"]
+    assert all("different sample counts" not in t.note for t in tables)  # one row each
+    run_cli("leaderboard", "--root", str(lb))
+    md, html = (lb / "README.md").read_text(), (lb / "index.html").read_text()
+    line = f"FVD {n} clips (evaltest@1), {2 * n} clips (evaltest@2)"
+    assert sum(line in ln for ln in md.splitlines()) == 1 and line in html

@@ -6,9 +6,9 @@ What mu is: the centre of a heavy-tailed model of the per-cluster differences of
 frame means. It is the same quantity as `compare`'s headline advantage (difference of the
 frame-weighted means) when every cluster has as many frames and the differences are symmetric;
 otherwise it differs on purpose (one broken cluster does not move it), and `compare` says so
-(`stats.BAYES_ESTIMAND`). Callers give it at least `stats.MIN_CLUSTERS` differences.
+(`comparison.BAYES_ESTIMAND`). Callers give it at least `stats.MIN_CLUSTERS` differences.
 
-Pure functions on arrays; `stats.bayes_summary` is the caller.
+Pure functions on arrays; `comparison.bayes_summary` is the caller.
 """
 
 from __future__ import annotations

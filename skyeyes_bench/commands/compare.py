@@ -21,7 +21,7 @@ def register(sub) -> None:
     p.set_defaults(run=run)
 
 
-#: One line on what the Student-t summary describes (stats.BAYES_ESTIMAND says it in full).
+#: One line on what the Student-t summary describes (comparison.BAYES_ESTIMAND says it in full).
 BAYES_NOTE = ("location of a robust model of per-{unit} differences of per-{unit} frame means; it may differ "
               "from the advantage above when {unit}s differ in frame count or one {unit} is an outlier")
 
@@ -54,7 +54,7 @@ def _abd(a: float, b: float, adv: float, higher: bool) -> tuple[str, str, str]:
 def run(args) -> int:
     from .. import fileio
     from ..evaluate import read_results
-    from ..stats import compare_results
+    from ..comparison import compare_results
 
     if args.out:  # before any work; compare's output is replaced freely, but never an input
         fileio.check_output(args.out, force=True, inputs=[args.a, args.b], inputs_are="the results being compared")

@@ -14,7 +14,7 @@ from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env
 
-from skyeyes_bench import fileio
+from skyeyes_bench import comparison, fileio
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.errors import UserError
 from skyeyes_bench.evaluate import evaluate, features_path, read_results
@@ -358,22 +358,22 @@ def test_compare_recomputes_set_metric_replicates_from_the_sidecars(scene_scored
         shutil.copy(scene_scored / f"{n}-5.features.npz", tmp_path)
     a, fa = read_results(tmp_path / "b1-5.json", features=True)
     b, fb = read_results(tmp_path / "b2-5.json", features=True)
-    got = stats.compare_results(a, b, fa, fb, emcee_steps=200)
-    stored = stats.compare_results(*(read_results(scene_scored / f"{n}-5.json")[0] for n in ("b1", "b2")),
+    got = comparison.compare_results(a, b, fa, fb, emcee_steps=200)
+    stored = comparison.compare_results(*(read_results(scene_scored / f"{n}-5.json")[0] for n in ("b1", "b2")),
                                    emcee_steps=200)
     for m in ("fid", "kid", "fvd", "kvd"):
         assert got["metrics"][m]["bootstrap_interval"] == pytest.approx(stored["metrics"][m]["bootstrap_interval"],
                                                                         rel=1e-4), m
         assert got["metrics"][m]["bootstrap_interval"][0] < got["metrics"][m]["bootstrap_interval"][1]
     # without replicates or sidecars: the set metrics are reported, not resampled
-    bare = stats.compare_results(a, b, None, None, emcee_steps=200)
+    bare = comparison.compare_results(a, b, None, None, emcee_steps=200)
     assert bare["metrics"]["fid"]["status"] == "skipped" and "no replicates" in bare["metrics"]["fid"]["note"]
-    assert (got["a"], got["b"]) == ("b1", "b2") and got["estimand"] == stats.COMPARE_ESTIMAND
+    assert (got["a"], got["b"]) == ("b1", "b2") and got["estimand"] == comparison.COMPARE_ESTIMAND
     # a metric unavailable on one side is skipped, naming the side
     b_lp = json.loads(json.dumps(b))
     b_lp["metrics"]["psnr"]["status"] = "unavailable"
-    assert stats.compare_results(a, b_lp, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in B"
-    assert stats.compare_results(b_lp, a, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in A"
+    assert comparison.compare_results(a, b_lp, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in B"
+    assert comparison.compare_results(b_lp, a, emcee_steps=200)["metrics"]["psnr"]["note"] == "psnr unavailable in A"
 
 
 def test_results_record_what_was_scored(scored):

@@ -14,7 +14,7 @@ from conftest import run_cli
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.evaluate import evaluate, merge, read_results
 from skyeyes_bench.metricspec import SEQUENCE_METRICS
-from skyeyes_bench.stats import compare_results
+from skyeyes_bench.comparison import compare_results
 from skyeyes_bench.submission import SubmissionWriter, expected_frames, write_template
 
 # A later synthtown version that scores synthtown@1's frames (the smoke data) with the depth

@@ -12,7 +12,7 @@ import pytest
 import scipy.linalg
 from builders.evaluation import TEST_PROTOCOL, blurred_submission, make_dataset, protocol_env
 
-from skyeyes_bench import estimators, stats
+from skyeyes_bench import comparison, estimators, stats
 from skyeyes_bench.frechet_inf import FrechetInfinity, extrapolate, subset_sizes
 from skyeyes_bench.metricspec import METRICS
 from skyeyes_bench.protocol import MetricSpec
@@ -243,11 +243,11 @@ def test_compare_recomputes_the_same_replicates_from_features(inf_scored):
     res, tmp = inf_scored
     with protocol_env(tmp, INF_PROTOCOL):
         (a, fa), (b, fb) = (read_results(tmp / f"{k}.json", features=True) for k in ("b1", "b2"))
-        stored = stats.compare_results(a, b, emcee_steps=60)
+        stored = comparison.compare_results(a, b, emcee_steps=60)
         for doc in (a, b):  # without stored replicates compare resamples the features with the protocol's settings
             for name in ("fid_inf", "fvd_inf"):
                 doc["metrics"][name]["replicates"] = None
-        again = stats.compare_results(a, b, fa, fb, emcee_steps=60)
+        again = comparison.compare_results(a, b, fa, fb, emcee_steps=60)
     for name in ("fid_inf", "fvd_inf"):
         want = stored["metrics"][name]["bootstrap_interval"]
         assert stored["metrics"][name]["status"] == "ok" and want
@@ -264,12 +264,12 @@ def test_compare_says_when_sample_counts_differ(inf_scored):
     res, tmp = inf_scored
     with protocol_env(tmp, INF_PROTOCOL):
         a, b = res["b1"], res["b2"]
-        assert "warnings" not in stats.compare_results(a, b, emcee_steps=60)
+        assert "warnings" not in comparison.compare_results(a, b, emcee_steps=60)
         b2 = copy.deepcopy(b)
         b2["metrics"]["fvd_inf"]["n"] = 48  # as if scored on twice the clips
-        out = stats.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))
+        out = comparison.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))
         (w,) = out["warnings"]
         assert "FVD∞ 24 clips (a.json), 48 clips (b.json)" in w and "FID " not in w and "1/N" in w
         b2["protocol"]["ref"] = "evalinf@2"
         with pytest.raises(UserError, match=r"different protocols.*FVD∞ 24 clips \(a.json\), 48 clips \(b.json\)"):
-            stats.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))
+            comparison.compare_results(a, b2, emcee_steps=60, names=("a.json", "b.json"))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from skyeyes_bench import leaderboard, paths, protocol, stats
+from skyeyes_bench import comparison, leaderboard, paths, protocol, stats
 from skyeyes_bench.metricspec import FRAME_METRICS, METRICS, SEQUENCE_METRICS, SET_METRICS, metric_def
 from skyeyes_bench.registry import load_entry_point
 
@@ -109,7 +109,7 @@ def test_paired_bootstrap_is_the_one_compare_uses():
     rng = np.random.default_rng(2)
     a, b = rng.normal(size=9), rng.normal(size=9)
     kw = dict(resamples=200, level=0.9, seed=5)
-    out = stats.compare_per_sequence(a, b, "ssim", walkers=8, steps=60, burn=20, **kw)
+    out = comparison.compare_per_sequence(a, b, "ssim", walkers=8, steps=60, burn=20, **kw)
     assert out["bootstrap_interval"] == list(stats.advantage_interval(stats.advantage(a, b, "ssim"), **kw))
     # +inf and -inf advantages drawn together make a resampled mean undefined: no interval
     assert stats.advantage_interval(np.array([np.inf, -np.inf, 1.0]), **kw) is None

@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 import scipy.stats
 
-from skyeyes_bench import stats
+from skyeyes_bench import bayes, comparison, stats
 
 
 def _slow_fid(x, y):
@@ -126,7 +126,7 @@ def test_mmd_bootstrap_at_two_samples_and_below():
 
 def test_hdi_of_normal_samples():
     s = np.random.default_rng(0).normal(size=200_000)
-    lo, hi = stats.hdi(s, 0.95)
+    lo, hi = bayes.hdi(s, 0.95)
     assert lo == pytest.approx(-1.96, abs=0.03) and hi == pytest.approx(1.96, abs=0.03)
 
 
@@ -135,7 +135,7 @@ _FAST = dict(resamples=500, level=0.95, seed=0, walkers=16, steps=1000, burn=200
 
 def test_compare_identical_methods_zero_variance():
     a = np.array([25.0, 27.0, 30.0, 26.0, 28.0, 24.0])
-    out = stats.compare_per_sequence(a, a.copy(), "psnr", **_FAST)
+    out = comparison.compare_per_sequence(a, a.copy(), "psnr", **_FAST)
     assert out["advantage_mean"] == 0.0
     assert out["bootstrap_interval"] == [0.0, 0.0]
     b = out["bayes"]
@@ -147,7 +147,7 @@ def test_compare_identical_methods_zero_variance():
 def test_compare_too_few_clusters(k):
     """Below 5 clusters: the point estimate stays, interval and P(better) are 'too few'."""
     a, b = np.full(k, 0.3), np.linspace(0.4, 0.6, k)
-    out = stats.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
+    out = comparison.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
     assert out["advantage_mean"] == pytest.approx(np.mean(b - a))  # lower LPIPS is better: A better
     assert out["bootstrap_interval"] is None and out["interval_note"] == f"too few scenes (K={k})"
     assert out["bayes"]["p_a_better"] is None and out["bayes"]["note"] == f"too few scenes (K={k})"
@@ -157,7 +157,7 @@ def test_compare_clear_difference_and_sign_convention():
     rng = np.random.default_rng(5)
     b = rng.normal(0.5, 0.05, size=20)
     a = b - 0.1 + rng.normal(0, 0.01, size=20)  # A has lower LPIPS: better
-    out = stats.compare_per_sequence(a, b, "lpips", **_FAST)
+    out = comparison.compare_per_sequence(a, b, "lpips", **_FAST)
     assert out["bayes"]["fitted"]
     assert out["bayes"]["p_a_better"] > 0.99
     lo, hi = out["bayes"]["hdi"]
@@ -166,7 +166,7 @@ def test_compare_clear_difference_and_sign_convention():
     assert lo == pytest.approx(d.mean() - half, abs=0.3 * half)
     assert hi == pytest.approx(d.mean() + half, abs=0.3 * half)
     assert 0.2 < out["bayes"]["acceptance"] < 0.8
-    out2 = stats.compare_per_sequence(b, a, "lpips", **_FAST)
+    out2 = comparison.compare_per_sequence(b, a, "lpips", **_FAST)
     assert out2["bayes"]["p_a_better"] < 0.01
 
 
@@ -174,7 +174,7 @@ def test_compare_heavy_outlier_is_robust():
     rng = np.random.default_rng(7)
     d = rng.normal(0.5, 0.1, size=20)
     d[0] = 50.0  # one broken sequence
-    out = stats.compare_per_sequence(d, np.zeros(20), "psnr", **_FAST)
+    out = comparison.compare_per_sequence(d, np.zeros(20), "psnr", **_FAST)
     assert out["advantage_mean"] == pytest.approx(d.mean())  # ~3: dragged by the outlier
     lo, hi = out["bayes"]["hdi"]
     assert lo < 0.5 < hi and hi < 1.0  # the Student-t posterior is not
@@ -184,7 +184,7 @@ def test_compare_heavy_outlier_is_robust():
 def test_compare_psnr_inf():
     a = np.array([np.inf, np.inf, 30.0, 31.0, 32.0])
     b = np.array([np.inf, 28.0, 29.0, 30.0, 31.0])
-    out = stats.compare_per_sequence(a, b, "psnr", **_FAST)
+    out = comparison.compare_per_sequence(a, b, "psnr", **_FAST)
     assert out["bootstrap_interval"][1] == np.inf
     assert not out["bayes"]["fitted"] and "infinite" in out["bayes"]["note"]
     assert out["bayes"]["p_a_better"] is None  # one tie (0), one +inf, one +1: not all > 0
@@ -407,31 +407,31 @@ def test_bayes_summary_without_a_fit_says_why():
     """The documented outcomes without sampling: too few clusters, a missing value, infinite
     differences (P = 1 / 0 when all on one side, else none), zero variance at a non-zero value."""
     kw = dict(unit="scene", walkers=8, steps=50, burn=10, seed=0)
-    few = stats.bayes_summary(np.ones(3), **kw)
-    assert few == {"fitted": False, "estimand": stats.BAYES_ESTIMAND.format(unit="scene"), "clusters": 3,
+    few = comparison.bayes_summary(np.ones(3), **kw)
+    assert few == {"fitted": False, "estimand": comparison.BAYES_ESTIMAND.format(unit="scene"), "clusters": 3,
                    "note": "too few scenes (K=3)", "p_a_better": None, "hdi": None}
-    nan = stats.bayes_summary(np.array([1.0, np.nan, 2.0, 3.0, 4.0]), **kw)
+    nan = comparison.bayes_summary(np.array([1.0, np.nan, 2.0, 3.0, 4.0]), **kw)
     assert nan["note"] == "a scene has no value for one method" and nan["p_a_better"] is None and nan["hdi"] is None
     d = np.array([0.5, np.inf, 0.2, 0.1, 0.3])
-    up = stats.bayes_summary(d, **kw)
+    up = comparison.bayes_summary(d, **kw)
     assert up["p_a_better"] == 1.0 and up["hdi"] is None and "1 scene(s) have an infinite difference" in up["note"]
-    assert stats.bayes_summary(-d, **kw)["p_a_better"] == 0.0
-    assert stats.bayes_summary(np.array([0.5, -np.inf, 0.2, 0.1, 0.3]), **kw)["p_a_better"] is None
-    flat = stats.bayes_summary(np.full(6, -0.25), **kw)
+    assert comparison.bayes_summary(-d, **kw)["p_a_better"] == 0.0
+    assert comparison.bayes_summary(np.array([0.5, -np.inf, 0.2, 0.1, 0.3]), **kw)["p_a_better"] is None
+    flat = comparison.bayes_summary(np.full(6, -0.25), **kw)
     assert not flat["fitted"] and flat["mu_mean"] == -0.25 and flat["hdi"] == [-0.25, -0.25]
-    assert flat["p_a_better"] == 0.0 and stats.bayes_summary(np.full(6, 0.25), **kw)["p_a_better"] == 1.0
+    assert flat["p_a_better"] == 0.0 and comparison.bayes_summary(np.full(6, 0.25), **kw)["p_a_better"] == 1.0
 
 
 def test_compare_per_sequence_reports_its_inputs():
     a, b = np.array([0.30, 0.32, 0.35, 0.31, 0.29, 0.33]), np.array([0.40, 0.41, 0.39, 0.45, 0.38, 0.42])
-    out = stats.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
+    out = comparison.compare_per_sequence(a, b, "lpips", unit="scene", **_FAST)
     assert {k: out[k] for k in ("metric", "higher_is_better", "clusters", "level")} == {
         "metric": "lpips", "higher_is_better": False, "clusters": 6, "level": 0.95}
     assert out["advantage_mean"] == pytest.approx(np.mean(b - a))
     lo, hi = out["bootstrap_interval"]
     assert lo <= out["advantage_mean"] <= hi and lo > 0
     assert out["bayes"]["fitted"] and out["bayes"]["clusters"] == 6 and "per-scene" in out["bayes"]["estimand"]
-    nan = stats.compare_per_sequence(a, np.where(np.arange(6) == 2, np.nan, b), "lpips", **_FAST)
+    nan = comparison.compare_per_sequence(a, np.where(np.arange(6) == 2, np.nan, b), "lpips", **_FAST)
     assert math.isnan(nan["advantage_mean"]) and nan["bootstrap_interval"] is None
 
 
@@ -511,12 +511,12 @@ def test_compare_per_sequence_defaults_to_sequences_and_is_seeded():
     """Without `unit` the clusters are sequences (the notes say so), and the Student-t fit is
     seeded: two calls give the same posterior to the last digit."""
     a, b = np.array([0.30, 0.32, 0.35, 0.31, 0.29, 0.33]), np.array([0.40, 0.41, 0.37, 0.45, 0.38, 0.42])
-    one = stats.compare_per_sequence(a, b, "lpips", **_FAST)
-    two = stats.compare_per_sequence(a, b, "lpips", **_FAST)
+    one = comparison.compare_per_sequence(a, b, "lpips", **_FAST)
+    two = comparison.compare_per_sequence(a, b, "lpips", **_FAST)
     assert "per-sequence" in one["bayes"]["estimand"] and "per-scene" not in one["bayes"]["estimand"]
     assert one["bayes"]["fitted"] and one["bayes"]["hdi"] == two["bayes"]["hdi"]
     assert one["bayes"]["mu_mean"] == two["bayes"]["mu_mean"]
-    few = stats.compare_per_sequence(a[:3], b[:3], "lpips", **_FAST)
+    few = comparison.compare_per_sequence(a[:3], b[:3], "lpips", **_FAST)
     assert few["interval_note"] == "too few sequences (K=3)" and few["bayes"]["note"] == "too few sequences (K=3)"
 
 
@@ -538,11 +538,11 @@ def test_stored_replicates_are_used_only_when_made_the_way_compare_resamples():
     st = SimpleNamespace(bootstrap_resamples=4, seed=7)
     good = {"interval": stats.INTERVAL_METHOD, "resamples": 4, "seed": 7, "cluster": "scene", "clusters": 8}
     reps = [1.0, 2.0, 3.0, 4.0]
-    assert stats._usable_replicates({"statistics": good}, {"replicates": reps}, st, "scene", 8) == reps
+    assert comparison._usable_replicates({"statistics": good}, {"replicates": reps}, st, "scene", 8) == reps
     for key, other in [("interval", "bootstrap"), ("resamples", 5), ("seed", 8), ("cluster", "sequence"),
                        ("clusters", 9)]:
         doc = {"statistics": {**good, key: other}}
-        assert stats._usable_replicates(doc, {"replicates": reps}, st, "scene", 8) is None, key
-    assert stats._usable_replicates({"statistics": good}, {"replicates": reps[:3]}, st, "scene", 8) is None
-    assert stats._usable_replicates({"statistics": good}, {"replicates": tuple(reps)}, st, "scene", 8) is None
-    assert stats._usable_replicates({}, {"replicates": reps}, st, "scene", 8) is None
+        assert comparison._usable_replicates(doc, {"replicates": reps}, st, "scene", 8) is None, key
+    assert comparison._usable_replicates({"statistics": good}, {"replicates": reps[:3]}, st, "scene", 8) is None
+    assert comparison._usable_replicates({"statistics": good}, {"replicates": tuple(reps)}, st, "scene", 8) is None
+    assert comparison._usable_replicates({}, {"replicates": reps}, st, "scene", 8) is None

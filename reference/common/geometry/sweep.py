@@ -1,12 +1,12 @@
 """The plane-sweep cost volume of `mvs` and its aggregation: colour NCC of a reference view
 against a source warped to fronto-parallel depth planes, the best-k mean over sources, semi-global
 aggregation (Hirschmueller 2008) and the winning depth with a parabolic sub-plane refinement.
-See `mvs` for the pipeline and its sources. Tensors are float32 on the device of their inputs.
+See `mvs` for the pipeline and its sources; `MVSConfig` holds the settings of both. Tensors are float32 on the device of their inputs.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -14,8 +14,42 @@ import torch.nn.functional as F
 
 from skyeyes_bench.cameras import Camera
 
-if TYPE_CHECKING:
-    from .mvs import MVSConfig
+
+@dataclass
+class MVSConfig:
+    """Plane-sweep stereo settings.
+
+    Attributes:
+        num_sources: source views per reference view.
+        min_angle_deg, max_angle_deg: triangulation angles outside this band score low.
+        planes: depth hypotheses per reference view (uniform in inverse depth).
+        window: NCC window side (px, odd).
+        best_k: per pixel, the mean of the best `best_k` source costs.
+        min_texture: colour standard deviation (0..1 units) below which a window's NCC is
+            undefined; such pixels take their cost from the aggregation only.
+        sgm_p1, sgm_p2: SGM penalties for a one-plane and a larger jump (cost units, NCC cost
+            is 1 - ncc in [0, 2]).
+        sgm_paths: 0 (winner-take-all on the raw cost), 4 or 8 aggregation directions.
+        max_cost: a pixel whose best raw cost is above this is dropped (no match anywhere).
+        min_consistent: other views whose depth must agree for a pixel to be kept.
+        reproj_px, depth_rel: consistency thresholds (COLMAP: 2 px / 1%; our pixels are 8x larger
+            on the ground than COLMAP's usual, so depth_rel is looser).
+    """
+
+    num_sources: int = 6
+    min_angle_deg: float = 8.0
+    max_angle_deg: float = 35.0
+    planes: int = 96
+    window: int = 5
+    best_k: int = 2
+    min_texture: float = 0.01
+    sgm_p1: float = 0.05
+    sgm_p2: float = 0.4
+    sgm_paths: int = 4
+    max_cost: float = 0.8
+    min_consistent: int = 2
+    reproj_px: float = 1.5
+    depth_rel: float = 0.02
 
 
 def _box_mean(x: torch.Tensor, w: int) -> torch.Tensor:

@@ -10,6 +10,7 @@ import sys
 import pytest
 from conftest import run_cli
 from builders.evaluation import blurred_submission, make_dataset, protocol_env
+from builders.evaluation import scores as comparable
 from builders.weights import REAL_DIR, have
 
 from skyeyes_bench.data.layout import open_dataset
@@ -49,14 +50,7 @@ def tiny(tmp_path_factory):
 
 
 def scores(path) -> dict:
-    """What must not depend on how a result was computed: every metric (value, interval,
-    replicates), per-sequence and per-frame values, and the hashes of what was scored."""
-    doc, _ = read_results(path)
-    got = {k: doc[k] for k in ("metrics", "sequences", "frames", "sha256")}
-    for m in got["metrics"].values():  # an unavailable metric's reason names the cache it looked in
-        if m["status"] == "unavailable":
-            m.pop("reason")
-    return got
+    return comparable(read_results(path)[0])
 
 
 def use_cache(monkeypatch, cache) -> None:

@@ -3,11 +3,11 @@ and the leaderboard intake's scoring as Ray tasks. The one module that imports R
 `--ray` command runs, so the default install never needs it (docs/scale.md).
 
 ```
-with session(None):                        # a local Ray with this machine's cores (or ray.init(ADDRESS))
-    outcomes = evaluate_many([Job(sub, out)])    # shards as tasks, merged by `results.merge` into out
+with session(None):                          # a local Ray with this machine's cores (or ray.init(ADDRESS))
+    got = evaluate_many([batch.Job(sub, out)])     # shards as tasks, merged by `results.merge` into out
 ```
 
-(`batch.evaluate_batch` is the entry point the commands use: in turn here, or this.)
+(`batch.evaluate_batch` is the entry point the commands use: in turn in the driver, or this.)
 
 - **Shards.** A submission is split into N shards (`evaluate --shard I/N`: sequences k with
   k % N == I); each runs `evaluate.evaluate` as a task into a temporary folder on its worker and

@@ -24,9 +24,9 @@ def register(sub) -> None:
                    "the folder, or SUBMISSION.shard-I-of-N.results.json)")
     p.add_argument("--shard", metavar="I/N", help="evaluate only sequences k with k %% N == I; write a "
                    "partial result for `skyeyes-bench merge`")
-    p.add_argument("--ray", nargs="?", const="", metavar="ADDRESS", help=RAY_HELP + RAY_ORDER + ". Each submission is split "
-                   "into shards (sequence groups) that run as Ray tasks and are merged as `merge` does: the numbers of "
-                   "one process")
+    p.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                   help=RAY_HELP + RAY_ORDER + ". Each submission is split into shards (sequence groups) that run as "
+                   "Ray tasks and are merged as `merge` does: the numbers of one process")
     p.add_argument("--shards", type=int, metavar="N", help="with --ray: shards per submission (default: one per task "
                    "the cluster runs at once, at most one per test sequence); the numbers never depend on it")
     p.add_argument("--protocol", metavar="ID@N", help="score with this protocol instead of the one submission.json "
@@ -36,8 +36,8 @@ def register(sub) -> None:
                    help="where the feature extractors (Inception, I3D, LPIPS) run: cpu (default; the reference), "
                    "cuda or cuda:N for speed, auto (cuda when visible). GPU features agree with CPU ones to float "
                    "rounding (TF32 off), so scores may differ in the last digits; the device is recorded in the "
-                   "results (extractors.<id>.device) and shards scored on different devices do not merge. With --ray: auto "
-                   "gives each shard task a GPU where the cluster has any (else the CPU); cuda needs one")
+                   "results (extractors.<id>.device) and shards scored on different devices do not merge. With "
+                   "--ray: auto gives each shard task a GPU where the cluster has any (else the CPU); cuda needs one")
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary")

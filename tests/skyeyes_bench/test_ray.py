@@ -53,19 +53,19 @@ def scores(path) -> dict:
     return comparable(read_results(path)[0])
 
 
-def use_cache(monkeypatch, cache) -> None:
-    """A cache of its own from here on (no feature computed before is reused), with the LPIPS
-    weights where `weights fetch` put them (else LPIPS is unavailable on both sides alike)."""
+def use_cache(monkeypatch, cache, weights=LPIPS_FILES) -> None:
+    """A cache of its own from here on (no feature computed before is reused), with the `weights`
+    files where `weights fetch` put them (else their metrics are unavailable on both sides alike)."""
     (cache / "weights").mkdir(parents=True, exist_ok=True)
-    for name in LPIPS_FILES:
+    for name in weights:
         if (REAL_DIR / name).is_file() and not (cache / "weights" / name).exists():
             (cache / "weights" / name).symlink_to(REAL_DIR / name)
     monkeypatch.setenv("SKYEYES_CACHE", str(cache))
 
 
-def one_process(sub, data, out, monkeypatch, cache) -> dict:
+def one_process(sub, data, out, monkeypatch, cache, weights=LPIPS_FILES) -> dict:
     """The single-process result (the path without Ray), scored with a cache of its own."""
-    use_cache(monkeypatch, cache)
+    use_cache(monkeypatch, cache, weights)
     run_cli("evaluate", str(sub), "--data", str(data), "--out", str(out), "--quiet")
     return scores(out)
 
@@ -210,3 +210,29 @@ def test_scene_fits_as_ray_tasks_equal_fits_in_turn(local_ray, synthtown_smoke, 
         assert len(a.xyz) > 0
         for name in ("xyz", "rgb", "normals", "footprint"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@needs_ray
+@pytest.mark.slow
+@pytest.mark.weights
+def test_smoke_on_ray_with_every_real_network_equals_one_process_on_one_thread(local_ray, synthtown_smoke, tmp_path,
+                                                                             monkeypatch):
+    """Every metric of synthtown@1 with its real networks (Inception, I3D, LPIPS): `--ray` (one
+    thread a shard task) equals one process on one thread to the last digit (docs/scale.md: I3D
+    rounds otherwise on more threads); 8 shards, so one I3D clip a call (padded to two)."""
+    from builders.weights import require
+
+    from skyeyes_bench.metrics.extractors import get_extractor
+
+    files = [f for ex in ("inception-tf-2015", "i3d-kinetics400", "lpips-alex-v0.1") for f in get_extractor(ex).files]
+    require(*files)
+    sub = blurred_submission(open_dataset(synthtown_smoke), tmp_path / "blur", sigma=1.0)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # `threads.set_threads` gives each extractor one thread
+    want = one_process(sub, synthtown_smoke, tmp_path / "one.json", monkeypatch, tmp_path / "c1", files)
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    use_cache(monkeypatch, tmp_path / "c2", files)
+    run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(tmp_path / "ray.json"), "--quiet",
+            "--ray", "--shards", "8")
+    got = scores(tmp_path / "ray.json")
+    assert all(m["status"] == "ok" for m in got["metrics"].values()), got["metrics"]
+    assert got == want

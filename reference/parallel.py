@@ -8,6 +8,11 @@ processes fit `jobs` lanes at a time and the result is the same, bit for bit, as
 turn: each worker runs the method's own `fit_scene`, which writes the lane's checkpoint through
 a temporary file; the calling process then loads every checkpoint as a resumed fit would.
 
+With `reproduce --ray` (`on_ray`) the same worker function runs as Ray tasks instead (one CPU
+each, a share of a GPU for a method on CUDA), placed by the cluster (`skyeyes_bench.ray_exec`;
+the method's work folder, under --out, and the dataset must lie on a path every worker sees); the
+checkpoints they write are loaded here as above, so the results are again those of fits in turn.
+
 Timing stays honest: the seconds a loaded checkpoint records are added to `cached_s` only for
 lanes fitted by an earlier run (the original cost of work taken from a cache); lanes the workers
 fitted now are in the caller's wall clock already.
@@ -15,12 +20,14 @@ fitted now are in the caller's wall clock already.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import logging
 import os
 import pickle
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Iterator
 
 if TYPE_CHECKING:
     from reference.method import Method
@@ -97,12 +104,47 @@ def _fit_one(method: "Method", scene: "Scene") -> list[logging.LogRecord]:
     return keep.records
 
 
+#: Whether `fit_scenes` runs its workers as Ray tasks (`on_ray`) rather than local processes.
+_ON_RAY: contextvars.ContextVar[bool] = contextvars.ContextVar("reference_fits_on_ray", default=False)
+
+
+@contextlib.contextmanager
+def on_ray() -> Iterator[None]:
+    """Within the block, `fit_scenes` fits scenes as tasks of the running Ray (`ray_exec.session`),
+    whatever `jobs` says: the cluster's resources decide how many run at once."""
+    token = _ON_RAY.set(True)
+    try:
+        yield
+    finally:
+        _ON_RAY.reset(token)
+
+
+def _in_workers(method: "Method", todo: list["Scene"], jobs: int) -> Iterator[list[logging.LogRecord]]:
+    """`_fit_one` for each scene of `todo` in `jobs` local worker processes, or as Ray tasks
+    (`on_ray`); yields each fit's log records as it completes (a worker's exception is raised)."""
+    if _ON_RAY.get():
+        from skyeyes_bench import ray_exec
+
+        gpus = 1 / GPU_LANES if method.device.startswith("cuda") else 0
+        log.info("%s: fitting %d scenes as Ray tasks", method.name, len(todo))
+        yield from ray_exec.map_unordered(_fit_one, [(method, s) for s in todo], num_cpus=1, num_gpus=gpus)
+        return
+    n = min(jobs, len(todo))
+    global _most_workers
+    _most_workers = max(_most_workers, n)
+    log.info("%s: fitting %d scenes in %d worker processes", method.name, len(todo), n)
+    # spawn, not fork: torch's thread pools do not survive a fork.
+    with ProcessPoolExecutor(n, mp_context=get_context("spawn")) as pool:
+        for fut in as_completed([pool.submit(_fit_one, method, s) for s in todo]):
+            yield fut.result()  # a worker's exception is raised here, with its traceback
+
+
 def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
     """`method.fit_scene` for every scene, `jobs` scenes at a time in worker processes (1: in
     this process, in turn). Afterwards every scene is fitted in `method` as `fit_scene` leaves
     it, and `method.cached_s` counts only work earlier runs did."""
     todo = []
-    if jobs > 1 and parallel_ok(method):
+    if (jobs > 1 or _ON_RAY.get()) and parallel_ok(method):
         todo = [s for s in scenes if not (method.scene_dir(s) / method.scene_checkpoint).is_file()]
     if len(todo) > 1:
         try:
@@ -115,18 +157,10 @@ def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progre
     if len(todo) > 1:
         from tqdm import tqdm
 
-        n = min(jobs, len(todo))
-        global _most_workers
-        _most_workers = max(_most_workers, n)
-        log.info("%s: fitting %d scenes in %d worker processes", method.name, len(todo), n)
-        # spawn, not fork: torch's thread pools do not survive a fork.
-        with ProcessPoolExecutor(n, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(_fit_one, method, s): s for s in todo}
-            for fut in tqdm(as_completed(futures), total=len(futures), desc=f"{method.name} scenes",
+        for records in tqdm(_in_workers(method, todo, jobs), total=len(todo), desc=f"{method.name} scenes",
                             disable=None if progress else True, leave=False):
-                records = fut.result()  # a worker's exception is raised here, with its traceback
-                for record in records:  # into this process's log (reproduce.log), as if fitted here
-                    logging.getLogger(record.name).handle(record)
+            for record in records:  # into this process's log (reproduce.log), as if fitted here
+                logging.getLogger(record.name).handle(record)
         fresh = {s.name for s in todo}
     for scene in scenes:
         before = method.cached_s

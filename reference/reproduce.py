@@ -19,6 +19,7 @@ resumes there; any other run is refused (`check_out`) unless --force, which repl
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -132,20 +133,52 @@ def _setup_log(out: Path, *, fresh: bool = False) -> tuple[logging.Handler, ...]
     return fh, sh
 
 
+@contextlib.contextmanager
+def _on_ray(address: str):
+    """Ray for the run (`ray_exec.session`), and the scene fits as its tasks (`parallel.on_ray`)."""
+    from reference.parallel import on_ray
+    from skyeyes_bench import ray_exec
+
+    with ray_exec.session(address or None), on_ray():
+        yield
+
+
+def _score(sub_dir: Path, root: Path, out: Path, ray: str | None, progress: bool) -> dict:
+    """`evaluate` of the submission into `out` (replaced); with `ray`, as shards on the running Ray."""
+    from skyeyes_bench.batch import Job, evaluate_batch
+    from skyeyes_bench.evaluate import evaluate
+
+    if ray is None:
+        return evaluate(sub_dir, data=root, out=out, force=True, progress=progress)
+    got = evaluate_batch([Job(sub_dir, out, data=str(root))], ray=ray, force=True, progress=progress)[0]
+    if got.error is not None:
+        raise UserError(got.error) if got.exit_code == 2 else RuntimeError(got.error)
+    return got.results
+
+
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
         force: bool = False, progress: bool = True, device: str | None = None,
-        pretrained: str | None = None, jobs: int | None = None) -> dict:
+        pretrained: str | None = None, jobs: int | None = None, ray: str | None = None) -> dict:
     """The whole pipeline; returns the results dict (see module docstring for the files).
     jobs: worker processes fitting scenes at once (`reference.parallel`; None: every core for
-    the CPU geometry methods, else 1); it changes run time, never results."""
+    the CPU geometry methods, else 1); it changes run time, never results.
+    ray: None, or fit the scenes and score the submission as Ray tasks (`_on_ray`) on the cluster
+    at this address ("": a local Ray with this machine's cores); again the same results."""
     from reference.methods import get_method_class
     from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
-    from skyeyes_bench.evaluate import evaluate, format_summary
+    from skyeyes_bench.evaluate import format_summary
     from skyeyes_bench.submission import SubmissionWriter
 
     if jobs is not None and jobs < 1:
         raise UserError(f"--jobs {jobs}: expected a number of worker processes >= 1")
+    if ray is not None and jobs is not None:
+        raise UserError("--jobs with --ray: Ray places the scene fits by the cluster's CPUs; --jobs is for local "
+                        "worker processes (give one of them)")
+    if ray is not None:
+        from skyeyes_bench.ray_exec import require_ray
+
+        require_ray()  # before any work: without Ray, one line that says how to install it
     cls = get_method_class(method)
     config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
@@ -173,9 +206,11 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     # write below checks it again at its rename (`fileio.reading`)
     inputs = (root, config_d.get("pretrained"))
     fileio.check_apart(out, *inputs, desc="an input of this run (--data, --pretrained)")
+    held = contextlib.ExitStack()
+    if ray is not None:  # before any output: Ray missing or unreachable is one line
+        held.enter_context(_on_ray(ray))
     handlers = _setup_log(out, fresh=force)
-    held = fileio.reading(*inputs)
-    held.__enter__()
+    held.enter_context(fileio.reading(*inputs))
     try:
         work = out / "work" / key
         if force and work.exists():
@@ -184,7 +219,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
         m = cls(config, work / "method", seed=seed, progress=progress)
         m.jobs = default_jobs(m) if jobs is None else jobs
-        log.info("scene fits: %d worker process(es) (--jobs)", m.jobs)
+        log.info("scene fits: %s", "Ray tasks (--ray)" if ray is not None else f"{m.jobs} worker process(es) (--jobs)")
         # 2. Fit: train split, then each test scene (checkpoints make this resumable). The time
         # of a fit is its wall time plus the original time of what it took from caches.
         t0 = time.perf_counter()
@@ -245,7 +280,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB%s)", sub_dir, fit_s,
                  sum(per_frame), peak_rss_mb(), _peak_gpu_note())
         # 5. Evaluate.
-        res = evaluate(sub_dir, data=root, out=out / "results.json", force=True, progress=progress)
+        res = _score(sub_dir, root, out / "results.json", ray, progress)
         print(format_summary(res))
         print(f"results: {out / 'results.json'}")
         # 6. A method's figure (Skyeyes: aerial, prior, generated, ground truth) beside the results.
@@ -258,7 +293,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             (out / "figure.png").unlink()  # another run's, replaced with --force
         return res
     finally:
-        held.__exit__(None, None, None)
+        held.close()
         lg = logging.getLogger("reference")
         for h in handlers:
             lg.removeHandler(h)

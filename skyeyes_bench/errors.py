@@ -23,3 +23,12 @@ class ValidationError(UserError):
         shown = self.problems[:20]
         more = f"\n  ... and {n - len(shown)} more" if n > len(shown) else ""
         super().__init__(head + "".join(f"\n  - {p}" for p in shown) + more)
+
+
+def one_line(e: UserError) -> str:
+    """A user error as one line (for a report that lists several): a validation's first problem
+    and how many more there are."""
+    if isinstance(e, ValidationError) and len(e.problems) > 1:
+        return f"{e.problems[0]} (and {len(e.problems) - 1} more problem(s) of {e.what})"
+    text = str(e)
+    return text.splitlines()[0] if text else type(e).__name__

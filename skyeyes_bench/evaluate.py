@@ -81,6 +81,18 @@ def resolve_data(manifest: dict, protocol, data) -> Path:
                     f"{', '.join(str(c) for c in candidates)}); {how}")
 
 
+def open_inputs(sub: Path, data=None, protocol: str | None = None):
+    """(submission.json, the protocol that scores it, the dataset) of the submission folder `sub`:
+    `protocol` (`id@N`) or the one submission.json names; the dataset `data` or `resolve_data`'s.
+    Raises UserError / ValidationError for a manifest, protocol or dataset that cannot be used."""
+    from .data.layout import open_dataset
+    from .protocol import load_protocol
+
+    manifest = read_submission(sub)
+    proto = load_protocol(protocol or manifest["protocol"])
+    return manifest, proto, open_dataset(resolve_data(manifest, proto, data))
+
+
 def _clips(n_frames: int, length: int, stride: int) -> list[range]:
     """Clips of `length` consecutive frames starting every `stride` frames (none if too short)."""
     return [range(s, s + length) for s in range(0, n_frames - length + 1, max(1, stride))]
@@ -139,16 +151,12 @@ def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
 
 def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: bool, protocol, dev,
               held: contextlib.ExitStack) -> dict[str, Any]:
-    from .data.layout import open_dataset
     from .metrics.extractors import on_device
-    from .protocol import load_protocol as _load_protocol
 
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
     with _stage(timing, "validate_s"):
-        manifest = read_submission(sub)
-        protocol = _load_protocol(protocol or manifest["protocol"])
-        ds = open_dataset(resolve_data(manifest, protocol, data))
+        manifest, protocol, ds = open_inputs(sub, data, protocol)
         if out is not None:
             _check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
             held.enter_context(fileio.output_lock(out))  # a second run to this --out: one line, exit 2

@@ -1,10 +1,13 @@
 """`skyeyes-bench leaderboard [--check]`: regenerate (or verify) the leaderboard files;
-`skyeyes-bench leaderboard add RESULTS.json [--name NAME] [--force]`: file a result."""
+`skyeyes-bench leaderboard add RESULTS.json [--name NAME] [--force]`: file a result;
+`skyeyes-bench leaderboard evaluate INBOX/ [--ray [ADDRESS]]`: score, file and publish an inbox."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+from ..batch import RAY_HELP, RAY_ORDER
 
 
 def register(sub) -> None:
@@ -31,6 +34,26 @@ def register(sub) -> None:
     a.add_argument("--name", help="name to file it under (default: the submission's method name)")
     a.add_argument("--root", dest="add_root", metavar="DIR", help="leaderboard folder (default: leaderboard/)")
     a.add_argument("--force", action="store_true", help="replace a result already filed under that name")
+    e = acts.add_parser("evaluate", help="score every new or changed submission folder of an inbox, file the "
+                        "results and regenerate the page",
+                        description="The leaderboard's intake: score every submission folder in INBOX that is new "
+                        "or changed since it was filed (sha256 of its files, recorded in OUT/intake.json), in turn "
+                        "or with --ray as shards on Ray; file each result as `leaderboard add --name FOLDER` does "
+                        "(its results in OUT/FOLDER.results.json); then regenerate the page. A submission that "
+                        "cannot be scored or filed is one line naming it, and is skipped: the others are filed, "
+                        "the page is regenerated, and the exit code is 2 (1 for an internal error). docs/scale.md")
+    e.add_argument("inbox", nargs="?", metavar="INBOX", help="folder of submission folders (each a plain name: the "
+                   "name its result is filed under)")
+    e.add_argument("--root", dest="ev_root", metavar="DIR", help="leaderboard folder (default: leaderboard/)")
+    e.add_argument("--out", dest="ev_out", metavar="DIR", help="results files and the intake's record (default: "
+                   "INBOX.intake/ beside the inbox)")
+    e.add_argument("--data", metavar="DIR", help="dataset folder (default: from each submission.json, as `evaluate`)")
+    e.add_argument("--ray", nargs="?", const="", metavar="ADDRESS", help=RAY_HELP + RAY_ORDER)
+    e.add_argument("--shards", type=int, metavar="N", help="with --ray: shards per submission (default: one per task "
+                   "the cluster runs at once)")
+    e.add_argument("--device", default="cpu", metavar="DEV", help="where the feature extractors run, as `evaluate "
+                   "--device` (default: cpu, the reference)")
+    e.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run)
 
 
@@ -77,5 +100,27 @@ def _add(args) -> int:
     return 0
 
 
+def _evaluate(args) -> int:
+    from ..batch import ray_address
+    from ..errors import UserError
+    from ..leaderboard.intake import intake
+
+    folders = [args.inbox] if args.inbox else []
+    ray = ray_address(args.ray, folders)
+    if len(folders) != 1:
+        raise UserError("leaderboard evaluate: expected one INBOX folder")
+    if args.shards is not None and ray is None:
+        raise UserError("--shards N: only with --ray")
+    if ray is not None:
+        from ..ray_exec import require_ray
+
+        require_ray()  # before any work: without Ray, one line that says how to install it
+    lines, rc = intake(folders[0], root=_root(args.ev_root or args.root), out=args.ev_out, data=args.data, ray=ray,
+                       shards=args.shards, device=args.device, progress=not args.quiet)
+    for line in lines:
+        print(line, file=sys.stderr if ": error: " in line else sys.stdout)
+    return rc
+
+
 #: The group's actions (without one, `leaderboard` regenerates the page).
-ACTIONS = {"add": _add}
+ACTIONS = {"add": _add, "evaluate": _evaluate}

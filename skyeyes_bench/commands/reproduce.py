@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from ..batch import RAY_HELP
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -35,6 +37,11 @@ def register(sub) -> None:
                    help="worker processes fitting scenes (lanes) at once; results are identical for any N, only the "
                         "run time changes (default: every core for the CPU geometry methods and Skyeyes' prior, "
                         "which fit a lane on one thread; else 1)")
+    p.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                   help=RAY_HELP + ": the test "
+                        "lanes of the geometry methods and Skyeyes' prior fit as Ray tasks in place of --jobs's worker "
+                        "processes (--out on a shared path too, for the checkpoints), and the submission is scored as "
+                        "shards on Ray; the same results")
     p.add_argument("--force", action="store_true",
                    help="discard this run's cached stages and replace the outputs in --out, also another run's "
                         "(without it the same run resumes, another run's --out is refused)")
@@ -45,8 +52,9 @@ def register(sub) -> None:
 def run(args) -> int:
     # The one place skyeyes_bench imports `reference` (the methods), and only when the command runs.
     from reference import reproduce
+    from skyeyes_bench.batch import ray_address
 
     reproduce.run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
                   force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
-                  pretrained=args.pretrained, jobs=args.jobs)
+                  pretrained=args.pretrained, jobs=args.jobs, ray=ray_address(args.ray, []))
     return 0

@@ -81,6 +81,19 @@ def _to_cpu_f64(t) -> np.ndarray:
     return t.cpu().double().numpy()
 
 
+def pad_batch(items: np.ndarray, size: int) -> np.ndarray:
+    """`items` [n, ...] padded to [max(n, size), ...] with copies of its last row; the caller keeps
+    the first n outputs. oneDNN, torch's CPU convolution, chooses its kernels (and so how it rounds)
+    by shape: measured here (AVX-512), Inception and LPIPS give other float32 bits for a batch of one
+    frame than in any batch of 2..16, and I3D for one clip than in a batch of two. An extractor's
+    `min_batch` pads below that, so a frame's features do not depend on which frames share its
+    forward pass: shards (`evaluate --shard`, `--ray`) and cache hits that split the batches
+    differently give the same bytes (tests/skyeyes_bench/metrics/test_metrics_real_weights.py)."""
+    n = len(items)
+    assert n > 0, n
+    return items if n >= size else np.concatenate([items, np.repeat(items[-1:], size - n, axis=0)])
+
+
 class Extractor:
     """Base: id, kind, dim, weight files; status() and lazy model."""
 
@@ -91,6 +104,8 @@ class Extractor:
     reference: str = ""
     #: the protocol's `resize` name this extractor implements (None: not applicable)
     resize: str | None = None
+    #: smallest batch the network runs on (`pad_batch`: smaller ones are padded)
+    min_batch: int = 2
 
     def __init__(self):
         self._models: dict[str, object] = {}  # device string -> the network loaded there
@@ -157,8 +172,9 @@ class Extractor:
         out = np.zeros((len(inputs), self.dim), np.float64)
         with torch.inference_mode(), full_fp32(dev):  # chunks bound the memory whatever N is
             for s in range(0, len(inputs), self.chunk):
-                x = preprocess(inputs[s:s + self.chunk]).to(dev)  # keeps channels-last memory
-                out[s:s + self.chunk] = _to_cpu_f64(model(x))
+                part = inputs[s:s + self.chunk]
+                x = preprocess(pad_batch(part, self.min_batch)).to(dev)  # keeps channels-last memory
+                out[s:s + len(part)] = _to_cpu_f64(model(x))[:len(part)]
         return out
 
 

@@ -128,7 +128,7 @@ def lpips_map(pred: np.ndarray, gt: np.ndarray, net: str = "alex", *, batch_size
 
 
 def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool, device=None) -> np.ndarray:
-    from .extractors import get_extractor
+    from .extractors import get_extractor, pad_batch
 
     pred, gt = _check_pair(pred, gt, "lpips")
     if net not in ("alex", "vgg"):
@@ -139,6 +139,11 @@ def _lpips(pred, gt, net: str, batch_size: int, *, spatial: bool, device=None) -
     lead = pred.shape[:-3]
     p = pred.reshape((-1,) + pred.shape[-3:])
     g = gt.reshape((-1,) + gt.shape[-3:])
-    out = np.concatenate([run(p[i:i + batch_size], g[i:i + batch_size], device=device)
-                          for i in range(0, len(p), batch_size)]) if len(p) else np.zeros((0,) + tail)
+    outs = []
+    for i in range(0, len(p), batch_size):
+        n = min(batch_size, len(p) - i)
+        # no call below the network's `min_batch` pairs (`pad_batch`): a pair's value does not depend on its batch
+        k = ex.min_batch
+        outs.append(run(pad_batch(p[i:i + n], k), pad_batch(g[i:i + n], k), device=device)[:n])
+    out = np.concatenate(outs) if outs else np.zeros((0,) + tail)
     return out.reshape(lead + tail)

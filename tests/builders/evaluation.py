@@ -171,3 +171,14 @@ def indexed_submission(ds, out: Path, method="indexed", step=10) -> Path:
             w.add(scene, f, np.clip(f.image() / 3 + (20 + step * int(f.index)) / 255, 0, 1))
         w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
     return out
+
+
+def scores(doc: dict) -> dict:
+    """What must not depend on how a result was computed (one process, shards and `merge`, Ray,
+    Slurm): every metric (value, interval, replicates), the per-sequence and per-frame values and
+    the hashes of what was scored. An unavailable metric's reason is left out: it names the cache
+    that lacked the weights."""
+    got = {k: doc[k] for k in ("metrics", "sequences", "frames", "sha256")}
+    got["metrics"] = {name: {k: v for k, v in m.items() if not (m["status"] == "unavailable" and k == "reason")}
+                      for name, m in got["metrics"].items()}
+    return got

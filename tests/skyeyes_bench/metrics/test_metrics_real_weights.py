@@ -96,6 +96,10 @@ def test_fvd_self_zero():
     mu, cov = _stats(f)
     assert frechet_distance(mu, cov, mu, cov) == pytest.approx(0.0, abs=1e-6)
     assert np.abs(f[0] - f[1]).max() > 1e-2  # distinct clips give distinct features
+    # a clip's features do not depend on its batch (`pad_batch`): oneDNN rounds a batch of one
+    # clip otherwise than one of two, and shards split clips into batches differently (issue 38)
+    np.testing.assert_array_equal(ex.features(clips[1:]), f[1:])
+
 
 
 # --------------------------------------------------------------------------- LPIPS
@@ -222,3 +226,15 @@ def test_lpips_map_is_where_the_images_differ_and_averages_near_lpips():
     assert m[0, :, :56].mean() > 5 * m[0, :, 72:].mean()
     assert m.mean() == pytest.approx(lpips(blurred[None], img[None], net="alex")[0], rel=0.05)
     assert lpips_map(img[None], img[None], net="alex") == pytest.approx(0.0, abs=1e-6)
+
+
+@needs_inception
+@needs_lpips("alex")
+def test_inception_and_lpips_of_a_frame_do_not_depend_on_its_batch():
+    """`pad_batch`: a batch of one frame went through other oneDNN kernels (other float32 bits),
+    so a shard's last frame scored otherwise than in an unsharded run (issue 38)."""
+    imgs = _crops(3, size=64, seed=3)
+    blurred = gaussian_filter(imgs, sigma=(0, 1.0, 1.0, 0)).astype(np.float32)
+    ex = get_extractor("inception-tf-2015")
+    np.testing.assert_array_equal(ex.features(imgs[2:]), ex.features(imgs)[2:])
+    np.testing.assert_array_equal(lpips(blurred[2:], imgs[2:]), lpips(blurred, imgs)[2:])

@@ -1,0 +1,95 @@
+"""Several submissions scored by one command (`evaluate SUB...`, `leaderboard evaluate INBOX/`):
+in turn in this process, or, with `--ray`, as shards on Ray (`ray_exec`, imported only then).
+Either way a submission that cannot be scored is an `Outcome` with its one-line error and the
+others are still scored; each results file is written whole or not at all.
+
+```
+outcomes = evaluate_batch([Job(sub, out)], ray=None)    # in turn, here
+outcomes = evaluate_batch(jobs, ray="")                  # a local Ray; ray="HOST:PORT": a cluster
+```
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import UserError, one_line
+
+#: What `--ray ADDRESS` accepts: Ray's own words, HOST:PORT, or a ray:// client address.
+_ADDRESS = re.compile(r"auto|local|ray://\S+|[^\s/:]+:\d+")
+
+#: The help line of every `--ray` flag (evaluate, reproduce, leaderboard evaluate).
+RAY_HELP = ("run on Ray (pip install 'skyeyes-bench[ray]'): the cluster at ADDRESS (HOST:PORT, ray://HOST:PORT, "
+            "auto), or without one a local Ray with this machine's cores; inputs must lie on a path every worker "
+            "sees (docs/scale.md)")
+#: ... and where a command also takes folders (argparse would give `--ray FOLDER` the folder).
+RAY_ORDER = ". Put it after the folders, or write --ray=ADDRESS"
+
+
+@dataclass
+class Job:
+    """One submission to score: its folder, the results file, and `evaluate`'s --data and --protocol."""
+
+    sub: Path
+    out: Path
+    data: str | None = None
+    protocol: str | None = None
+
+
+@dataclass
+class Outcome:
+    """What became of a `Job`: its results, or the one line that says why not (and its exit code);
+    on Ray also the seconds each shard task took on its worker and the driver's merge."""
+
+    job: Job
+    results: dict | None = None
+    error: str | None = None
+    exit_code: int = 0
+    shard_s: list[float] = field(default_factory=list)
+    merge_s: float = 0.0
+
+
+def ray_address(value: str | None, folders: list[str]) -> str | None:
+    """`--ray [ADDRESS]` as argparse left it: None (not given), "" (a local Ray) or an address.
+    argparse gives `--ray SUB` the folder SUB as ADDRESS: a value that is no address but a folder
+    here goes back to the front of `folders` (in place)."""
+    if value is None or value == "" or _ADDRESS.fullmatch(value):
+        return value
+    if Path(value).is_dir():
+        folders.insert(0, value)
+        return ""
+    raise UserError(f"--ray {value}: expected a Ray address (HOST:PORT, ray://HOST:PORT, auto or local) or no value "
+                    "for a local Ray")
+
+
+def evaluate_batch(jobs: list[Job], *, ray: str | None = None, shards: int | None = None, device: str | None = "cpu",
+                   force: bool = False, progress: bool = True) -> list[Outcome]:
+    """Score each job: `ray` None: in turn with `evaluate.evaluate`; else as shard tasks on the Ray
+    at that address ("": a local one; `ray_exec.evaluate_many`). shards: per submission on Ray."""
+    if shards is not None and shards < 1:
+        raise UserError(f"--shards {shards}: expected a number of shards >= 1")
+    if ray is None:
+        return [_here(job, device, force, progress) for job in jobs]
+    from . import ray_exec
+
+    with ray_exec.session(ray or None):
+        got = ray_exec.evaluate_many(jobs, shards=shards, device=device, force=force, progress=progress)
+    return [Outcome(job, **g) for job, g in zip(jobs, got)]
+
+
+def exit_code(outcomes: list[Outcome]) -> int:
+    """0 when every job was scored; else 1 if any failed for an internal reason, else 2 (invalid input)."""
+    codes = {o.exit_code for o in outcomes if o.error is not None}
+    return 0 if not codes else 1 if 1 in codes else max(codes)
+
+
+def _here(job: Job, device, force: bool, progress: bool) -> Outcome:
+    from .evaluate import evaluate
+
+    try:
+        return Outcome(job, results=evaluate(job.sub, data=job.data, out=job.out, force=force, progress=progress,
+                                             protocol=job.protocol, device=device))
+    except UserError as e:
+        return Outcome(job, error=one_line(e), exit_code=e.exit_code)

@@ -27,13 +27,29 @@ import os
 import pickle
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
-from typing import TYPE_CHECKING, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator, Protocol
 
 if TYPE_CHECKING:
-    from reference.method import Method
     from skyeyes_bench.data.layout import Scene
 
 log = logging.getLogger(__name__)
+
+
+class SceneFitter(Protocol):
+    """What the fits here need of a method (`reference.method.Method` is one; this module does not
+    import it, so the method module can call on this one without an import circle)."""
+
+    name: str
+    device: str
+    config: Any
+    scene_checkpoint: str | None
+    progress: bool
+    cached_s: float
+
+    def fit_scene(self, scene: "Scene", *, progress: bool = True) -> None: ...
+
+    def scene_dir(self, scene: "Scene") -> Path: ...
 
 #: The most worker processes that ran at once in this process (for the peak memory of a run).
 _most_workers = 0
@@ -58,7 +74,7 @@ def available_cores() -> int:
 GPU_LANES = 8
 
 
-def default_jobs(method: "Method") -> int:
+def default_jobs(method: SceneFitter) -> int:
     """Worker processes when the user did not say: every core for a method on the CPU, up to
     `GPU_LANES` (and the cores) on a GPU, else 1. `fit_scenes` uses them only for methods that
     fit a scene on one thread (`parallel_ok`)."""
@@ -70,7 +86,7 @@ def default_jobs(method: "Method") -> int:
     return 1
 
 
-def parallel_ok(method: "Method") -> bool:
+def parallel_ok(method: SceneFitter) -> bool:
     """Whether `method`'s scenes may be fitted in worker processes: it keeps a checkpoint per
     scene to hand back, and fits on one torch thread (more would oversubscribe the cores)."""
     return method.scene_checkpoint is not None and getattr(method.config, "threads", None) == 1
@@ -91,7 +107,7 @@ class _Keep(logging.Handler):
         self.records.append(record)
 
 
-def _fit_one(method: "Method", scene: "Scene") -> list[logging.LogRecord]:
+def _fit_one(method: SceneFitter, scene: "Scene") -> list[logging.LogRecord]:
     """Worker: fit one scene with the caller's method (its train-split state included); return
     the log records it made (the caller's log gets them). The checkpoint, with the fit's
     statistics beside it, is on disk when this returns."""
@@ -119,7 +135,7 @@ def on_ray() -> Iterator[None]:
         _ON_RAY.reset(token)
 
 
-def _in_workers(method: "Method", todo: list["Scene"], jobs: int) -> Iterator[list[logging.LogRecord]]:
+def _in_workers(method: SceneFitter, todo: list["Scene"], jobs: int) -> Iterator[list[logging.LogRecord]]:
     """`_fit_one` for each scene of `todo` in `jobs` local worker processes, or as Ray tasks
     (`on_ray`); yields each fit's log records as it completes (a worker's exception is raised)."""
     if _ON_RAY.get():
@@ -139,7 +155,7 @@ def _in_workers(method: "Method", todo: list["Scene"], jobs: int) -> Iterator[li
             yield fut.result()  # a worker's exception is raised here, with its traceback
 
 
-def fit_scenes(method: "Method", scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
+def fit_scenes(method: SceneFitter, scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
     """`method.fit_scene` for every scene, `jobs` scenes at a time in worker processes (1: in
     this process, in turn). Afterwards every scene is fitted in `method` as `fit_scene` leaves
     it, and `method.cached_s` counts only work earlier runs did."""

@@ -287,12 +287,11 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             r["interval_note"] = few
         else:
             d = advantage(reps[0], reps[1], name)
-            centre = METRICS[name].centre if name in METRICS else "value"
-            iv = interval_from_replicates(adv, d, st.interval, k, centre)
+            iv = interval_from_replicates(adv, d, st.interval, k)
             if iv is not None:
                 r["bootstrap_interval"] = [iv[0], iv[1]]
                 r["interval_widened"] = iv[2]
-                r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv, d, k, centre) > 0))
+                r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv, d, k) > 0))
         r["advantage_mean"] = adv  # the name older readers use; the same number
         out["metrics"][name] = r
     return out

@@ -53,10 +53,6 @@ class MetricDef:
     # a property of the ground truth (the same for every submission on the dataset: the unseen
     # share, the warp floor): reported beside the scores, never ranked or compared
     reference: bool = False
-    # Where its half-sampling draws are reflected (`stats.replicate_draws`): "value", est - s (theta_r - est),
-    # whose shift corrects a 1/N bias (FID, KID, ...); "replicates", mean - s (theta_r - mean), for a value that
-    # is its own bias correction and carries noise of its own (FD∞'s random subsets: docs/metrics.md)
-    centre: str = "value"
 
 
 _KID_KEYS = frozenset({"extractor", "resize", "subset_size", "num_subsets"})
@@ -69,8 +65,7 @@ _MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.s
 _INF_KEYS = frozenset({"extractor", "resize", "num_sizes", "min_fraction", "num_subsets"})
 _FRECHET_INF = dict(estimator="skyeyes_bench.estimators:frechet_inf",
                     bootstrap="skyeyes_bench.frechet_inf:FrechetInfinity.from_features", lower_bound=0.0,
-                    min_rows=3,  # two subset sizes at least: a line to extrapolate
-                    centre="replicates")
+                    min_rows=3)  # two subset sizes at least: a line to extrapolate
 _SSIM_KEYS = frozenset({"window", "sigma", "k1", "k2"})
 _DEPTH = frozenset({"depth_tolerance"})
 # Seen / unseen regions of the ground views (docs/metrics.md): masks from the depth test against

@@ -28,11 +28,6 @@ from .registry import load_entry_point
 
 RESULTS_FORMAT = "skyeyes-bench/results@1"
 PARTIAL_FORMAT = "skyeyes-bench/partial@1"
-#: Why an interval was widened to contain its value, by where its draws are reflected (`stats.replicate_draws`).
-WIDENED = {"value": "interval widened to contain the value: the half-sample draws lie on one side of it (a "
-                    "small-sample bias of this metric larger than its spread)",
-           "replicates": "interval widened to contain the value: the value lies outside its replicates' interval (the "
-                         "noise of its own random subsets, or a bias the extrapolation left)"}
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -110,21 +105,21 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         "too_few": few, "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
         "interval": stats.INTERVAL_METHOD, "half_size": k // 2, "scale": stats.half_scale(k) if k >= 2 else None}
 
-    def summarise(value: float, replicates: np.ndarray | None, floor: float | None = None,
-                  centre: str = "value") -> dict:
-        """interval (null + reason below MIN_CLUSTERS; clipped at the metric's `floor`; its draws
-        reflected about the value or the replicates' mean: `centre`), replicates (6 significant digits)."""
+    def summarise(value: float, replicates: np.ndarray | None, floor: float | None = None) -> dict:
+        """interval (null + reason below MIN_CLUSTERS; clipped at the metric's `floor`),
+        replicates (6 significant digits)."""
         if replicates is None:
             return {"interval": None, "interval_note": few, "replicates": None}
         out: dict = {"replicates": stats.round_replicates(replicates)}
-        iv = stats.interval_from_replicates(value, replicates, st.interval, k, centre)
+        iv = stats.interval_from_replicates(value, replicates, st.interval, k)
         if iv is None:
             out.update(interval=None, interval_note="no replicate is defined")
         else:
             # clipped at the floor, but never above the value (FID∞ extrapolates and may lie below 0)
             out["interval"] = [iv[0] if floor is None else max(iv[0], min(floor, value)), iv[1]]
             if iv[2]:
-                out["interval_note"] = WIDENED[centre]
+                out["interval_note"] = ("interval widened to contain the value: the half-sample draws lie on one "
+                                        "side of it (a small-sample bias of this metric larger than its spread)")
         return out
 
     metrics: dict[str, dict] = {}
@@ -192,7 +187,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,
                            "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
                            "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
-                           **summarise(value, reps, spec.lower_bound, spec.centre)}
+                           **summarise(value, reps, spec.lower_bound)}
     res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
     res["sequences"] = per_seq
     res.pop("unavailable", None)

@@ -82,33 +82,28 @@ def half_scale(n_clusters: int) -> float:
     return math.sqrt(m / (n_clusters - m))
 
 
-def replicate_draws(estimate: float, replicates, n_clusters: int, centre: str = "value") -> np.ndarray:
-    """Draws standing for the sampling law of `estimate`: c - s (theta_r - c), undefined (None /
-    NaN) replicates dropped, reflected about c = est (`centre` "value": the shift corrects a 1/N
-    bias) or about c = the replicates' mean ("replicates": for an estimate that corrects its own
-    bias and carries noise of its own, FD∞, whose random subsets the reflection about est would
-    count twice; `metricspec.MetricDef.centre`). An infinite estimate (PSNR with exact frames) has
-    no finite shift: its draws are the replicates themselves."""
-    assert centre in ("value", "replicates"), centre
+def replicate_draws(estimate: float, replicates, n_clusters: int) -> np.ndarray:
+    """Draws standing for the sampling law of `estimate`: est - s (theta_r - est), undefined
+    (None / NaN) replicates dropped. An infinite estimate (PSNR with exact frames) has no
+    finite shift: its draws are the replicates themselves."""
     r = np.array([np.nan if v is None else v for v in replicates], dtype=np.float64)
     r = r[~np.isnan(r)]
     if not math.isfinite(estimate):
         return r
     with np.errstate(invalid="ignore", over="ignore"):  # values near 1e308 (hostile files): +-inf draws
-        c = float(np.mean(r)) if centre == "replicates" and len(r) else estimate
-        d = c - half_scale(n_clusters) * (r - c)
+        d = estimate - half_scale(n_clusters) * (r - estimate)
     return d[~np.isnan(d)]
 
 
-def interval_from_replicates(estimate: float, replicates, level: float, n_clusters: int,
-                             centre: str = "value") -> tuple[float, float, bool] | None:
+def interval_from_replicates(estimate: float, replicates, level: float,
+                             n_clusters: int) -> tuple[float, float, bool] | None:
     """The reported interval from half-sampling replicates [R] (any metric, or a paired
     difference of two metrics' replicates): percentile interval of `replicate_draws`, widened to
     contain `estimate`. Returns (lo, hi, widened) or None when no replicate is defined.
 
     The replicates of a paired difference are `advantage(replicates_a, replicates_b)`, element
     by element, with `estimate` = `advantage(value_a, value_b)`."""
-    d = replicate_draws(estimate, replicates, n_clusters, centre)
+    d = replicate_draws(estimate, replicates, n_clusters)
     if not len(d):
         return None
     lo, hi = percentile_interval(d, level)

@@ -70,7 +70,7 @@ def replicate_interval(ra: np.ndarray, rb: np.ndarray, metric: str, level: float
     st = statistics or {}
     half = getattr(stats, "interval_from_replicates", None)
     if st.get("interval") == "half-sampling" and half is not None and estimate is not None and st.get("clusters"):
-        iv = half(estimate, d, level, int(st["clusters"]), METRICS[metric].centre if metric in METRICS else "value")
+        iv = half(estimate, d, level, int(st["clusters"]))
         return None if iv is None else (iv[0], iv[1])
     d = d[~np.isnan(d)]
     return stats.percentile_interval(d, level) if len(d) else None

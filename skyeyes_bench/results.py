@@ -145,7 +145,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
                 value = stats.pooled_value(v, w, spec.pool)
             reps = None if counts is None else stats.frame_metric_samples(v, clusters, counts, w, spec.pool)
             metrics[name] = {"status": "ok", "kind": "frame", "value": value, "level": st.interval,
-                             "higher_is_better": stats.higher_is_better(name), "n": int(len(v)),
+                             "higher_is_better": spec.higher_is_better, "n": int(len(v)),
                              **summarise(value, reps)}
             if w is not None:  # pooled pixels (docs/metrics.md): n frames hold `pixels` of the region
                 metrics[name].update(n=int((w > 0).sum()), pixels=int(w.sum()), pool=spec.pool)

@@ -168,17 +168,8 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import format_summary
-    from skyeyes_bench.submission import SubmissionWriter
 
-    if jobs is not None and jobs < 1:
-        raise UserError(f"--jobs {jobs}: expected a number of worker processes >= 1")
-    if ray is not None and jobs is not None:
-        raise UserError("--jobs with --ray: Ray places the scene fits by the cluster's CPUs; --jobs is for local "
-                        "worker processes (give one of them)")
-    if ray is not None:
-        from skyeyes_bench.ray_exec import require_ray
-
-        require_ray()  # before any work: without Ray, one line that says how to install it
+    _check_options(jobs, ray)
     cls = get_method_class(method)
     config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
@@ -237,19 +228,52 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         fit_s = time.perf_counter() - t0 + m.cached_s
         # 3. Render every test sequence; frames already in the cache are reused.
         renders = work / "renders"
-        tfile = renders / "timings.json"
-        timings = fileio.read_json(tfile, allow_nan=True) if tfile.is_file() else {}
-        from tqdm import tqdm
+        timings, cached_renders_s = _render(m, scenes, renders, progress)
+        # Work taken from caches (diffusion stages, priors, resumed fits, rendered frames) is
+        # reported at its original cost, and how much of the total that is: a run's time is what
+        # producing its result cost, not how long this invocation happened to take.
+        cached_s = m.cached_s + cached_renders_s
+        # 4. Submission from the render cache.
+        per_frame = [timings[f"{sc.name}/{f.file}"] for sc in scenes for s in sc.sequences.values() for f in s]
+        sub_dir = out / "submission"
+        sub_config = {"preset": preset, "seed": seed, "cache_key": key, **config_d}
+        _write_submission(sub_dir, ds, scenes, renders, method, cls.version, sub_config,
+                          {"fit_s": fit_s, "render_s": float(sum(per_frame)), "per_frame_render_s": per_frame,
+                           "cached_s": cached_s})
+        log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB%s)", sub_dir, fit_s,
+                 sum(per_frame), peak_rss_mb(), _peak_gpu_note())
+        # 5. Evaluate.
+        res = _score(sub_dir, root, out / "results.json", ray, progress)
+        print(format_summary(res))
+        print(f"results: {out / 'results.json'}")
+        _copy_figure(work / "method" / "figure.png", out / "figure.png")
+        return res
+    finally:
+        held.close()
+        lg = logging.getLogger("reference")
+        for h in handlers:
+            lg.removeHandler(h)
+            h.close()
 
-        total = sum(len(s) for sc in scenes for s in sc.sequences.values())
-        bar = tqdm(total=total, desc="render", disable=None if progress else True, leave=False)
-        cached_renders_s = 0.0
+
+def _render(m, scenes: list, renders: Path, progress: bool) -> tuple[dict, float]:
+    """Every test sequence of `scenes` rendered by method `m` into `renders/<scene>/<file>`, one
+    atomic write a frame; a sequence whose frames and timings are all there already is reused.
+    Returns the per-frame seconds ({"scene/file": s}, also in `renders/timings.json`, written
+    after each sequence) and the seconds of the reused frames (their original cost)."""
+    from tqdm import tqdm
+
+    tfile = renders / "timings.json"
+    timings = fileio.read_json(tfile, allow_nan=True) if tfile.is_file() else {}
+    total = sum(len(s) for sc in scenes for s in sc.sequences.values())
+    cached_s = 0.0
+    with tqdm(total=total, desc="render", disable=None if progress else True, leave=False) as bar:
         for scene in scenes:
             for seq in scene.sequences.values():
                 paths = [renders / scene.name / f.file for f in seq]
                 if all(p.is_file() for p in paths) and all(f"{scene.name}/{f.file}" in timings for f in seq):
                     bar.update(len(paths))
-                    cached_renders_s += sum(timings[f"{scene.name}/{f.file}"] for f in seq)
+                    cached_s += sum(timings[f"{scene.name}/{f.file}"] for f in seq)
                     continue
                 t_prev = time.perf_counter()
                 for frame, img, p in zip(seq, m.render_sequence(scene, seq), paths):
@@ -259,42 +283,44 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
                     t_prev = now
                     bar.update(1)
                 fileio.write_json(tfile, timings)
-        bar.close()
-        # Work taken from caches (diffusion stages, priors, resumed fits, rendered frames) is
-        # reported at its original cost, and how much of the total that is: a run's time is what
-        # producing its result cost, not how long this invocation happened to take.
-        cached_s = m.cached_s + cached_renders_s
-        # 4. Submission from the render cache.
-        per_frame = [timings[f"{sc.name}/{f.file}"] for sc in scenes for s in sc.sequences.values() for f in s]
-        sub_dir = out / "submission"
-        with SubmissionWriter(sub_dir, dataset=ds, method=method, method_version=cls.version,
-                              config={"preset": preset, "seed": seed, "cache_key": key, **config_d},
-                              overwrite=True) as w:
-            for sc in scenes:
-                for s in sc.sequences.values():
-                    for f in s:
-                        w.add(sc.name, f, fileio.read_image(renders / sc.name / f.file))
-            w.finish(timings={"fit_s": fit_s, "render_s": float(sum(per_frame)), "per_frame_render_s": per_frame,
-                              "cached_s": cached_s},
-                     peak_memory_mb=peak_rss_mb(), hardware=None)
-        log.info("submission written: %s (fit %.1f s, render %.1f s, peak RSS %.0f MB%s)", sub_dir, fit_s,
-                 sum(per_frame), peak_rss_mb(), _peak_gpu_note())
-        # 5. Evaluate.
-        res = _score(sub_dir, root, out / "results.json", ray, progress)
-        print(format_summary(res))
-        print(f"results: {out / 'results.json'}")
-        # 6. A method's figure (Skyeyes: aerial, prior, generated, ground truth) beside the results.
-        fig = work / "method" / "figure.png"
-        if fig.is_file():
-            with fileio.atomic_path(out / "figure.png") as tmp:
-                shutil.copyfile(fig, tmp)
-            print(f"figure: {out / 'figure.png'}")
-        elif (out / "figure.png").is_file():
-            (out / "figure.png").unlink()  # another run's, replaced with --force
-        return res
-    finally:
-        held.close()
-        lg = logging.getLogger("reference")
-        for h in handlers:
-            lg.removeHandler(h)
-            h.close()
+    return timings, cached_s
+
+
+def _check_options(jobs: int | None, ray: str | None) -> None:
+    """--jobs and --ray, before any work: a one-line UserError for a bad pair, or for --ray
+    without Ray installed (with the command that installs it)."""
+    if jobs is not None and jobs < 1:
+        raise UserError(f"--jobs {jobs}: expected a number of worker processes >= 1")
+    if ray is not None and jobs is not None:
+        raise UserError("--jobs with --ray: Ray places the scene fits by the cluster's CPUs; --jobs is for local "
+                        "worker processes (give one of them)")
+    if ray is not None:
+        from skyeyes_bench.ray_exec import require_ray
+
+        require_ray()
+
+
+def _copy_figure(fig: Path, dest: Path) -> None:
+    """A method's figure (Skyeyes: aerial, prior, generated, ground truth) beside the results, or
+    no figure there when this run made none (another run's, replaced with --force)."""
+    if fig.is_file():
+        with fileio.atomic_path(dest) as tmp:
+            shutil.copyfile(fig, tmp)
+        print(f"figure: {dest}")
+    elif dest.is_file():
+        dest.unlink()
+
+
+def _write_submission(sub_dir: Path, ds, scenes: list, renders: Path, method: str, version: str, config: dict,
+                      timings: dict) -> None:
+    """The submission folder from the render cache (`renders/<scene>/<file>`), with the run's
+    timings, peak memory and hardware."""
+    from skyeyes_bench.submission import SubmissionWriter
+
+    with SubmissionWriter(sub_dir, dataset=ds, method=method, method_version=version, config=config,
+                          overwrite=True) as w:
+        for sc in scenes:
+            for s in sc.sequences.values():
+                for f in s:
+                    w.add(sc.name, f, fileio.read_image(renders / sc.name / f.file))
+        w.finish(timings=timings, peak_memory_mb=peak_rss_mb(), hardware=None)

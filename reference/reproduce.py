@@ -159,11 +159,10 @@ def _score(sub_dir: Path, root: Path, out: Path, ray: str | None, progress: bool
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
         force: bool = False, progress: bool = True, device: str | None = None,
         pretrained: str | None = None, jobs: int | None = None, ray: str | None = None) -> dict:
-    """The whole pipeline; returns the results dict (see module docstring for the files).
-    jobs: worker processes fitting scenes at once (`reference.parallel`; None: every core for
-    the CPU geometry methods, else 1); it changes run time, never results.
-    ray: None, or fit the scenes and score the submission as Ray tasks (`_on_ray`) on the cluster
-    at this address ("": a local Ray with this machine's cores); again the same results."""
+    """The whole pipeline; returns the results dict (the module docstring lists the files). jobs:
+    scene fits at once in worker processes (`reference.parallel`; None: every core for the CPU geometry
+    methods, else 1). ray: None, or scene fits and scoring as Ray tasks at this address ("": a local
+    Ray; `_on_ray`). Neither changes the results."""
     from reference.methods import get_method_class
     from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
@@ -174,10 +173,9 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
     config_d = dataclasses.asdict(config)
-    ident = {"method": method, "method_version": cls.version, "seed": seed, "config": config_d}
-    check_out(out, ident, force=force)  # before the dataset is generated
-    # 1. Data.
-    if data is None:
+    check_out(out, {"method": method, "method_version": cls.version, "seed": seed, "config": config_d},
+              force=force)  # before the dataset is generated
+    if data is None:  # 1. Data
         from skyeyes_bench.data.synthtown import ensure_dataset
 
         data = ensure_dataset(preset, progress=progress)
@@ -185,16 +183,12 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     ds = open_dataset(root)
     dsha, csha = dataset_sha(root, ds), code_sha(cls)
     key = cache_key(method, cls.version, config_d, seed, dsha, csha)
-    record = {
-        "method": method, "method_version": cls.version, "preset": preset, "overrides": overrides,
-        "seed": seed, "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
-        "manifest_sha256": dsha}, "code_sha256": csha,
-        "repeat": f"skyeyes-bench reproduce --method {method} --preset {preset} --seed {seed} --data {root} "
-                  + " ".join(f"--set {o}" for o in overrides),
-    }
+    record = {"method": method, "method_version": cls.version, "preset": preset, "overrides": overrides, "seed": seed,
+              "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
+              "manifest_sha256": dsha}, "code_sha256": csha, "repeat": f"skyeyes-bench reproduce --method {method} "
+              f"--preset {preset} --seed {seed} --data {root} " + " ".join(f"--set {o}" for o in overrides)}
     check_out(out, record, force=force)  # before anything is written to --out
-    # --out may not be, hold or lie inside what the run reads (with or without --force); every
-    # write below checks it again at its rename (`fileio.reading`)
+    # --out is apart from what the run reads; every write below checks again (`fileio.reading`)
     inputs = (root, config_d.get("pretrained"))
     fileio.check_apart(out, *inputs, desc="an input of this run (--data, --pretrained)")
     held = contextlib.ExitStack()
@@ -211,21 +205,10 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         m = cls(config, work / "method", seed=seed, progress=progress)
         m.jobs = default_jobs(m) if jobs is None else jobs
         log.info("scene fits: %s", "Ray tasks (--ray)" if ray is not None else f"{m.jobs} worker process(es) (--jobs)")
-        # 2. Fit: train split, then each test scene (checkpoints make this resumable). The time
-        # of a fit is its wall time plus the original time of what it took from caches.
-        t0 = time.perf_counter()
-        m.fit_train(ds)
-        if not _main_process():
-            # `accelerate launch`: every process trains its share of the batches; the main
-            # process alone renders, writes the submission and scores it.
-            log.info("process %s: training done; the main process renders and scores", os.environ.get("RANK"))
+        fit_s = _fit(m, ds, progress)  # 2. Fit: train split, then each test scene (resumable)
+        if fit_s is None:
             return {}
         scenes = ds.split("test")
-        m.fit_scenes(scenes, progress=progress)
-        for scene in scenes:
-            stats = m.scene_stats.get(scene.name, {})
-            log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
-        fit_s = time.perf_counter() - t0 + m.cached_s
         # 3. Render every test sequence; frames already in the cache are reused.
         renders = work / "renders"
         timings, cached_renders_s = _render(m, scenes, renders, progress)
@@ -244,8 +227,7 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
                  sum(per_frame), peak_rss_mb(), _peak_gpu_note())
         # 5. Evaluate.
         res = _score(sub_dir, root, out / "results.json", ray, progress)
-        print(format_summary(res))
-        print(f"results: {out / 'results.json'}")
+        print(f"{format_summary(res)}\nresults: {out / 'results.json'}")
         _copy_figure(work / "method" / "figure.png", out / "figure.png")
         return res
     finally:
@@ -324,3 +306,22 @@ def _write_submission(sub_dir: Path, ds, scenes: list, renders: Path, method: st
                 for f in s:
                     w.add(sc.name, f, fileio.read_image(renders / sc.name / f.file))
         w.finish(timings=timings, peak_memory_mb=peak_rss_mb(), hardware=None)
+
+
+def _fit(m, ds, progress: bool) -> float | None:
+    """`m.fit_train` on the train split, then `m.fit_scenes` on the test scenes; the fit's time:
+    its wall time plus the original time of what it took from caches (`m.cached_s`). None in a
+    process of `accelerate launch` other than the main one, which alone goes on to render."""
+    t0 = time.perf_counter()
+    m.fit_train(ds)
+    if not _main_process():
+        # `accelerate launch`: every process trains its share of the batches; the main
+        # process alone renders, writes the submission and scores it.
+        log.info("process %s: training done; the main process renders and scores", os.environ.get("RANK"))
+        return None
+    scenes = ds.split("test")
+    m.fit_scenes(scenes, progress=progress)
+    for scene in scenes:
+        stats = m.scene_stats.get(scene.name, {})
+        log.info("%s: fitted (%s)", scene.name, ", ".join(f"{k}={stats[k]}" for k in ("gaussians", "final_loss") if k in stats))
+    return time.perf_counter() - t0 + m.cached_s

@@ -80,8 +80,12 @@ def evaluate_batch(jobs: list[Job], *, ray: str | None = None, shards: int | Non
 
 
 def exit_code(outcomes: list[Outcome]) -> int:
-    """0 when every job was scored; else 1 if any failed for an internal reason, else 2 (invalid input)."""
-    codes = {o.exit_code for o in outcomes if o.error is not None}
+    """0 when every job was scored; else `combined_exit` of the failed ones' codes."""
+    return combined_exit([o.exit_code for o in outcomes if o.error is not None])
+
+
+def combined_exit(codes: list[int]) -> int:
+    """One exit code for several failures: 0 for none, 1 if any was internal, else the largest (2: invalid input)."""
     return 0 if not codes else 1 if 1 in codes else max(codes)
 
 

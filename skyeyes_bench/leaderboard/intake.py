@@ -86,6 +86,7 @@ def intake(inbox, *, root, out=None, data: str | None = None, ray: str | None = 
            device: str | None = "cpu", progress: bool = True) -> tuple[list[str], int]:
     """Score, file and publish every new or changed submission of `inbox` (module docstring).
     Returns (the lines to print, the exit code: 0, or 2 / 1 when a submission was skipped)."""
+    from ..batch import combined_exit
     from . import write
 
     inbox, root = Path(inbox), Path(root)
@@ -102,7 +103,7 @@ def intake(inbox, *, root, out=None, data: str | None = None, ray: str | None = 
                                  progress=progress)
     files = write(root)
     lines.append(f"{root}: leaderboard regenerated ({len(files)} files)")
-    return lines, (1 if 1 in codes else max(codes, default=0))
+    return lines, combined_exit(codes)
 
 
 def _pending(folders: list[Path], state: dict, root: Path) -> tuple[list[str], list[tuple[Path, str]], list[int]]:

@@ -21,8 +21,8 @@ diffused, not their residual from the condition (the CPU presets' residual is tu
 `controlnet` does). No VCM: every frame is generated on its own.
 
 Everything else (architecture, objective, schedule, steps, crops, EMA) is the Skyeyes CPU
-presets' (`skyeyes.PRESETS`), so the baseline follows them when they change; only the ACM training of
-`small` (steps, constant rate, fp32) is held where its measured row has it (`skyeyes.BASELINE_TRAINING`).
+presets' (`skyeyes.PRESETS`), its training budget included, so the baseline follows them when
+they change.
 """
 
 from __future__ import annotations

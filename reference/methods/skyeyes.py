@@ -184,14 +184,6 @@ PRESETS: dict[str, SkyeyesConfig] = {
 #: CPU row is for a GPU run to show (docs/gpu.md); the CPU presets stay as they are.
 GPU_TRAINING = {"small": dict(acm_steps=6000, acm_anneal=1500, acm_batch=32, vcm_steps=1500, vcm_batch=2)}
 
-#: Training of the baselines built from `PRESETS` (ip2p, gvg, controlnet) where it differs from
-#: Skyeyes': their leaderboard rows were measured at the 3000 constant-rate fp32 ACM steps `small`
-#: trained before it grew, and a preset must reproduce its filed row. NOTE: at Skyeyes' budget
-#: ip2p's `small` run would take ~85 min (its render is 1625 s), gvg's ~70 (docs/baselines.md);
-#: re-running them so (and dropping this) is open work.
-BASELINE_TRAINING = {"small": dict(acm_steps=3000, acm_anneal=0, mixed_precision="auto")}
-
-
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
 VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp")
@@ -204,10 +196,10 @@ def frame_by_frame(config: SkyeyesConfig) -> SkyeyesConfig:
 
 
 def baseline_presets(derive) -> dict[str, SkyeyesConfig]:
-    """`{preset: derive(Skyeyes' preset without the VCM)}`, trained as the baselines' filed rows
-    were (`BASELINE_TRAINING`) where that differs."""
-    return {k: dataclasses.replace(derive(k, frame_by_frame(v)), **BASELINE_TRAINING.get(k, {}))
-            for k, v in PRESETS.items()}
+    """`{preset: derive(Skyeyes' preset without the VCM)}`: the diffusion baselines train with
+    Skyeyes' budget at every preset (ACM steps, rate schedule, precision, batch, crops; issue 36),
+    so the board compares like with like."""
+    return {k: derive(k, frame_by_frame(v)) for k, v in PRESETS.items()}
 
 
 #: Bumped whenever a change makes old stage checkpoints mean something else (architecture,

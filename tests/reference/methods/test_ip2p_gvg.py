@@ -55,19 +55,17 @@ def test_registry_and_presets_follow_skyeyes(monkeypatch):
         p = ip2p.presets[k]
         assert p.core == dataclasses.replace(sk.core, conditioning="concat", null_prompt=True,
                                              prompt_text=ip2p_mod.INSTRUCTION)
-        budget = {"small": 3000}.get(k, sk.acm_steps)  # the rows' steps (skyeyes.BASELINE_TRAINING)
-        assert (p.condition, p.vcm, p.acm_steps, p.sample_steps) == ("aerial", False, budget, sk.sample_steps)
+        budget = (sk.acm_steps, sk.acm_anneal, sk.acm_batch, sk.acm_lr, sk.train_crop, sk.mixed_precision)
+        assert (p.condition, p.vcm, p.sample_steps) == ("aerial", False, sk.sample_steps)
         assert (p.drop_image, p.drop_text, p.drop_both, p.image_guidance, p.text_guidance) == (0.05, 0.05, 0.05, 1.5, 7.5)
         g = gvg.presets[k]
         assert g.core == dataclasses.replace(sk.core, conditioning="concat", cond_extra=2)
-        assert (g.condition, g.vcm, g.prior_method, g.acm_steps) == ("prior", False, "mvs", budget)
+        assert (g.condition, g.vcm, g.prior_method) == ("prior", False, "mvs")
         c = get_method_class("controlnet").presets[k]
-        assert (c.condition, c.vcm, c.acm_steps) == ("aerial", False, budget)
-        assert dataclasses.replace(c, condition=sk.condition, vcm=sk.vcm, acm_steps=sk.acm_steps,
-                                   acm_anneal=sk.acm_anneal, mixed_precision=sk.mixed_precision) == sk
-        if k == "small":  # filed rows: constant-rate fp32 steps ("auto" is none on the CPU)
-            assert (p.acm_anneal, p.mixed_precision, g.acm_anneal, g.mixed_precision) == (0, "auto", 0, "auto")
-    assert SKYEYES["small"].acm_steps > 3000  # Skyeyes trains longer than the baselines' filed rows
+        assert (c.condition, c.vcm) == ("aerial", False)
+        assert dataclasses.replace(c, condition=sk.condition, vcm=sk.vcm) == sk
+        for b in (p, g, c):  # one training budget for the diffusion family (issue 36)
+            assert (b.acm_steps, b.acm_anneal, b.acm_batch, b.acm_lr, b.train_crop, b.mixed_precision) == budget
     assert [gvg.presets[k].prior_preset for k in ("smoke", "small", "paper")] == ["smoke", "fast", "paper"]
     assert SKYEYES["small"].core.conditioning == "concat"  # the CPU presets already concatenate
     # --device is a config field of both (torch reports two GPUs here; configure checks it exists)
@@ -225,15 +223,16 @@ def test_gvg_prior_is_the_mvs_geometry_of_its_stereo_preset(tmp_path):
     assert prior.config == dataclasses.replace(MVS_PRESETS["fast"], train_lanes=0, device="cpu")
 
 
-def test_baseline_budget_is_a_constant_rate_3000_steps_whatever_skyeyes_trains(monkeypatch):
-    """The baselines' `small` rows were measured at 3000 constant-rate ACM steps: if Skyeyes'
-    preset takes a learning-rate decay (`acm_anneal`), the baselines at that budget do not."""
+def test_baselines_follow_skyeyes_budget_when_it_changes(monkeypatch):
+    """The baselines train with Skyeyes' budget at every preset: a change to Skyeyes' steps or
+    rate decay reaches them, and only the VCM is taken off."""
     from reference.methods import skyeyes
 
-    annealed = {k: dataclasses.replace(v, acm_steps=v.acm_steps + 2000, acm_anneal=2000)
+    annealed = {k: dataclasses.replace(v, acm_steps=v.acm_steps + 2000, acm_anneal=2000, mixed_precision="no")
                 for k, v in skyeyes.PRESETS.items()}
     monkeypatch.setattr(skyeyes, "PRESETS", annealed)
     got = skyeyes.baseline_presets(lambda k, v: v)
-    assert (got["small"].acm_steps, got["small"].acm_anneal, got["small"].mixed_precision) == (3000, 0, "auto")
-    for k in ("smoke", "paper"):  # no filed budget: the baselines follow Skyeyes (without its VCM)
+    for k in annealed:
         assert got[k] == skyeyes.frame_by_frame(annealed[k])
+        assert (got[k].acm_steps, got[k].acm_anneal, got[k].mixed_precision) == (annealed[k].acm_steps, 2000, "no")
+        assert got[k].vcm is False

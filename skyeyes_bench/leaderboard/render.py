@@ -94,6 +94,13 @@ def _footnotes(t: Table) -> list[str]:
     if any(r.hardware_added for r in t.rows):
         out.append(f"{ADDED} hardware recorded by `skyeyes-bench leaderboard add` on the machine that filed the "
                    f"result (its results file did not record the machine that ran it).")
+    budgets: dict[str, list[str]] = {}  # one line per budget, naming the rows trained with it
+    for r in t.rows:
+        if r.budget:
+            budgets.setdefault(r.budget, []).append(r.method)
+    if budgets:
+        out.append("Training budget of the diffusion rows: " + "; ".join(
+            f"{', '.join(names)}: {b}" for b, names in budgets.items()) + ".")
     return out
 
 

@@ -36,6 +36,7 @@ class Row:
     hardware_added: bool = False  # recorded by `leaderboard add` on the filing machine, not by the run
     source: str = ""  # input file name
     reference: str = ""
+    budget: str = ""  # a diffusion method's training budget, from its config ('' for the others)
 
     @property
     def name(self) -> str:
@@ -85,6 +86,32 @@ def format_hardware(hw) -> str:
     return ", ".join(parts)
 
 
+#: How a diffusion config's `mixed_precision` trains ("auto": bf16 on CUDA, none on a CPU).
+_PRECISION = {"no": "fp32", "bf16": "bf16", "fp16": "fp16", "auto": "bf16 on CUDA, else fp32"}
+
+
+def training_budget(config) -> str:
+    """A diffusion method's training budget in words, from the config fields the reference
+    diffusion family records (`base_steps`, `acm_*`, `train_crop`, `mixed_precision`, `vcm*`);
+    '' for a config without ACM steps (every other method)."""
+    if not isinstance(config, dict) or _number(config.get("acm_steps")) is None:
+        return ""
+    c = config
+    acm = f"ACM {c['acm_steps']} steps"
+    if c.get("acm_anneal"):
+        acm += f" (rate decaying over the last {c['acm_anneal']})"
+    if c.get("acm_batch"):
+        acm += f" at batch {c['acm_batch']}"
+    if c.get("train_crop"):
+        acm += f" on {c['train_crop']}-px crops"
+    parts = [f"base UNet {c['base_steps']} steps"] if c.get("base_steps") else []
+    parts.append(acm)
+    if c.get("mixed_precision") in _PRECISION:
+        parts.append(_PRECISION[c["mixed_precision"]])
+    parts.append(f"VCM {c.get('vcm_steps')} steps at batch {c.get('vcm_batch')}" if c.get("vcm") else "no VCM")
+    return ", ".join(parts)
+
+
 def _number(v) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
@@ -100,7 +127,7 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
     row = Row(method=str(s.get("method")), version=str(s.get("method_version") or ""), values={},
               sequences=doc["sequences"], statistics=dict(doc.get("statistics") or {}), fit_s=fit, render_s=ren,
               run_s=(fit or 0.0) + (ren or 0.0) if fit is not None or ren is not None else None,
-              peak_mb=_number(s.get("peak_memory_mb")), source=name,
+              peak_mb=_number(s.get("peak_memory_mb")), source=name, budget=training_budget(s.get("config")),
               hardware=format_hardware(added.get("hardware") if hw_added else hw), hardware_added=hw_added)
     for m in metrics:
         md = doc["metrics"].get(m) or {}

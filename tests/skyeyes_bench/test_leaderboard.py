@@ -370,3 +370,30 @@ def test_differing_sample_counts_are_said_in_one_line(board, tmp_path):
     md, html = (lb / "README.md").read_text(), (lb / "index.html").read_text()
     line = f"FVD {n} clips (evaltest@1), {2 * n} clips (evaltest@2)"
     assert sum(line in ln for ln in md.splitlines()) == 1 and line in html
+
+
+def test_training_budgets_are_shown_grouped_under_the_table(board, tmp_path):
+    """Issue 36: the board says what each diffusion row trained on, one group per budget, so a
+    row trained on a smaller budget is seen; rows without ACM steps get no budget."""
+    from skyeyes_bench.leaderboard.tables import training_budget
+
+    lb = _fresh(board, tmp_path)
+    run_cli("leaderboard", "--root", str(lb))
+    assert "Training budget" not in (lb / "README.md").read_text()  # no diffusion config: no line
+    cfgs = {"blurry": dict(acm_steps=12000, acm_anneal=3000, acm_batch=16, train_crop=32, mixed_precision="bf16",
+                           vcm=True, vcm_steps=3000, vcm_batch=1),
+            "blurry-twin": dict(acm_steps=3000, acm_anneal=0, acm_batch=16, train_crop=32, mixed_precision="no",
+                                vcm=False, vcm_steps=300, vcm_batch=1)}
+    for name, cfg in cfgs.items():
+        d = json.loads((lb / "results" / f"{name}.json").read_text())
+        d["submission"]["config"] = cfg
+        (lb / "results" / f"{name}.json").write_text(json.dumps(d))
+    assert training_budget(cfgs["blurry"]) == ("ACM 12000 steps (rate decaying over the last 3000) at batch 16 on "
+                                               "32-px crops, bf16, VCM 3000 steps at batch 1")
+    assert training_budget(cfgs["blurry-twin"]) == "ACM 3000 steps at batch 16 on 32-px crops, fp32, no VCM"
+    assert training_budget({"iterations": 500}) == training_budget(None) == ""
+    run_cli("leaderboard", "--root", str(lb))
+    md, page = (lb / "README.md").read_text(), (lb / "index.html").read_text()
+    (line,) = [ln for ln in md.splitlines() if ln.startswith("Training budget")]
+    assert "blurry: ACM 12000 steps" in line and "blurry-twin: ACM 3000 steps" in line
+    assert "blurry-twin: ACM 3000 steps at batch 16 on 32-px crops, fp32" in page

@@ -11,6 +11,7 @@ import numpy as np
 
 from .bayes import hdi, student_t_posterior
 from .metricspec import METRICS, sample_count_warning
+from .registry import load_entry_point
 from .stats import (INTERVAL_METHOD, advantage, advantage_interval, cluster_map, frame_metric_samples,
                     higher_is_better, interval_from_replicates, replicate_counts, replicate_draws,
                     set_metric_bootstrap, set_metric_samples, too_few)
@@ -166,6 +167,16 @@ def _frames_problem(a: dict, b: dict, names: tuple[str, str]) -> str | None:
     return None
 
 
+def _set_centre(name: str, f: dict, protocol, seed: int) -> float | None:
+    """A set metric's interval centre (`MetricDef.centre`) from one side's features; None for the
+    metrics without one."""
+    spec = METRICS.get(name)
+    if spec is None or not spec.centre:
+        return None
+    return float(load_entry_point(spec.centre)(np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64),
+                                                protocol.metric(name), seed))
+
+
 def _usable_replicates(doc: dict, m: dict, st, unit: str, k: int) -> list | None:
     """A results file's stored replicates of one metric, if made the way this comparison resamples."""
     s = doc.get("statistics")
@@ -251,6 +262,7 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
                    "a": va, "b": vb, "advantage": adv, "level": st.interval, "bootstrap_interval": None,
                    "p_a_better_bootstrap": None}
         reps = None
+        centres = (None, None)  # set metrics with random subsets (FD∞): their intervals' centres
         if ma["kind"] == "frame":
             fa, seq, wa = _frame_values(a, name, order)
             fb, _, wb = _frame_values(b, name, order)
@@ -270,14 +282,19 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             if counts is not None:
                 ra, rb = _usable_replicates(a, ma, st, unit, k), _usable_replicates(b, mb, st, unit, k)
                 ex = ma["extractor"]
+                have = feats_a is not None and feats_b is not None and ex in feats_a and ex in feats_b
                 if ra is not None and rb is not None:
                     reps = tuple(np.array([np.nan if v is None else v for v in x], np.float64) for x in (ra, rb))
-                elif feats_a is not None and feats_b is not None and ex in feats_a and ex in feats_b:
+                    centres = (ma.get("interval_centre"), mb.get("interval_centre"))
+                    if None in centres and have:  # an older file without it: from the features
+                        centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
+                elif have:
                     reps = []
                     for f in (feats_a[ex], feats_b[ex]):
                         cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
                         fn = set_metric_bootstrap(name, f["sub"], f["gt"], cl, k, protocol.metric(name), st.seed)
                         reps.append(set_metric_samples(fn, cl, cl, counts))
+                    centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
                 else:
                     out["metrics"][name] = {"status": "skipped", "a": va, "b": vb, "advantage": adv,
                                             "note": "no replicates of the same resampling in the results and no "
@@ -287,11 +304,16 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             r["interval_note"] = few
         else:
             d = advantage(reps[0], reps[1], name)
-            iv = interval_from_replicates(adv, d, st.interval, k)
+            centre = None
+            if None not in centres:  # both intervals' centres: the difference's is their advantage
+                centre = float(advantage(np.array([centres[0]], np.float64), np.array([centres[1]], np.float64),
+                                         name)[0])
+                r["interval_centre"] = centre
+            iv = interval_from_replicates(adv, d, st.interval, k, centre)
             if iv is not None:
                 r["bootstrap_interval"] = [iv[0], iv[1]]
                 r["interval_widened"] = iv[2]
-                r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv, d, k) > 0))
+                r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv if centre is None else centre, d, k) > 0))
         r["advantage_mean"] = adv  # the name older readers use; the same number
         out["metrics"][name] = r
     return out

@@ -35,6 +35,9 @@ class MetricDef:
     # ... and its bootstrap: f(xs [N, D], xg [N, D], seq [N], n_sequences, settings, seed) -> fn(w1, w2) -> float,
     #   the same quantity recomputed under resampling weights (see stats.set_metric_bootstrap).
     bootstrap: str | None = None
+    # ... and, for an estimate drawn with random subsets, the centre of its interval: f(xs, xg, settings,
+    #   seed) -> float, the estimate with its own subset noise averaged out (None: the estimate itself)
+    centre: str | None = None
     # the smallest value the metric can take (Fréchet distances: 0); a bias-corrected interval
     # that reaches below it is clipped there (the true value cannot lie below it)
     lower_bound: float | None = None
@@ -64,7 +67,8 @@ _MMD = dict(estimator="skyeyes_bench.estimators:mmd", bootstrap="skyeyes_bench.s
 # `num_sizes` sizes from `min_fraction` N to N, `num_subsets` subsets a size (docs/metrics.md, "FID∞ and FVD∞")
 _INF_KEYS = frozenset({"extractor", "resize", "num_sizes", "min_fraction", "num_subsets"})
 _FRECHET_INF = dict(estimator="skyeyes_bench.estimators:frechet_inf",
-                    bootstrap="skyeyes_bench.frechet_inf:FrechetInfinity.from_features", lower_bound=0.0,
+                    bootstrap="skyeyes_bench.frechet_inf:FrechetInfinity.from_features",
+                    centre="skyeyes_bench.estimators:frechet_inf_centre", lower_bound=0.0,
                     min_rows=3)  # two subset sizes at least: a line to extrapolate
 _SSIM_KEYS = frozenset({"window", "sigma", "k1", "k2"})
 _DEPTH = frozenset({"depth_tolerance"})

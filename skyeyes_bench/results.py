@@ -105,13 +105,16 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         "too_few": few, "resamples": st.bootstrap_resamples, "level": st.interval, "seed": st.seed,
         "interval": stats.INTERVAL_METHOD, "half_size": k // 2, "scale": stats.half_scale(k) if k >= 2 else None}
 
-    def summarise(value: float, replicates: np.ndarray | None, floor: float | None = None) -> dict:
-        """interval (null + reason below MIN_CLUSTERS; clipped at the metric's `floor`),
-        replicates (6 significant digits)."""
+    def summarise(value: float, replicates: np.ndarray | None, floor: float | None = None,
+                  centre: float | None = None) -> dict:
+        """interval (null + reason below MIN_CLUSTERS; clipped at the metric's `floor`; about
+        `centre` when the metric has one), replicates (6 significant digits)."""
         if replicates is None:
             return {"interval": None, "interval_note": few, "replicates": None}
         out: dict = {"replicates": stats.round_replicates(replicates)}
-        iv = stats.interval_from_replicates(value, replicates, st.interval, k)
+        if centre is not None and math.isfinite(centre):
+            out["interval_centre"] = centre
+        iv = stats.interval_from_replicates(value, replicates, st.interval, k, centre)
         if iv is None:
             out.update(interval=None, interval_note="no replicate is defined")
         else:
@@ -177,9 +180,11 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
             continue
         with _stage(timing, "set_metrics_s"):
             value = float(load_entry_point(spec.estimator)(xs, xg, m, st.seed))
-        reps = None
+        reps = centre = None
         if counts is not None:
             with _stage(timing, "bootstrap_s"):
+                if spec.centre:  # an estimate with random subsets: its interval's centre (MetricDef.centre)
+                    centre = float(load_entry_point(spec.centre)(xs, xg, m, st.seed))
                 fn = stats.set_metric_bootstrap(m.name, xs, xg, cl, k, m, st.seed)
                 bar = _tqdm(progress, total=len(counts), desc=f"resample {m.name}", unit="replicate")
                 with bar:
@@ -187,7 +192,7 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
         metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,
                            "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
                            "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
-                           **summarise(value, reps, spec.lower_bound)}
+                           **summarise(value, reps, spec.lower_bound, centre)}
     res["metrics"] = {name: metrics[name] for name in protocol.metric_names if name in metrics}
     res["sequences"] = per_seq
     res.pop("unavailable", None)
@@ -278,6 +283,9 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
                 _not_nan(f"{path}: field 'metrics.{name}.value'", m["value"])
+                if m.get("interval_centre") is not None:  # FD∞: the value with its subset noise averaged out
+                    fields.conform(str(path), m, {"interval_centre": fields.Number}, f"metrics.{name}")
+                    _not_nan(f"{path}: field 'metrics.{name}.interval_centre'", m["interval_centre"])
                 # interval: [lo, hi], or null with the reason (too few clusters); replicates likewise
                 for key, shape in (("interval", [fields.Number]), ("replicates", [fields.Optional(fields.Number)])):
                     if m.get(key) is not None:

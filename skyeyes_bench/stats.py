@@ -95,15 +95,18 @@ def replicate_draws(estimate: float, replicates, n_clusters: int) -> np.ndarray:
     return d[~np.isnan(d)]
 
 
-def interval_from_replicates(estimate: float, replicates, level: float,
-                             n_clusters: int) -> tuple[float, float, bool] | None:
+def interval_from_replicates(estimate: float, replicates, level: float, n_clusters: int,
+                             centre: float | None = None) -> tuple[float, float, bool] | None:
     """The reported interval from half-sampling replicates [R] (any metric, or a paired
-    difference of two metrics' replicates): percentile interval of `replicate_draws`, widened to
-    contain `estimate`. Returns (lo, hi, widened) or None when no replicate is defined.
+    difference of two metrics' replicates): percentile interval of `replicate_draws` about
+    `centre` (None: the estimate; FD∞'s is its value with the subset noise averaged out,
+    `MetricDef.centre`), widened to contain `estimate`. Returns (lo, hi, widened) or None when no
+    replicate is defined.
 
     The replicates of a paired difference are `advantage(replicates_a, replicates_b)`, element
-    by element, with `estimate` = `advantage(value_a, value_b)`."""
-    d = replicate_draws(estimate, replicates, n_clusters)
+    by element, with `estimate` = `advantage(value_a, value_b)` (and `centre` likewise)."""
+    about = estimate if centre is None or not math.isfinite(centre) else centre
+    d = replicate_draws(about, replicates, n_clusters)
     if not len(d):
         return None
     lo, hi = percentile_interval(d, level)

@@ -58,19 +58,21 @@ def paired_replicates(a: Row, b: Row, metric: str) -> tuple[np.ndarray, np.ndarr
 
 
 def replicate_interval(ra: np.ndarray, rb: np.ndarray, metric: str, level: float, *,
-                       estimate: float | None = None, statistics: dict | None = None) -> tuple[float, float] | None:
+                       estimate: float | None = None, statistics: dict | None = None,
+                       centre: float | None = None) -> tuple[float, float] | None:
     """Interval of the paired replicate advantage of A over B (> 0: A better), from the replicate
     differences advantage(A_r, B_r) [R] (undefined ones dropped); None when none is left.
 
     Bootstrap replicates: their percentile interval. Half-sampling replicates (results'
     `statistics.interval` "half-sampling"): `stats.interval_from_replicates`, which rescales
     half-sample spread to the full sample around `estimate` (the advantage of the two values),
-    exactly as `evaluate` and `compare` make their intervals."""
+    exactly as `evaluate` and `compare` make their intervals (about `centre`, the advantage of
+    the two intervals' centres, for FD∞)."""
     d = stats.advantage(ra, rb, metric)  # [R]
     st = statistics or {}
     half = getattr(stats, "interval_from_replicates", None)
     if st.get("interval") == "half-sampling" and half is not None and estimate is not None and st.get("clusters"):
-        iv = half(estimate, d, level, int(st["clusters"]))
+        iv = half(estimate, d, level, int(st["clusters"]), centre)
         return None if iv is None else (iv[0], iv[1])
     d = d[~np.isnan(d)]
     return stats.percentile_interval(d, level) if len(d) else None
@@ -88,7 +90,9 @@ def _credible(a: Row, b: Row, m: str) -> tuple[bool, str]:
     pair = paired_replicates(a, b, m)
     if pair is not None:
         est = float(stats.advantage(np.array([a.values[m]]), np.array([b.values[m]]), m)[0])
-        iv = replicate_interval(*pair, m, _level(a), estimate=est, statistics=a.statistics)
+        centre = (float(stats.advantage(np.array([a.centres[m]]), np.array([b.centres[m]]), m)[0])
+                  if m in a.centres and m in b.centres else None)
+        iv = replicate_interval(*pair, m, _level(a), estimate=est, statistics=a.statistics, centre=centre)
         return iv is not None and iv[0] > 0, RULE_REPLICATES
     if METRICS[m].kind == "frame":
         seqs = sorted(a.sequences)

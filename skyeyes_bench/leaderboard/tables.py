@@ -26,6 +26,7 @@ class Row:
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
     no_interval: dict[str, str] = field(default_factory=dict)  # metric -> why its interval is null
     replicates: dict[str, list] = field(default_factory=dict)  # metric -> R bootstrap replicates (None: undefined)
+    centres: dict[str, float] = field(default_factory=dict)  # metric -> its interval's centre (FD∞), where recorded
     statistics: dict = field(default_factory=dict)  # the results' "statistics" (resamples, level, seed)
     sequences: dict[str, dict] = field(default_factory=dict)  # measured: per-sequence values
     run_s: float | None = None  # fit + render seconds
@@ -142,6 +143,8 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
             row.no_interval[m] = str(md.get("interval_note") or md.get("interval_reason") or NO_INTERVAL)
         if isinstance(md.get("replicates"), list):
             row.replicates[m] = md["replicates"]
+        if _number(md.get("interval_centre")) is not None:
+            row.centres[m] = float(md["interval_centre"])
     return row
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 from builders.evaluation import TEST_PROTOCOL, blurred_submission, make_dataset, protocol_env
+from builders.frechet_sim import fd_bias_of, gaussians, simulate
 
 from skyeyes_bench import comparison, estimators, stats
 from skyeyes_bench.frechet_inf import FrechetInfinity, extrapolate, subset_sizes
@@ -106,77 +107,61 @@ def test_edge_cases():
 # --------------------------------------------------------------------------- simulation
 
 
-def _gaussians(d, seed):
-    """Two Gaussians in d dimensions and their Fréchet distance in closed form (scipy's sqrtm on
-    the exact covariances)."""
-    rng = np.random.default_rng(seed)
-    a = rng.normal(size=(d, d)) / np.sqrt(d)
-    b = rng.normal(size=(d, d)) / np.sqrt(d)
-    s1 = a @ a.T + 0.1 * np.eye(d)
-    s2 = 0.5 * s1 + 0.1 * b @ b.T  # close to s1, so the 1 / N bias is large beside the spread
-    m1, m2 = np.zeros(d), 0.02 * rng.normal(size=d)
-    r = scipy.linalg.sqrtm(s1).real
-    cross = np.trace(scipy.linalg.sqrtm(r @ s2 @ r).real)  # tr (S1^1/2 S2 S1^1/2)^1/2
-    truth = float((m1 - m2) @ (m1 - m2) + np.trace(s1) + np.trace(s2) - 2 * cross)
-    return (m1, np.linalg.cholesky(s1)), (m2, np.linalg.cholesky(s2)), truth
-
-
-def _verdict(draws: dict, truth: float, fd_bias: dict) -> list[str]:
+def _verdict(draws: dict, truth: float, fd_bias: dict, cover_all: float, cover_each: float) -> list[str]:
     """Why estimates of the truth fail (empty: they pass). draws: N -> [(value, lo, hi)] over
     repeated data sets; fd_bias: N -> the plain FD's mean bias in the same draws. At every N the
-    mean must lie within 3 standard errors of the truth or within half the plain FD's bias of it,
-    and the intervals must cover the truth in at least 75% of all draws."""
+    mean must lie within 3 standard errors of the truth or within half the plain FD's bias of it;
+    the intervals must cover the truth in at least `cover_all` of all draws and `cover_each` of
+    each N's."""
     why = []
     for n, rows in draws.items():
         v = np.array([r[0] for r in rows])
         bias, se = v.mean() - truth, v.std(ddof=1) / math.sqrt(len(v))
         if abs(bias) > 3 * se and abs(bias) > 0.5 * fd_bias[n]:
             why.append(f"N={n}: bias {bias:.3f} (standard error {se:.3f}, plain FD's {fd_bias[n]:.3f})")
+        each = np.mean([lo <= truth <= hi for _, lo, hi in rows])
+        if each < cover_each:
+            why.append(f"N={n}: coverage {each:.2f}")
     cover = np.mean([lo <= truth <= hi for rows in draws.values() for _, lo, hi in rows])
-    if cover < 0.75:
+    if cover < cover_all:
         why.append(f"coverage {cover:.2f}")
     return why
 
 
 def test_gaussian_simulation_fd_biased_fd_inf_not():
-    """16-d Gaussians, N = 64 ... 4096 rows in K = 16 clusters, 8 draws per N; values and intervals
-    exactly as `evaluate` makes them (the estimator; half-sampling replicates of the metric table's
-    bootstrap; `stats.interval_from_replicates`, clipped at 0; level 0.95), with R = 80 replicates
-    and 6 sizes x 4 subsets to keep it short.
-
-    Coverage: the plain FD's intervals cover 0.91-0.97 of such draws (four seeds tried), FD∞'s
-    0.83-0.95 (five seeds, 16 draws per N; pooled 0.88), below the stated 0.95: the random subsets
-    add noise to the value that the interval's centre (value - (replicate - value)) carries twice
-    but its width once; with i.i.d. rows it is comparable to the data's noise (with scenes of
-    correlated frames, as in real data, it is small beside it: docs/metrics.md). 32 subsets a size
-    did not close the gap (0.97 and 0.84 on two seeds). The bar is 75%."""
-    (m1, l1), (m2, l2), truth = _gaussians(16, seed=0)
-    k, level = 16, 0.95
-    spec = MetricSpec(name="fid_inf", num_sizes=6, min_fraction=0.5, num_subsets=4)
-    counts = stats.replicate_counts(k, 80, 0)
-    rng = np.random.default_rng(1)
-    draws = {"fid": {}, "fid_inf": {}}
-    for n in (64, 256, 1024, 4096):
-        clusters = np.repeat(np.arange(k), n // k)
-        for _ in range(8):
-            x = m1 + rng.normal(size=(n, 16)) @ l1.T
-            y = m2 + rng.normal(size=(n, 16)) @ l2.T
-            for name, est in (("fid", estimators.frechet), ("fid_inf", estimators.frechet_inf)):
-                value = est(x, y, spec, 0)
-                fn = stats.set_metric_bootstrap(name, x, y, clusters, k, spec, 0)
-                reps = stats.set_metric_samples(fn, clusters, clusters, counts)
-                lo, hi, _ = stats.interval_from_replicates(value, reps, level, k)
-                draws[name].setdefault(n, []).append((value, max(lo, min(0.0, value)), hi))
-    fd_bias = {n: np.mean([r[0] for r in rows]) - truth for n, rows in draws["fid"].items()}
+    """8 draws per N (`_simulate`). FD at small N is biased by more than its interval; FD∞ is not,
+    and its intervals cover the truth in at least 90% of the draws (75% at each N). The slow
+    tier's test repeats this at the stated level over 256 draws."""
+    draws, truth = simulate(8, seed=1)
+    fd_bias = fd_bias_of(draws, truth)
     fd64 = np.array(draws["fid"][64])
     # FD at N = 64: above the truth in every draw, on average by more than its interval's half-width
     # (half-sampling shifts the interval down by the bias's 1 / N part, so the interval itself still
     # reaches the truth: what is biased is the value)
     assert (fd64[:, 0] > truth).all()
     assert fd_bias[64] > ((fd64[:, 2] - fd64[:, 1]) / 2).mean() > 0
-    assert _verdict(draws["fid_inf"], truth, fd_bias) == []
+    assert _verdict(draws["fid_inf"], truth, fd_bias, 0.90, 0.75) == []
     # ... and the same checks fail for the plain FD in FD∞'s place: they can fail
-    assert any(w.startswith("N=64: bias") for w in _verdict(draws["fid"], truth, fd_bias))
+    assert any(w.startswith("N=64: bias") for w in _verdict(draws["fid"], truth, fd_bias, 0.90, 0.75))
+
+
+@pytest.mark.slow
+def test_gaussian_simulation_fd_inf_covers_at_the_stated_level():
+    """Issue 39's done-when: over 2 x 32 draws at each N (256 in all), FD∞'s 95% intervals cover
+    the truth in at least 95% of all draws and 87.5% of each N's (at most 4 misses of 32), and its
+    mean is unbiased at every N. Measured (docs/metrics.md): 0.99 pooled about the centre. The
+    intervals reflected about the value itself (before the centre) covered 0.93 and 0.89 on these
+    seeds, which this bar fails: checked here on the same replicates, so the bar can fail."""
+    pooled = {"fid": {}, "fid_inf": {}, "fid_inf_value": {}}
+    for seed in (1, 2):
+        draws, truth = simulate(32, seed)
+        for name in pooled:
+            for n, rows in draws[name].items():
+                pooled[name].setdefault(n, []).extend(rows)
+    fd_bias = fd_bias_of(pooled, truth)
+    assert _verdict(pooled["fid_inf"], truth, fd_bias, 0.95, 0.875) == []
+    # the same replicates reflected about the value: below the level, so this bar can fail
+    assert any(w.startswith("coverage") for w in _verdict(pooled["fid_inf_value"], truth, fd_bias, 0.95, 0.875))
 
 
 # --------------------------------------------------------------------------- end to end
@@ -234,6 +219,16 @@ def test_evaluate_reports_fid_inf_from_the_fid_features(inf_scored):
         f = feats[ex]
         assert m["value"] == estimators.frechet_inf(f["sub"], f["gt"], protocol.metric(name), 0)
         assert m["interval"][0] <= m["value"] <= m["interval"][1] and len(m["replicates"]) == 200
+        # the interval's centre: FD∞ averaged over the seeds 0..15, each computed on its own here
+        seeds = [estimators.frechet_inf(f["sub"], f["gt"], protocol.metric(name), s) for s in range(16)]
+        assert m["interval_centre"] == pytest.approx(np.mean(seeds), rel=1e-12) != m["value"]
+        # ... and the interval: percentiles of centre - (replicate - centre) at half-sampling's scale
+        # (K = 6 sequences: sqrt(3 / 3) = 1), widened to hold the value, clipped at 0; the stored
+        # replicates are rounded to 6 digits
+        d = 2 * m["interval_centre"] - np.array(m["replicates"], np.float64)
+        lo, hi = np.quantile(d, [0.025, 0.975], method="inverted_cdf")
+        want = [max(min(lo, m["value"]), min(0.0, m["value"])), max(hi, m["value"])]
+        assert m["interval"] == pytest.approx(want, rel=1e-5, abs=1e-9)
         plain = doc["metrics"][name[:3]]["value"]
         assert 0 < m["value"] < plain  # the extrapolation removes an upward bias
     assert res["gt"]["metrics"]["fid_inf"]["value"] == pytest.approx(0.0, abs=1e-9)
@@ -254,6 +249,16 @@ def test_compare_recomputes_the_same_replicates_from_features(inf_scored):
         want = stored["metrics"][name]["bootstrap_interval"]
         assert stored["metrics"][name]["status"] == "ok" and want
         assert again["metrics"][name]["bootstrap_interval"] == pytest.approx(want, rel=1e-4)
+        # both about the advantage of the two centres (lower is better: B's centre - A's)
+        centre = b["metrics"][name]["interval_centre"] - a["metrics"][name]["interval_centre"]
+        assert stored["metrics"][name]["interval_centre"] == pytest.approx(centre, rel=1e-12)
+        assert again["metrics"][name]["interval_centre"] == pytest.approx(centre, rel=1e-9)
+        for doc in (a, b):  # a file scored before the centre, with no sidecar: about the values, as before
+            doc["metrics"][name].pop("interval_centre")
+    with protocol_env(tmp, INF_PROTOCOL):
+        old = comparison.compare_results(a, b, emcee_steps=60)
+    for name in ("fid_inf", "fvd_inf"):
+        assert "interval_centre" not in old["metrics"][name]
 
 
 def test_compare_says_when_sample_counts_differ(inf_scored):

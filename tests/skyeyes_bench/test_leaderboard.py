@@ -397,3 +397,24 @@ def test_training_budgets_are_shown_grouped_under_the_table(board, tmp_path):
     (line,) = [ln for ln in md.splitlines() if ln.startswith("Training budget")]
     assert "blurry: ACM 12000 steps" in line and "blurry-twin: ACM 3000 steps" in line
     assert "blurry-twin: ACM 3000 steps at batch 16 on 32-px crops, fp32" in page
+
+
+def test_board_marks_reflect_fd_inf_about_the_centres(tmp_path):
+    """Issue 39: the board's paired interval for FD∞ is `compare`'s, about the advantage of the two
+    rows' interval centres (read from the results files), not about the values."""
+    from skyeyes_bench import stats
+    from skyeyes_bench.leaderboard.tables import measured_row
+
+    rng = np.random.default_rng(0)
+    ra, rb = 100 + rng.normal(size=70), 104 + rng.normal(size=70)
+    st = {"interval": "half-sampling", "clusters": 8}
+    est, centre = 3.0, 5.0  # B - A: lower is better
+    got = marks.replicate_interval(ra, rb, "fid_inf", 0.95, estimate=est, statistics=st, centre=centre)
+    lo, hi, _ = stats.interval_from_replicates(est, rb - ra, 0.95, 8, centre)
+    assert got == (lo, hi) and got != marks.replicate_interval(ra, rb, "fid_inf", 0.95, estimate=est, statistics=st)
+    doc = {"submission": {"method": "m"}, "sequences": {}, "metrics": {
+        "fid_inf": {"status": "ok", "value": 1.0, "interval": [0.5, 1.5], "interval_centre": 1.25,
+                    "replicates": [1.0, 1.1]},
+        "fid": {"status": "ok", "value": 2.0, "interval": [1.5, 2.5], "replicates": [2.0, 2.1]}}}
+    row = measured_row(doc, "m.json", ["fid_inf", "fid"])
+    assert row.centres == {"fid_inf": 1.25}

@@ -546,3 +546,19 @@ def test_stored_replicates_are_used_only_when_made_the_way_compare_resamples():
     assert comparison._usable_replicates({"statistics": good}, {"replicates": reps[:3]}, st, "scene", 8) is None
     assert comparison._usable_replicates({"statistics": good}, {"replicates": tuple(reps)}, st, "scene", 8) is None
     assert comparison._usable_replicates({}, {"replicates": reps}, st, "scene", 8) is None
+
+
+def test_interval_about_a_centre_is_widened_to_the_estimate():
+    """FD∞'s interval (issue 39): the draws are reflected about `centre`, not the estimate, and the
+    interval then widened to hold the estimate; no centre (or a non-finite one) is the estimate."""
+    reps = np.array([9.0, 10.0, 11.0, 12.0, 13.0])  # K = 4: half-sampling scale sqrt(2 / 2) = 1
+    lo, hi, widened = stats.interval_from_replicates(10.0, reps, 0.6, 4, centre=11.0)
+    # draws 2 * 11 - reps = 13 12 11 10 9: their 20% and 80% points (the smallest draw whose share
+    # of draws at or below it reaches the level) are 9 and 12; about the estimate 10 they are 7 and 10
+    assert (lo, hi, widened) == (9.0, 12.0, False)
+    assert stats.interval_from_replicates(10.0, reps, 0.6, 4)[:2] == (7.0, 10.0)
+    lo, hi, widened = stats.interval_from_replicates(20.0, reps, 0.6, 4, centre=11.0)
+    assert (lo, hi, widened) == (9.0, 20.0, True)  # the estimate outside the draws: reached
+    assert stats.interval_from_replicates(10.0, reps, 0.6, 4, centre=None) == \
+        stats.interval_from_replicates(10.0, reps, 0.6, 4) == stats.interval_from_replicates(10.0, reps, 0.6, 4,
+                                                                                              centre=math.nan)

@@ -34,7 +34,8 @@ def sd(tmp_path_factory) -> Path:
 def _method(sd, workdir) -> InstructPix2Pix:
     cfg = dataclasses.replace(PRESETS["small"], core=dataclasses.replace(PRESETS["small"].core, resolution=RES),
                               pretrained=str(sd), acm_steps=2, acm_batch=2, sample_steps=2, ckpt_every=1,
-                              figure_frames=2, device="cpu", threads=1)
+                              figure_frames=2, device="cpu", threads=1,
+                              acm_anneal=0, mixed_precision="no")  # `small`'s budget, cut to 2 fp32 steps
     return InstructPix2Pix(cfg, workdir, progress=False)
 
 
@@ -91,7 +92,8 @@ def test_pretrained_gvg_condition_on_the_latent_grid_end_to_end(sd, tmp_path):
 
     cfg = dataclasses.replace(gvg.PRESETS["small"], core=dataclasses.replace(gvg.PRESETS["small"].core, resolution=RES),
                               pretrained=str(sd), acm_steps=1, acm_batch=2, sample_steps=2, ckpt_every=1,
-                              figure_frames=2, device="cpu", threads=1)
+                              figure_frames=2, device="cpu", threads=1,
+                              acm_anneal=0, mixed_precision="no")  # `small`'s budget, cut to 1 fp32 step
     m = gvg.GVG(cfg, tmp_path / "w", prior_method=StandInGeometryPrior(tmp_path / "p"), progress=False)
     c = m.config.core
     assert (c.conditioning, c.residual, c.coords, c.cond_extra, c.in_channels) == ("concat", False, False, 2, 4 + 4 + 2)

@@ -149,6 +149,12 @@ class Method(abc.ABC):
         self._scene_models: dict[str, Any] = {}
         self.workdir.mkdir(parents=True, exist_ok=True)
 
+    def took_from_cache(self, seconds: float) -> None:
+        """Count `seconds`, the original cost of work taken from a cache instead of done (a
+        resumed checkpoint, a cached stage or prior, another method's `cached_s`), into
+        `cached_s`; negative to take back seconds counted twice."""
+        self.cached_s += seconds
+
     # ---------------------------------------------------------------- config
     @classmethod
     def configure(cls, preset: str, sets: list[str] | tuple = (), *, values: dict | None = None,

@@ -1,23 +1,5 @@
-"""Registry of reference methods: id -> lazy "module:Class" (a `reference.method.Method`)."""
+"""The reference methods, one module each; found by id through `reference.registry`."""
 
-from __future__ import annotations
+from reference.registry import METHODS, get_method_class
 
-METHODS: dict[str, str] = {
-    "mean-frame": "reference.methods.mean_frame:MeanFrame",
-    "mvs": "reference.methods.mvs:MVS",
-    "nerf": "reference.methods.nerf:NeRF",
-    "gaussians3d": "reference.methods.gaussians3d:Gaussians3D",
-    "sugar": "reference.methods.sugar:SuGaR",
-    "skyeyes": "reference.methods.skyeyes:Skyeyes",
-    "skyeyes-no-vcm": "reference.methods.skyeyes:SkyeyesNoVCM",
-    "controlnet": "reference.methods.controlnet:ControlNetBaseline",
-    "ip2p": "reference.methods.ip2p:InstructPix2Pix",
-    "gvg": "reference.methods.gvg:GVG",
-}
-
-
-def get_method_class(name: str):
-    """The Method class for `name`; a lookup miss lists the known ids."""
-    from skyeyes_bench.registry import load_entry_point, lookup
-
-    return load_entry_point(lookup(METHODS, name, "method"))
+__all__ = ["METHODS", "get_method_class"]

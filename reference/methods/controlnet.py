@@ -2,17 +2,20 @@
 image instead of the Gaussian prior, frame by frame (no view consistency module).
 
 Which aerial image per ground frame: the aerial view whose camera centre is nearest the ground
-camera's (`reference.common.priors.nearest_aerial`). The base UNet stage is shared with Skyeyes (same cache key);
-only the ControlNet branch differs.
+camera's (`reference.common.diffusion.conditions.NearestAerial`). The diffusion pipeline
+(`reference.common.diffusion.pipeline`) with the condition `config.condition = "aerial"` names;
+its presets are the family's budget without the VCM (`presets.baseline_presets`). The base UNet
+stage is shared with Skyeyes (same cache key); only the ControlNet branch differs.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-from .skyeyes import SkyeyesNoVCM, baseline_presets
+from reference.common.diffusion.pipeline import DiffusionMethod
+from reference.common.diffusion.presets import baseline_presets
 
 
-class ControlNetBaseline(SkyeyesNoVCM):
+class ControlNetBaseline(DiffusionMethod):
     name = "controlnet"
     presets = baseline_presets(lambda k, v: dataclasses.replace(v, vcm=False, condition="aerial"))

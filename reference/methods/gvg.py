@@ -23,7 +23,7 @@ input (`CoreConfig.cond_extra = 2`):
 * mask: 1 where the aerial views' geometry covers the pixel (coverage > 0.5), 0 elsewhere.
 
 Frame by frame, no cross-frame attention (no VCM). Architecture, objective and schedule are the
-Skyeyes CPU presets' (`skyeyes.PRESETS`): the residual from the colour channel is diffused, as
+diffusion family's presets' (`reference.common.diffusion.presets`, Skyeyes'): the residual from the colour channel is diffused, as
 Skyeyes diffuses its residual from the SuGaR prior, since the projected texture is an estimate
 of the frame where the mask is 1. Stereo preset per size: `smoke` at smoke, the `fast` start of
 the splatting methods at small, `paper` at paper (`prior_preset`).
@@ -36,80 +36,51 @@ no geospecific prior (train and test towns differ; nothing of the test place but
 views may be used); a small UNet trained from scratch with the condition concatenated on the CPU
 presets, where GVG fine-tunes SD (with `--pretrained` the SD1.5 UNet's conv_in is widened for
 the condition instead, `core.widen_conv_in`).
+
+The method is the diffusion pipeline (`reference.common.diffusion.pipeline`) with this
+condition: the `mvs` method (from the registry, rendering its geometry: `MVS(geometry=True)`)
+as the prior, its renders encoded by `condition_channels`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Iterator
+from functools import partial
 
 import numpy as np
 
-from reference.common.geometry import splat
+from reference.common.diffusion.conditions import PriorRenders
+from reference.common.diffusion.config import WHOLE_UNET_LR, DiffusionConfig
+from reference.common.diffusion.pipeline import DiffusionMethod
+from reference.common.diffusion.presets import baseline_presets
 from reference.method import Method
-from skyeyes_bench.data.layout import Dataset, Scene, Sequence
-
-from .mvs import MVS
-from .skyeyes import WHOLE_UNET_LR, SkyeyesConfig, SkyeyesNoVCM, baseline_presets
-
-#: Channels of a raw geometry render (`geometry_render`) and of a condition (`condition_channels`).
-RAW_CHANNELS = ("r", "g", "b", "depth_m", "alpha")
-CONDITION_CHANNELS = ("r", "g", "b", "inverse_depth", "mask")
-
-
-def geometry_render(params: dict, cam, background: np.ndarray, *, opacity: float, near: float,
-                    device="cpu", colour_map=None) -> np.ndarray:
-    """The fused cloud's surfels (`splat.surfels`) seen from `cam`: float32 [H, W, 5] = colour
-    over `background` [H, W, 3] (after `colour_map`, if given), planar depth (m; 0 where nothing
-    projects) and coverage alpha in [0, 1]."""
-    out = splat.render_surfels(params, cam, opacity=opacity, near=near, device=device)
-    colour = out["colour"] if colour_map is None else colour_map(out["colour"])
-    rgb = splat.over(colour, out["alpha"], background)
-    return np.concatenate([rgb, out["depth"][..., None], out["alpha"][..., None]], -1).astype(np.float32)
-
 
 def condition_channels(raw: np.ndarray, depth_ref_m: float) -> np.ndarray:
-    """A raw render [H, W, 5] (colour, depth m, alpha) -> the condition [H, W, 5] in [0, 1]:
+    """A geometry render of the `mvs` method [H, W, 5] (colour, depth m, alpha:
+    `reference.methods.mvs.geometry_render`) -> the condition [H, W, 5] in [0, 1]:
     colour, inverse depth min(depth_ref_m / depth, 1) where the mask is 1 (0 elsewhere), and the
     mask alpha > 0.5."""
-    assert raw.ndim == 3 and raw.shape[-1] == len(RAW_CHANNELS), raw.shape
+    assert raw.ndim == 3 and raw.shape[-1] == 5, raw.shape  # r, g, b, depth_m, alpha
     depth, alpha = raw[..., 3], raw[..., 4]
     mask = (alpha > 0.5) & (depth > 0)
     inv = np.where(mask, np.minimum(depth_ref_m / np.where(mask, depth, 1.0), 1.0), 0.0)
     return np.concatenate([raw[..., :3], inv[..., None], mask[..., None]], -1).astype(np.float32)
 
 
-class MVSGeometry(MVS):
-    """The `mvs` method rendering, per ground frame, its colour with the depth and coverage of its
-    discs (`geometry_render`): gvg's prior. Its renders are cached by `render_priors` under
-    their own name."""
-
-    name = "mvs-geometry"
-
-    def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
-        cfg = self.config
-        self.use_threads()
-        params, ground = self._splat(scene)
-        bgs = self._backgrounds(scene, ground)
-        for frame in sequence:
-            cam = frame.camera()
-            yield geometry_render(params, cam, bgs.image(cam), opacity=cfg.opacity, near=cfg.render_near_m,
-                                  device=self.device, colour_map=self.colour_map)
-
-
 @dataclass(frozen=True)
-class GVGConfig(SkyeyesConfig):
-    """Skyeyes' config (`prior_preset`: the `mvs` stereo preset) plus the depth encoding."""
+class GVGConfig(DiffusionConfig):
+    """The diffusion family's config (`prior_preset`: the `mvs` stereo preset) plus the depth
+    encoding."""
 
     depth_ref_m: float = 2.0  # inverse depth is 1 at this depth (the ground cameras' height) or nearer
 
 
-def gvg_config(base: SkyeyesConfig, mvs_preset: str) -> GVGConfig:
-    """The gvg preset made from a Skyeyes preset: its core with the condition concatenated (also
-    at `paper`, where Skyeyes has a ControlNet branch) with the depth and mask channels, the
-    `mvs` geometry of `mvs_preset` as the prior, frame by frame."""
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(SkyeyesConfig)}
+def gvg_config(base: DiffusionConfig, mvs_preset: str) -> GVGConfig:
+    """The gvg preset made from a preset of the family (Skyeyes'): its core with the condition
+    concatenated (also at `paper`, where Skyeyes has a ControlNet branch) with the depth and mask
+    channels, the `mvs` geometry of `mvs_preset` as the prior, frame by frame."""
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DiffusionConfig)}
     fields.update(core=dataclasses.replace(base.core, conditioning="concat", cond_extra=2), prior_method="mvs", prior_preset=mvs_preset,
                   condition="prior", vcm=False,
                   pretrained_acm_lr=WHOLE_UNET_LR)
@@ -121,7 +92,7 @@ def gvg_config(base: SkyeyesConfig, mvs_preset: str) -> GVGConfig:
 PRESETS = baseline_presets(lambda k, v: gvg_config(v, {"smoke": "smoke", "small": "fast", "paper": "paper"}[k]))
 
 
-class GVG(SkyeyesNoVCM):
+class GVG(DiffusionMethod):
     name = "gvg"
     presets = PRESETS
     pretrained_conditioning = "concat"
@@ -133,10 +104,15 @@ class GVG(SkyeyesNoVCM):
         if self.config.core.cond_extra != 2:
             raise ValueError("gvg: the condition has 2 extra channels (depth, mask): core.cond_extra=2")
 
-    def _make_prior(self) -> Method:
-        return MVSGeometry.from_preset(self.config.prior_preset, self.workdir / "prior", seed=self.seed,
-                                       progress=self.progress, train_lanes=0, device=self.device)
+    def make_prior(self) -> Method:
+        """The `mvs` method of `prior_preset` rendering its geometry, with no appearance learned
+        on other lanes (a prior sees its own lane only)."""
+        from reference.registry import get_method_class
 
-    def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
-        raw = super()._conditions(dataset, scenes)
-        return {k: condition_channels(v, self.config.depth_ref_m) for k, v in raw.items()}
+        mvs = get_method_class("mvs")
+        config, _ = mvs.configure(self.config.prior_preset, values={"train_lanes": 0, "device": self.device})
+        return mvs(config, self.workdir / "prior", seed=self.seed, progress=self.progress, geometry=True)
+
+    def make_condition(self) -> PriorRenders:
+        """The prior's geometry renders as condition channels (colour, inverse depth, mask)."""
+        return PriorRenders(lambda: self.prior, partial(condition_channels, depth_ref_m=self.config.depth_ref_m))

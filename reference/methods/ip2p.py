@@ -20,9 +20,11 @@ given. Here it is the aerial view whose camera centre is nearest the ground came
 diffused, not their residual from the condition (the CPU presets' residual is turned off, as
 `controlnet` does). No VCM: every frame is generated on its own.
 
-Everything else (architecture, objective, schedule, steps, crops, EMA) is the Skyeyes CPU
-presets' (`skyeyes.PRESETS`), its training budget included, so the baseline follows them when
-they change.
+Everything else (architecture, objective, schedule, steps, crops, EMA) is the diffusion
+family's presets' (`reference.common.diffusion.presets`, Skyeyes' formulation), its training
+budget included, so the baseline follows them when they change. The method is the diffusion
+pipeline (`reference.common.diffusion.pipeline`) with the nearest aerial view as its condition
+and IP2P's guidance as its guidance part (`guidance.ImageTextGuidance`).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ import dataclasses
 from dataclasses import dataclass
 
 from reference.common.diffusion import guidance
-
-from .skyeyes import WHOLE_UNET_LR, SkyeyesConfig, SkyeyesNoVCM, baseline_presets
+from reference.common.diffusion.config import WHOLE_UNET_LR, DiffusionConfig
+from reference.common.diffusion.pipeline import DiffusionMethod
+from reference.common.diffusion.presets import baseline_presets
 
 #: The fixed edit instruction. IP2P's instructions are imperative edits; the Skyeyes paper names
 #: none for its baseline, so this one asks for what the task wants, in the words of Skyeyes'
@@ -41,8 +44,9 @@ INSTRUCTION = "turn the aerial view into a realistic street view image"
 
 
 @dataclass(frozen=True)
-class IP2PConfig(SkyeyesConfig):
-    """Skyeyes' config plus the condition dropout of training and the guidance scales of sampling."""
+class IP2PConfig(DiffusionConfig):
+    """The diffusion family's config plus the condition dropout of training and the guidance
+    scales of sampling."""
 
     drop_image: float = guidance.DROP  # only the image condition dropped
     drop_text: float = guidance.DROP  # only the text
@@ -51,11 +55,12 @@ class IP2PConfig(SkyeyesConfig):
     text_guidance: float = guidance.TEXT_SCALE  # s_T
 
 
-def ip2p_config(base: SkyeyesConfig) -> IP2PConfig:
-    """The IP2P preset made from a Skyeyes preset: its core with the condition concatenated (IP2P's
-    way in; Skyeyes' `paper` preset has a ControlNet branch instead), the unconditional text
-    embedding and the instruction, conditioned on the nearest aerial view, frame by frame."""
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(SkyeyesConfig)}
+def ip2p_config(base: DiffusionConfig) -> IP2PConfig:
+    """The IP2P preset made from a preset of the family (Skyeyes'): its core with the condition
+    concatenated (IP2P's way in; Skyeyes' `paper` preset has a ControlNet branch instead), the
+    unconditional text embedding and the instruction, conditioned on the nearest aerial view,
+    frame by frame."""
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DiffusionConfig)}
     fields.update(core=dataclasses.replace(base.core, conditioning="concat", null_prompt=True,
                                            prompt_text=INSTRUCTION),
                   condition="aerial", vcm=False,
@@ -66,29 +71,13 @@ def ip2p_config(base: SkyeyesConfig) -> IP2PConfig:
 PRESETS = baseline_presets(lambda k, v: ip2p_config(v))
 
 
-class InstructPix2Pix(SkyeyesNoVCM):
+class InstructPix2Pix(DiffusionMethod):
     name = "ip2p"
     presets = PRESETS
     pretrained_conditioning = "concat"
 
-    def __init__(self, config: IP2PConfig, workdir, **kw):
-        super().__init__(config, workdir, **kw)
+    def make_guidance(self) -> guidance.ImageTextGuidance:
+        """IP2P's: conditions dropped in training, guided on image and text at sampling."""
         c = self.config
-        if c.core.residual:  # (Skyeyes turns it off for the aerial condition)
-            raise ValueError("ip2p: a dropped image condition leaves no prior to add a residual to")
-        if not c.core.null_prompt:
-            raise ValueError("ip2p: text guidance needs core.null_prompt (the unconditional embedding)")
-        guidance.check_drops(c.drop_image, c.drop_text, c.drop_both)
-
-    def _drop_conditions(self, cond, g):
-        """IP2P's training dropout: (conditions with the dropped images null, text mask)."""
-        c = self.config
-        drop_image, drop_text = guidance.draw_drops(cond.shape[0], g, c.drop_image, c.drop_text, c.drop_both)
-        return guidance.null_condition(cond, c.core, drop_image), ~drop_text
-
-    def _acm_key_extra(self) -> dict:
-        c = self.config
-        return {"drop": [c.drop_image, c.drop_text, c.drop_both]}
-
-    def _sampling_model(self, model):
-        return guidance.GuidedModel(model, self.config.image_guidance, self.config.text_guidance)
+        return guidance.ImageTextGuidance(c.core, (c.drop_image, c.drop_text, c.drop_both),
+                                          (c.image_guidance, c.text_guidance))

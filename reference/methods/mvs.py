@@ -114,14 +114,32 @@ def reconstruct(scene: Scene, cfg: MVSMethodConfig, *, device: str, aerial: list
     return cloud, stats
 
 
+def geometry_render(params: dict, cam, background: np.ndarray, *, opacity: float, near: float,
+                    device="cpu", colour_map=None) -> np.ndarray:
+    """The fused cloud's surfels (`splat.surfels`) seen from `cam`: float32 [H, W, 5] = colour
+    over `background` [H, W, 3] (after `colour_map`, if given), planar depth (m; 0 where nothing
+    projects) and coverage alpha in [0, 1]."""
+    out = splat.render_surfels(params, cam, opacity=opacity, near=near, device=device)
+    colour = out["colour"] if colour_map is None else colour_map(out["colour"])
+    rgb = splat.over(colour, out["alpha"], background)
+    return np.concatenate([rgb, out["depth"][..., None], out["alpha"][..., None]], -1).astype(np.float32)
+
+
 class MVS(Method):
+    """The fused cloud's discs in the ground cameras. With `geometry=True` (gvg's prior) each
+    frame is `geometry_render`'s [H, W, 5], the colour with the discs' depth and coverage, and
+    the method is named "mvs-geometry" (its renders are cached under that name)."""
+
     name = "mvs"
     version = "0.1"
     presets = PRESETS
     scene_checkpoint = "cloud.npz"
 
-    def __init__(self, config, workdir, **kw):
+    def __init__(self, config, workdir, *, geometry: bool = False, **kw):
         super().__init__(config, workdir, **kw)
+        self.geometry = geometry
+        if geometry:
+            self.name = "mvs-geometry"
         self._splats: dict[str, tuple[dict, np.ndarray | None]] = {}  # scene -> (surfels, ground colour)
         self.colour_map = ColourMap()
         self.backgrounds: Backgrounds | None = None
@@ -209,8 +227,8 @@ class MVS(Method):
         bgs = self._backgrounds(scene, ground)
         for frame in sequence:
             cam = frame.camera()
-            rgb, alpha = splat.render_cloud(params, cam, opacity=cfg.opacity, near=cfg.render_near_m,
-                                            device=self.device)
             # The colour map corrects what the aerial views saw; the background is already a
             # ground-view colour.
-            yield splat.over(self.colour_map(rgb), alpha, bgs.image(cam))
+            out = geometry_render(params, cam, bgs.image(cam), opacity=cfg.opacity, near=cfg.render_near_m,
+                                  device=self.device, colour_map=self.colour_map)
+            yield out if self.geometry else np.ascontiguousarray(out[..., :3])

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from conftest import run_cli
-from reference.methods.skyeyes import GPU_TRAINING, PRESETS, Skyeyes
+from reference.common.diffusion.presets import GPU_TRAINING
+from reference.methods.skyeyes import PRESETS, Skyeyes
 from reference.methods.sugar import SuGaR
 from reference.parallel import GPU_LANES, available_cores, default_jobs
 from skyeyes_bench.devices import device_name, resolve_device

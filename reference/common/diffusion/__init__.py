@@ -1,11 +1,19 @@
-"""Diffusion core shared by Skyeyes and the ControlNet baseline.
+"""The diffusion family (Skyeyes, skyeyes-no-vcm, controlnet, ip2p, gvg): one pipeline of small parts.
 
-- `core`: `CoreConfig`, `ControlledUNet` (diffusers UNet2DConditionModel + ControlNetModel
-  branch + prompt embedding), DDPM/DDIM schedulers, pixel codec.
+- `pipeline`: `DiffusionMethod`, the family's `Method` (fit the stages, make the conditions,
+  sample), and what a member chooses (its condition, guidance, presets, VCM on or off).
+- `conditions`: what conditions the model (a prior's renders, the nearest aerial view).
+- `guidance`: how it is guided: none, or classifier-free on image and text (InstructPix2Pix:
+  condition dropout in training, guided predictions at sampling).
+- `stages`: the training stages (base UNet, ACM, VCM) and their cache keys.
+- `config`: `CoreConfig` (the denoiser), `DiffusionConfig` (a run of any member); `presets`: the
+  family's presets (Skyeyes' formulation and training budget).
+- `core`: `ControlledUNet` (diffusers UNet2DConditionModel + ControlNetModel branch + prompt
+  embedding), DDPM/DDIM schedulers, pixel codec.
 - `vcm`: the view consistency module as a diffusers attention processor.
 - `train`: denoising losses (epsilon or v) (frames, first-frame-conditioned clips), resumable training loop.
-- `sample`: DDIM sampling frame by frame and autoregressively clip by clip.
-- `guidance`: classifier-free guidance on image and text (InstructPix2Pix): condition dropout, guided predictions.
+- `sample`: DDIM sampling frame by frame and autoregressively clip by clip; `warp`: warped sampling.
+- `figure`: a run's figure (aerial, condition, generated, ground truth).
 """
 
 from .core import CoreConfig, ControlledUNet, build_model, decode, encode, encode_cond, sample_scheduler, train_scheduler

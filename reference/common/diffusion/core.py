@@ -16,168 +16,13 @@ frozen CLIP encoding of the prompt and the UNet works in the folder's VAE latent
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-#: NOTE: the uniform prompt of Skyeyes, Sec. 4.2 (Implementation Details).
-PROMPT = "a realistic street view image"
-
-
-#: The noise schedules of diffusers' DDPM/DDIM schedulers that a pretrained folder may name.
-BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
-
-
-@dataclass(frozen=True)
-class CoreConfig:
-    """Architecture of the denoiser. Sizes in pixels; `channels` per UNet level."""
-
-    resolution: int = 64  # model input size in pixels (square); frames are resized to it
-    patch: int = 1  # pixel-unshuffle factor: the UNet sees [3 p^2, res/p, res/p]
-    channels: tuple[int, ...] = (32, 64, 128)
-    attention: tuple[bool, ...] = (False, True, True)  # transformer blocks (attn1 + attn2) per level
-    layers_per_block: int = 1
-    head_dim: int = 32
-    embed_dim: int = 64  # width of the prompt embedding (cross-attention dim)
-    norm_groups: int = 8
-    train_timesteps: int = 1000
-    # NOTE: Ho et al. 2020 linear schedule (1e-4 .. 0.02, T = 1000): alpha_bar_T = 4.0e-5, i.e.
-    # pure noise at t = T up to 0.6 % signal amplitude.
-    beta_start: float = 1e-4
-    beta_end: float = 0.02
-    # diffusers' `beta_schedule`: "linear" (ours from scratch) or, with `pretrained`, the folder's
-    # own (SD1.5: "scaled_linear" 0.00085..0.012; `pretrained_schedule`).
-    beta_schedule: str = "linear"
-    # What the network predicts (diffusers' `prediction_type`): "epsilon" (the paper's objective,
-    # SD1.5's; forced with --pretrained) or "v_prediction" (Salimans & Ho 2022, v = sqrt(ab) eps -
-    # sqrt(1 - ab) x0), the default for models trained from scratch. NOTE: measured on SynthTown smoke (250 +
-    # 250 steps): with epsilon, x0 = (x_t - sqrt(1 - ab) eps) / sqrt(ab) amplifies the residual
-    # epsilon error ~3x at t = 500 and ~160x at t = T, so the DDIM trajectory never locks on and
-    # frames come out as noise (x0 error 0.18 vs a signal variance of 0.13); v keeps the x0 error
-    # bounded at every t. See docs/skyeyes.md for the figures.
-    #
-    # "flow": rectified flow (Liu et al. 2023; SD3's convention, Esser et al. 2024): the sample
-    # at flow time tau in [0, 1] is z_tau = (1 - tau) z0 + tau flow_noise eps, the network
-    # predicts the velocity dz/dtau = flow_noise eps - z0, and sampling integrates it from
-    # tau = 1 to 0 with diffusers' FlowMatchEulerDiscreteScheduler. With `residual`, tau = 1 is
-    # the prior plus noise of std `flow_noise`: a bridge from the prior to the frame, as
-    # ResShift (Yue et al., NeurIPS 2023) and I2SB (Liu et al., ICML 2023) start restoration
-    # from the degraded image. A small `flow_noise` keeps the sample near its prior's layout
-    # from the first step; 1 is the usual noise-to-data flow.
-    prediction: str = "v_prediction"
-    flow_noise: float = 1.0
-    pretrained: str | None = None  # local SD1.5 diffusers folder
-    # How the condition (prior) enters the denoiser: "controlnet" (the paper's ACM: a
-    # ControlNet branch beside a UNet, the pretrained path) or "concat" (the condition is
-    # concatenated to the noisy sample at the UNet's input, as SR3, Palette and
-    # InstructPix2Pix do: the model sees it from its first step, with no zero convolutions to
-    # grow first). See docs/skyeyes.md for the measurements behind the CPU presets' choice.
-    conditioning: str = "controlnet"
-    # Diffuse the residual (x0 - condition) * residual_scale instead of x0 (concat only): an
-    # untrained model's x0 estimate is then the condition itself, not a grey frame.
-    residual: bool = False
-    residual_scale: float = 1.0
-    # Two pixel-coordinate channels (x, y in [-1, 1] over the whole frame) appended to the
-    # concatenated condition, so a model trained on crops knows where in the frame each crop
-    # lies (Patch Diffusion, Wang et al., NeurIPS 2023). Measured on SynthTown small: without
-    # them a crop-trained model samples whole frames as a collage (docs/skyeyes.md).
-    coords: bool = False
-    # Extra condition channels beyond the condition image's 3 colours, in image space, each in
-    # [0, 1] (gvg: the projected depth and the mask of what the aerial views saw). They follow
-    # the colour channels, folded like them (`patch`); with `pretrained`, area-averaged onto the
-    # latent grid. Concat only.
-    cond_extra: int = 0
-    # A second text embedding, the unconditional one, beside the prompt: a learned "null"
-    # embedding (or, with `pretrained`, the CLIP encoding of the empty prompt), so that
-    # classifier-free guidance on the text has an unconditional branch (InstructPix2Pix).
-    null_prompt: bool = False
-    # The text the prompt embedding stands for (encoded with `pretrained`; a label otherwise).
-    prompt_text: str = PROMPT
-
-    def __post_init__(self):
-        if self.prediction not in ("epsilon", "v_prediction", "flow"):
-            raise ValueError(f"prediction {self.prediction!r}: expected 'epsilon', 'v_prediction' or 'flow'")
-        if not self.flow_noise > 0:
-            raise ValueError(f"flow_noise {self.flow_noise}: expected > 0")
-        if self.conditioning not in ("controlnet", "concat"):
-            raise ValueError(f"conditioning {self.conditioning!r}: expected 'controlnet' or 'concat'")
-        if self.residual and self.conditioning != "concat":
-            raise ValueError("residual diffusion needs conditioning='concat'")
-        if self.coords and self.conditioning != "concat":
-            raise ValueError("coordinate channels need conditioning='concat'")
-        if self.beta_schedule not in BETA_SCHEDULES:
-            raise ValueError(f"beta_schedule {self.beta_schedule!r}: expected one of {', '.join(BETA_SCHEDULES)}")
-        if self.cond_extra < 0 or (self.cond_extra and self.conditioning != "concat"):
-            raise ValueError(f"cond_extra {self.cond_extra}: extra condition channels need "
-                             "conditioning='concat' and a count >= 0")
-
-    @property
-    def sample_channels(self) -> int:
-        """Channels of the diffused sample: SD VAE latents have 4; pixels folded p x p have 3 p^2."""
-        return 4 if self.pretrained else 3 * self.patch**2
-
-    @property
-    def extra_channels(self) -> int:
-        """Model-space channels of the `cond_extra` image channels (folded p x p, or one each on
-        the latent grid)."""
-        return self.cond_extra * (1 if self.pretrained else self.patch**2)
-
-    @property
-    def cond_channels(self) -> int:
-        """Channels of the condition in model space: the sample's (the colour image), the extra
-        channels', plus 2 with `coords`."""
-        return self.sample_channels + self.extra_channels + (2 if self.coords else 0)
-
-    @property
-    def image_cond_channels(self) -> int:
-        """The condition's channels that carry the conditioning images (all but the coordinates):
-        what a dropped condition sets to zero."""
-        return self.sample_channels + self.extra_channels
-
-    @property
-    def in_channels(self) -> int:
-        """Channels of the UNet's input (the sample, plus the condition when concatenated)."""
-        return self.sample_channels + (self.cond_channels if self.conditioning == "concat" else 0)
-
-    @property
-    def heads_per_level(self) -> tuple[int, ...]:
-        """Attention heads per UNet level, so that each head is `head_dim` wide."""
-        return tuple(max(1, c // self.head_dim) for c in self.channels)
-
-    @property
-    def latent_size(self) -> int:
-        return self.resolution // (8 if self.pretrained else self.patch)
-
-
-#: Fields added after stage checkpoints were first cached: left out of `core_key` while at their
-#: defaults, so the stages cached before they existed keep their keys.
-_KEY_OMITTED_AT_DEFAULT = ("cond_extra", "null_prompt", "prompt_text", "beta_schedule")
-
-
-def core_key(cfg: CoreConfig) -> dict:
-    """The config as a stage cache key (`dataclasses.asdict`, without the later fields that are
-    at their defaults, and without `flow_noise` unless the objective is the flow: it changes
-    nothing then)."""
-    d = dataclasses.asdict(cfg)
-    defaults = CoreConfig()
-    for k in _KEY_OMITTED_AT_DEFAULT:
-        if d[k] == getattr(defaults, k):
-            del d[k]
-    if cfg.prediction != "flow":
-        del d["flow_noise"]
-    return d
-
-
-def core_config_from_dict(d: dict) -> CoreConfig:
-    d = dict(d)
-    for k in ("channels", "attention"):
-        if k in d:
-            d[k] = tuple(d[k])
-    return CoreConfig(**d)
-
+from .config import BETA_SCHEDULES, PROMPT, CoreConfig, core_key  # noqa: F401  (PROMPT, core_key: re-exported)
 
 # --------------------------------------------------------------------------- schedulers
 
@@ -279,6 +124,11 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     if images.shape[-2:] == (size, size):
         return images
     return F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+
+
+def resize_hw(images: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """[N, C, H, W] -> [N, C, h, w], antialiased bilinear (a frame that is not square)."""
+    return F.interpolate(images, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
 
 
 #: Frames per VAE call (`--pretrained`): a whole train split at 512x512 in one call does not fit

@@ -90,3 +90,56 @@ class GuidedModel(nn.Module):
         out = self.model(torch.cat([x_t] * 3), torch.cat([t] * 3), conds, text=text)
         e00, e_image, e_both = out.chunk(3)
         return combine(e00, e_image, e_both, self.s_image, self.s_text)
+
+
+# --------------------------------------------------------------------------- the pipeline's parts
+
+
+class Unguided:
+    """No guidance (Skyeyes, controlnet, gvg): training sees every condition and the prompt, the
+    sampler calls the model itself. The guidance part of `pipeline.DiffusionMethod`."""
+
+    def drop(self, cond: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Training conditions [B, C, h, w] as the model sees them, and the text mask [B] (None:
+        the prompt everywhere)."""
+        return cond, None
+
+    def key(self) -> dict:
+        """What else the ACM stage depends on (its cache key)."""
+        return {}
+
+    def sampling_model(self, model: nn.Module) -> nn.Module:
+        """The model the sampler calls."""
+        return model
+
+
+class ImageTextGuidance(Unguided):
+    """InstructPix2Pix's guidance on image and text: conditions dropped in training (`draw_drops`,
+    `null_condition`), the guided combination at sampling (`GuidedModel`).
+
+    Args:
+        cfg: the model's core (its null image condition; it must diffuse the frames, not their
+            residual from the condition, and have the unconditional text, `null_prompt`).
+        drops: (p_image, p_text, p_both) of training.
+        scales: (s_I, s_T) of sampling.
+    """
+
+    def __init__(self, cfg: CoreConfig, drops: tuple[float, float, float], scales: tuple[float, float]):
+        if cfg.residual:
+            raise ValueError("image guidance: a dropped image condition leaves no prior to add a residual to "
+                             "(core.residual must be off)")
+        if not cfg.null_prompt:
+            raise ValueError("text guidance needs core.null_prompt (the unconditional embedding)")
+        check_drops(*drops)
+        self.cfg, self.drops, self.scales = cfg, tuple(drops), tuple(scales)
+
+    def drop(self, cond: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(conditions with the dropped images null, text mask: False where the text is dropped)."""
+        drop_image, drop_text = draw_drops(cond.shape[0], g, *self.drops)
+        return null_condition(cond, self.cfg, drop_image), ~drop_text
+
+    def key(self) -> dict:
+        return {"drop": list(self.drops)}
+
+    def sampling_model(self, model: nn.Module) -> nn.Module:
+        return GuidedModel(model, *self.scales)

@@ -94,7 +94,7 @@ def test_ip2p_training_drops_exactly_to_the_null_conditions(tmp_path):
     m = ip2p_mod.InstructPix2Pix(ip2p_mod.ip2p_config(TINY), tmp_path / "a")
     cfg = m.config.core
     k = core.encode_cond(torch.rand(400, 3, 4, 4) * 0.5 + 0.25, cfg)
-    out, text = m._drop_conditions(k, torch.Generator().manual_seed(5))
+    out, text = m.guidance.drop(k, torch.Generator().manual_seed(5))
     di, dt = guidance.draw_drops(400, torch.Generator().manual_seed(5), 0.05, 0.05, 0.05)  # the same draws
     assert di.any() and dt.any() and (di & dt).any()
     assert torch.equal(text, ~dt)
@@ -120,9 +120,10 @@ def test_gvg_condition_of_a_plane_at_known_depth(one_torch_thread):
     rgb = np.tile(np.array([[0.8, 0.3, 0.1]], np.float32), (n, 1))
     cloud = PointCloud(xyz, rgb, np.tile(np.array([[-1.0, 0, 0]], np.float32), (n, 1)), np.full(n, 2 * step, np.float32))
     from reference.common.geometry import splat
+    from reference.methods.mvs import geometry_render
 
     background = np.full((32, 32, 3), 0.2, np.float32)
-    raw = gvg_mod.geometry_render(splat.surfels(cloud), cam, background, opacity=0.98, near=0.5)
+    raw = geometry_render(splat.surfels(cloud), cam, background, opacity=0.98, near=0.5)
     cond = gvg_mod.condition_channels(raw, depth_ref_m=2.0)
     assert cond.shape == (32, 32, 5) and cond.dtype == np.float32
     # Closed form: each pixel's ray meets the plane x = 8 at o + dir * 8 (camera z = 1: planar depth 8).
@@ -182,7 +183,7 @@ def test_ip2p_end_to_end_deterministic_in_the_seed(tiny, tmp_path):
     assert m.acm.null_prompt is not None and m.acm.controlnet is None
     assert m.acm.unet.conv_in.in_channels == 6  # noisy frame + aerial view
     assert set(m.training) == {"acm"} and (tmp_path / "a" / "figure.png").is_file()
-    guided = m._sampling_model(m.acm)
+    guided = m.guidance.sampling_model(m.acm)
     assert isinstance(guided, guidance.GuidedModel) and (guided.s_image, guided.s_text) == (1.5, 7.5)
     _, b = _run(ip2p_mod.InstructPix2Pix, cfg, tiny, tmp_path / "b")  # the stage from the cache
     c = _render_again(m, tiny, seed=1)
@@ -217,8 +218,10 @@ def test_gvg_end_to_end_deterministic_in_the_seed(tiny, tmp_path):
 def test_gvg_prior_is_the_mvs_geometry_of_its_stereo_preset(tmp_path):
     m = gvg_mod.GVG(gvg_mod.PRESETS["small"], tmp_path / "a")
     prior = m.prior
-    assert isinstance(prior, gvg_mod.MVSGeometry) and prior.name == "mvs-geometry"
+    from reference.methods.mvs import MVS
     from reference.methods.mvs import PRESETS as MVS_PRESETS
+
+    assert isinstance(prior, MVS) and prior.geometry and prior.name == "mvs-geometry"
 
     assert prior.config == dataclasses.replace(MVS_PRESETS["fast"], train_lanes=0, device="cpu")
 
@@ -226,13 +229,13 @@ def test_gvg_prior_is_the_mvs_geometry_of_its_stereo_preset(tmp_path):
 def test_baselines_follow_skyeyes_budget_when_it_changes(monkeypatch):
     """The baselines train with Skyeyes' budget at every preset: a change to Skyeyes' steps or
     rate decay reaches them, and only the VCM is taken off."""
-    from reference.methods import skyeyes
+    from reference.common.diffusion import config, presets
 
     annealed = {k: dataclasses.replace(v, acm_steps=v.acm_steps + 2000, acm_anneal=2000, mixed_precision="no")
-                for k, v in skyeyes.PRESETS.items()}
-    monkeypatch.setattr(skyeyes, "PRESETS", annealed)
-    got = skyeyes.baseline_presets(lambda k, v: v)
+                for k, v in presets.PRESETS.items()}
+    monkeypatch.setattr(presets, "PRESETS", annealed)
+    got = presets.baseline_presets(lambda k, v: v)
     for k in annealed:
-        assert got[k] == skyeyes.frame_by_frame(annealed[k])
+        assert got[k] == config.frame_by_frame(annealed[k])
         assert (got[k].acm_steps, got[k].acm_anneal, got[k].mixed_precision) == (annealed[k].acm_steps, 2000, "no")
         assert got[k].vcm is False

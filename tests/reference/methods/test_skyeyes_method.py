@@ -19,6 +19,7 @@ from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
 from reference.common.priors import nearest_aerial, render_priors  # noqa: E402
 from reference.methods.skyeyes import PRESETS, Skyeyes, SkyeyesNoVCM  # noqa: E402
 from reference.common.diffusion.core import CoreConfig  # noqa: E402
+from reference.common.diffusion.stages import stage_ckpt  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 from skyeyes_bench.paths import cache_dir  # noqa: E402
 
@@ -121,9 +122,8 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
 
     from reference.common.diffusion import core, train
 
-    m = Skyeyes(TINY, tmp_path / "w", prior_method=StandInPrior(tmp_path), progress=False)
     key = {"x": 1}
-    short = m._stage_ckpt("acm", key, 2)
+    short = stage_ckpt("acm", key, 2)
     assert not short.exists()
     data = torch.rand(4, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0)) * 2 - 1
     sched = core.train_scheduler(TINY.core)
@@ -135,23 +135,23 @@ def test_longer_stage_starts_from_shorter_finished_run(tmp_path):
         return mm.state_dict()
 
     fit(short, 2)
-    long_ckpt = m._stage_ckpt("acm", key, 4)  # starts as a copy of the finished 2-step run
+    long_ckpt = stage_ckpt("acm", key, 4)  # starts as a copy of the finished 2-step run
     assert train.load_checkpoint(long_ckpt)["step"] == 2
     a = fit(long_ckpt, 4)
     b = fit(tmp_path / "fresh.pt", 4)
     assert all(torch.equal(a[k], b[k]) for k in a)
-    assert m._stage_ckpt("acm", {"x": 2}, 4).parent != long_ckpt.parent  # other inputs, other folder
+    assert stage_ckpt("acm", {"x": 2}, 4).parent != long_ckpt.parent  # other inputs, other folder
 
     # An interrupted longer run (8 asked, killed after step 6) serves any request of >= 6 steps;
     # a request for fewer steps falls back to the furthest run that did not pass it.
     mm = core.build_model(TINY.core, control=False, seed=0)
     loss = lambda net, g, part: train.denoise_loss(net, sched, data[torch.randint(0, 4, (2,), generator=g)], None, g)  # noqa: E731
-    train.train_loop(mm, core.trainable(mm), loss, steps=8, lr=1e-3, seed=0, ckpt=m._stage_ckpt("acm", key, 8),
+    train.train_loop(mm, core.trainable(mm), loss, steps=8, lr=1e-3, seed=0, ckpt=stage_ckpt("acm", key, 8),
                      ckpt_every=2, stop_after=2, progress=False)  # resumed from step 4, killed at 6
-    assert train.load_checkpoint(m._stage_ckpt("acm", key, 8))["step"] == 6
-    assert train.load_checkpoint(m._stage_ckpt("acm", key, 7))["step"] == 6
-    assert train.load_checkpoint(m._stage_ckpt("acm", key, 5))["step"] == 4
-    assert train.load_checkpoint(m._stage_ckpt("acm", key, 3))["step"] == 2
+    assert train.load_checkpoint(stage_ckpt("acm", key, 8))["step"] == 6
+    assert train.load_checkpoint(stage_ckpt("acm", key, 7))["step"] == 6
+    assert train.load_checkpoint(stage_ckpt("acm", key, 5))["step"] == 4
+    assert train.load_checkpoint(stage_ckpt("acm", key, 3))["step"] == 2
 
 
 def _cached_prior_seconds() -> float:
@@ -261,7 +261,7 @@ def test_training_crops_share_one_window_per_row():
 def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     import torch
 
-    from reference.methods.skyeyes import make_prior_method
+    from reference.common.diffusion.conditions import registry_prior
 
     m = Skyeyes(dataclasses.replace(TINY, device="auto"), tmp_path / "a")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -270,9 +270,10 @@ def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)  # what torch would report; no kernel runs
     assert m.device == "cuda"
     assert Skyeyes(dataclasses.replace(TINY, device="cuda:1"), tmp_path / "b").device == "cuda:1"
-    prior = make_prior_method(PRESETS["small"], tmp_path / "p", 0, "cuda")
+    small = PRESETS["small"]
+    prior = registry_prior(small.prior_method, small.prior_preset, tmp_path / "p", 0, "cuda")
     assert prior.name == "sugar" and prior.config.device == "cuda"
-    assert make_prior_method(PRESETS["small"], tmp_path / "q", 0, None).config.device == "cpu"
+    assert registry_prior(small.prior_method, small.prior_preset, tmp_path / "q", 0, None).config.device == "cpu"
 
 
 

@@ -231,9 +231,10 @@ def test_frame_by_frame_methods_keep_the_vcm_fields_at_their_defaults():
     """The methods without a VCM keep the fields that mean nothing to them at the dataclass
     defaults, so their configs (and filed rows) do not follow Skyeyes' VCM settings."""
     from reference.methods import get_method_class
-    from reference.methods.skyeyes import PRESETS, VCM_ONLY, SkyeyesConfig, frame_by_frame
+    from reference.common.diffusion.config import VCM_ONLY, DiffusionConfig, frame_by_frame
+    from reference.methods.skyeyes import PRESETS
 
-    defaults = {f.name: f.default for f in dataclasses.fields(SkyeyesConfig)}
+    defaults = {f.name: f.default for f in dataclasses.fields(DiffusionConfig)}
     warped = dataclasses.replace(PRESETS["small"], clip_frames=2, vcm_local=5, vcm_warp=9, vcm_keys="previous")
     plain = frame_by_frame(warped)
     assert not plain.vcm and {k: getattr(plain, k) for k in VCM_ONLY} == {k: defaults[k] for k in VCM_ONLY}

@@ -1,0 +1,65 @@
+"""What conditions a diffusion model: per ground frame an image [H, W, C] in [0, 1] (C = 3, or
+more for a condition with extra channels, `CoreConfig.cond_extra`), the part of the pipeline in
+which the family's members differ most (`pipeline.DiffusionMethod.make_condition`).
+
+- `PriorRenders`: another method's renders of every ground pose (Skyeyes' Gaussian prior, SuGaR;
+  gvg's `mvs` geometry), cached by content hash (`reference.common.priors.render_priors`); that
+  method sees the aerial views and the ground *poses* only.
+- `NearestAerial`: the aerial view whose camera is nearest the ground camera (controlnet, ip2p).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from reference.common.priors import frame_key, nearest_aerial, render_priors
+
+if TYPE_CHECKING:
+    from reference.method import Method
+    from skyeyes_bench.data.layout import Dataset, Scene
+
+
+class NearestAerial:
+    """Each ground frame's nearest aerial view (`priors.nearest_aerial`): nothing to fit."""
+
+    def images(self, dataset: "Dataset | None", scenes: list["Scene"], *, progress: bool,
+               jobs: int) -> tuple[dict[str, np.ndarray], float]:
+        """({frame key: the image}, seconds taken from caches: none)."""
+        return {frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}, 0.0
+
+
+class PriorRenders:
+    """The renders of a prior method at every ground pose, optionally re-encoded per frame
+    (`encode`: gvg's colour, depth and coverage -> its condition channels).
+
+    Args:
+        prior: returns the prior method (built when first asked for).
+        encode: float32 [H, W, C] render -> the condition [H, W, C'] (None: the render).
+    """
+
+    def __init__(self, prior: Callable[[], "Method"], encode: Callable[[np.ndarray], np.ndarray] | None = None):
+        self.prior, self.encode = prior, encode
+
+    def images(self, dataset: "Dataset | None", scenes: list["Scene"], *, progress: bool,
+               jobs: int) -> tuple[dict[str, np.ndarray], float]:
+        """({frame key: the condition}, the original seconds of the renders and fits taken from
+        caches): the prior fitted per scene `jobs` at a time and rendered (`render_priors`)."""
+        conds, cached_s = render_priors(dataset, scenes, self.prior(), progress=progress, jobs=jobs)
+        if self.encode is not None:
+            conds = {k: self.encode(v) for k, v in conds.items()}
+        return conds, cached_s
+
+
+def registry_prior(method_id: str, preset: str, workdir: Path, seed: int, device: str | None = None,
+                   **values) -> "Method":
+    """The method `method_id` of the registry at `preset` (config fields in `values` replaced), on
+    `device` when its config has one."""
+    from reference.method import has_field
+    from reference.registry import get_method_class
+
+    cls = get_method_class(method_id)
+    extra = {"device": device} if device is not None and has_field(cls.presets[preset], "device") else {}
+    return cls.from_preset(preset, workdir, seed=seed, **values, **extra)

@@ -1,0 +1,241 @@
+"""The diffusion family's method: one pipeline, assembled per member from small parts.
+
+`DiffusionMethod` is a `Method` whose life cycle is the same for every member (Skyeyes, its
+no-VCM ablation, controlnet, ip2p, gvg):
+
+- `fit_train`: the condition of every train ground frame, then the stages (`stages`: base UNet,
+  ACM, VCM), each trained or resumed from the stage cache;
+- `fit_scenes`: the condition of every test ground frame (a prior is fitted per scene);
+- `render_sequence`: DDIM from the ACM frame by frame, or with the VCM clip by clip
+  (`sample`), seeded per sequence.
+
+What a member chooses, in its own module:
+
+- its presets (the family's budget, `presets`, with its own changes) and config (`DiffusionConfig`
+  or an extension of it);
+- the condition part, `make_condition` (`conditions`: a prior's renders, the nearest aerial view;
+  by default what `config.condition` names, with `config.prior_method` from the registry);
+- the guidance part, `make_guidance` (`guidance.Unguided`, or IP2P's `ImageTextGuidance`);
+- whether a VCM runs: its config (`vcm`, `clip_frames`);
+- `pretrained_conditioning`: how its condition enters a pretrained SD1.5 UNet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+from pathlib import Path
+from typing import Any, ClassVar, Iterator
+
+import numpy as np
+
+from reference.common.priors import frame_key
+from reference.method import Method
+from skyeyes_bench.data.layout import Dataset, Scene, Sequence
+
+from .conditions import NearestAerial, PriorRenders, registry_prior
+from .config import DiffusionConfig
+from .guidance import Unguided
+from .presets import GPU_TRAINING
+
+
+def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionConfig:
+    """`config` as it runs, after checking it: with `pretrained`, the folder's schedule and
+    objective, the member's way in for the condition and the recipe's learning rate; with an
+    aerial condition, the frames diffused rather than their residual from it."""
+    if config.pretrained:
+        # SD1.5's UNet was trained on the epsilon objective and its condition enters through
+        # a ControlNet branch (the paper's ACM; the concatenating baselines widen conv_in
+        # instead, `pretrained_conditioning`); its fine-tuning keeps both. Its ControlNet
+        # takes pixels 8x the latent's size, so no training crops (they would not align).
+        # Its noise schedule and objective are the folder's (`pretrained_schedule`), for
+        # training and sampling alike, and its learning rate the recipe's (`pretrained_acm_lr`).
+        from .core import pretrained_schedule
+
+        core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, conditioning=pretrained_conditioning,
+                                       residual=False, coords=False, **pretrained_schedule(config.pretrained))
+        config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0,
+                                     acm_lr=config.pretrained_acm_lr)
+    if config.sample_strength < 1.0 and not config.core.residual:
+        raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
+    if not 0 <= config.acm_anneal < max(config.acm_steps, 1):
+        raise ValueError(f"acm_anneal {config.acm_anneal}: expected 0 <= acm_anneal < acm_steps "
+                         f"({config.acm_steps}); the decay follows at least one constant-rate step")
+    if config.clip_frames < 1:
+        raise ValueError(f"clip_frames {config.clip_frames}: expected >= 1")
+    if not 0 <= config.vcm_warp <= config.sample_steps or (config.vcm_warp and not config.vcm):
+        raise ValueError(f"vcm_warp {config.vcm_warp}: expected 0 <= vcm_warp <= sample_steps "
+                         f"({config.sample_steps}), and the VCM on (vcm=true) when it is not 0")
+    if config.condition == "aerial" and config.core.residual:
+        # the residual from a view taken elsewhere means nothing: diffuse the frames
+        config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
+                                     sample_strength=1.0)
+    return config
+
+
+def to_model(images: list[np.ndarray], resolution: int):
+    """float32 [H, W, C] images -> torch [N, C, resolution, resolution] (antialiased resize)."""
+    import torch
+
+    from .core import images_to_tensor, resize
+
+    return torch.cat([resize(images_to_tensor(im[None]), resolution) for im in images])
+
+
+class DiffusionMethod(Method):
+    """The diffusion family's life cycle over its parts (the module docstring says which)."""
+
+    version = "0.1"
+    #: How the condition enters a pretrained SD1.5 UNet (`--pretrained`): the paper's ACM is a
+    #: ControlNet branch; the members that concatenate their condition (ip2p, gvg) widen conv_in.
+    pretrained_conditioning: ClassVar[str] = "controlnet"
+
+    def __init__(self, config: DiffusionConfig, workdir: Path, *, seed: int = 0, prior_method: Method | None = None,
+                 progress: bool = True):
+        super().__init__(adapted(config, self.pretrained_conditioning), workdir, seed=seed, progress=progress)
+        self._prior = prior_method  # tests inject a stand-in; else built when first needed (`make_prior`)
+        self.condition = self.make_condition()
+        self.guidance = self.make_guidance()
+        self.acm = None
+        self.vcm = None
+        self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, C]
+        self.training: dict[str, Any] = {}  # stage -> its summary (training.json)
+        self._figure_written = False
+
+    @classmethod
+    def configure(cls, preset: str, sets: list[str] | tuple = (), *, values: dict | None = None,
+                  device: str | None = None, pretrained: str | None = None) -> tuple[Any, list[str]]:
+        """`Method.configure`, then on a CUDA device the preset's `GPU_TRAINING` for the fields
+        neither `sets` nor `values` name (they join the returned overrides, so the run's own
+        record repeats it on any machine)."""
+        from skyeyes_bench.devices import resolve_device
+
+        config, applied = super().configure(preset, sets, values=values, device=device, pretrained=pretrained)
+        gpu = GPU_TRAINING.get(preset, {})
+        if gpu and resolve_device(config.device, what="device").type == "cuda":
+            named = {s.partition("=")[0] for s in sets} | set(values or {})
+            mine = {k: v for k, v in gpu.items() if k not in named}
+            config = dataclasses.replace(config, **mine)
+            applied = applied + [f"{k}={v}" for k, v in mine.items()]
+        return config, applied
+
+    def config_dict(self) -> dict:
+        return {**dataclasses.asdict(self.config), "method": self.name}
+
+    # ---------------------------------------------------------------- the parts
+    def make_condition(self) -> NearestAerial | PriorRenders:
+        """The condition part: `config.condition` "aerial", the nearest aerial view; "prior", the
+        renders of the prior (`prior`)."""
+        if self.config.condition == "aerial":
+            return NearestAerial()
+        return PriorRenders(lambda: self.prior)
+
+    def make_prior(self) -> Method:
+        """The prior: `config.prior_method` of the registry at `prior_preset`, on this device."""
+        c = self.config
+        return registry_prior(c.prior_method, c.prior_preset, self.workdir / "prior", self.seed, self.device)
+
+    def make_guidance(self) -> Unguided:
+        """The guidance part (`guidance.Unguided`: none)."""
+        return Unguided()
+
+    @property
+    def prior(self) -> Method:
+        """The method whose renders are the conditions (`PriorRenders`) and whose depth moves
+        frames (`vcm_warp`), made by `make_prior` when first needed."""
+        if self._prior is None:
+            self._prior = self.make_prior()
+        return self._prior
+
+    # ---------------------------------------------------------------- fit
+    def _conditions(self, dataset: Dataset | None, scenes: list[Scene]) -> dict[str, np.ndarray]:
+        conds, cached_s = self.condition.images(dataset, scenes, progress=self.progress, jobs=self.jobs)
+        self.took_from_cache(cached_s)
+        return conds
+
+    def fit_train(self, dataset: Dataset) -> None:
+        from . import train
+        from .stages import Stages, train_set
+
+        c = self.config
+        acc = train.make_accelerator(self.device, c.mixed_precision)
+        scenes = dataset.split("train")
+        frames = [(s, f) for s in scenes for f in s.ground]
+        with acc.main_process_first():  # under `accelerate launch`, one process fits the priors
+            conds = self._conditions(dataset, scenes)
+        self.use_threads()  # the prior stage runs single-threaded; the UNet wants every core
+        # 1. tensors in model space: targets and conditions, one row per train ground frame; the
+        # model diffuses z0 (the frames, or their residual from the prior: `core.to_diffused`).
+        data = train_set(frames, [f.image() for _, f in frames], [conds[frame_key(s, f)] for s, f in frames],
+                         lambda ims: to_model(ims, c.core.resolution), c.core, acc.device)
+        stages = Stages(self, acc, data)
+        # 2. the base UNet (where there is one), 3. the ACM, 4. the VCM (1-frame clips: the ACM
+        # frame by frame, which `vcm_warp` alone holds together).
+        model, base_id = stages.base()
+        acm_id = stages.acm(model, base_id, self.guidance)
+        self.acm = model
+        if c.vcm and c.clip_frames > 1:
+            self.vcm = stages.vcm(model, acm_id, scenes)
+
+    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+        """The scene's conditions (its prior renders); the diffusion model is fitted on the train split."""
+        self.fit_scenes([scene], progress=progress)
+
+    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
+        """The scenes' conditions at once: their prior fits run `jobs` at a time (`render_priors`)."""
+        if self.acm is None:
+            raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
+        self.conds.update(self._conditions(None, scenes))
+        if self.config.vcm_warp:  # the prior's depth moves frames: its scene models (cached renders fit none)
+            if self.config.prior_method not in ("sugar", "gaussians3d"):
+                raise ValueError(f"vcm_warp: the prior {self.config.prior_method!r} is not Gaussians "
+                                 "(sugar, gaussians3d), whose depth moves the frames")
+            self.prior.fit_scenes([s for s in scenes if s.name not in self.prior._scene_models])
+
+    # ---------------------------------------------------------------- render
+    def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
+        from . import core
+        from .figure import write_figure
+
+        cfg = self.config.core
+        priors = [self.conds[frame_key(scene, f)] for f in sequence.frames]
+        self.use_threads()
+        cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, self.device)
+        # Seed per sequence from its id, so frames do not depend on rendering order.
+        seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
+        warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
+        x = core.from_diffused(self._generate(cc, seed, warp), cc, cfg)
+        imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
+        out = []
+        for f, img in zip(sequence.frames, imgs, strict=True):
+            img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
+                core.resize_hw(img[None], f.height, f.width)[0]
+            out.append(core.tensor_to_images(img[None])[0])
+        # The figure shows the first sequence rendered in this workdir. A resumed run renders
+        # the sequences a killed one left undone first, so it keeps the figure already there.
+        if not self._figure_written and not (self.workdir / "figure.png").is_file():
+            self._figure_written = True
+            write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
+                         condition=self.config.condition)
+        yield from out
+
+    def _generate(self, conds, seed: int, warp):
+        """Model-space samples [N, C, h, w] for the conditions `conds` of a sequence's frames."""
+        from . import sample
+
+        c = self.config
+        acm = self.guidance.sampling_model(self.acm)
+        if c.vcm:
+            return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
+                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp)
+        return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
+
+    def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
+        """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the
+        poses at the model's resolution."""
+        from . import warp
+
+        res = self.config.core.resolution
+        depths = [warp.prior_depth(self.prior, scene, f, res, res) for f in sequence.frames]
+        cams = [warp.scaled_camera(f.camera(), res, res) for f in sequence.frames]
+        return warp.WarpTargets(cc, depths, cams, self.config.core)

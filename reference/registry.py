@@ -1,0 +1,25 @@
+"""Registry of reference methods: id -> lazy "module:Class" (a `reference.method.Method`; one
+module per method in `reference/methods/`). A method may use another by its id at run time
+(Skyeyes its prior, gvg its geometry), never by importing its module."""
+
+from __future__ import annotations
+
+METHODS: dict[str, str] = {
+    "mean-frame": "reference.methods.mean_frame:MeanFrame",
+    "mvs": "reference.methods.mvs:MVS",
+    "nerf": "reference.methods.nerf:NeRF",
+    "gaussians3d": "reference.methods.gaussians3d:Gaussians3D",
+    "sugar": "reference.methods.sugar:SuGaR",
+    "skyeyes": "reference.methods.skyeyes:Skyeyes",
+    "skyeyes-no-vcm": "reference.methods.skyeyes:SkyeyesNoVCM",
+    "controlnet": "reference.methods.controlnet:ControlNetBaseline",
+    "ip2p": "reference.methods.ip2p:InstructPix2Pix",
+    "gvg": "reference.methods.gvg:GVG",
+}
+
+
+def get_method_class(name: str):
+    """The Method class for `name`; a lookup miss lists the known ids."""
+    from skyeyes_bench.registry import load_entry_point, lookup
+
+    return load_entry_point(lookup(METHODS, name, "method"))

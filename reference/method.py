@@ -12,7 +12,7 @@ scripts, and by a method run inside another, as Skyeyes runs its prior).
    class resumes the scene from its checkpoint or calls `fit_scene_model` and saves what it
    returns; a method with nothing to keep per scene overrides `fit_scene` itself.
 4. `render_sequence(scene, sequence)`: yield one float32 [H, W, 3] image in [0, 1] per ground
-   frame of the sequence, in order.
+   frame of the sequence, in order (by default `render_frame` of each frame).
 
 Around these, the same for every method:
 
@@ -39,7 +39,7 @@ from typing import Any, Callable, ClassVar, Iterator, TypeVar
 import numpy as np
 
 from skyeyes_bench import fileio
-from skyeyes_bench.data.layout import Dataset, Scene, Sequence
+from skyeyes_bench.data.layout import Dataset, Frame, Scene, Sequence
 from skyeyes_bench.errors import UserError
 
 T = TypeVar("T")
@@ -301,6 +301,14 @@ class Method(abc.ABC):
             raise RuntimeError(f"{self.name}: {scene.name} rendered before fit_scene")
         return self._scene_models[scene.name]
 
-    @abc.abstractmethod
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
-        """Yield float32 [H, W, 3] images in [0, 1], one per frame of `sequence`, in order."""
+        """Yield float32 [H, W, 3] images in [0, 1], one per frame of `sequence`, in order. By
+        default `render_frame` of each frame, on the config's threads."""
+        self.use_threads()
+        for frame in sequence:
+            yield self.render_frame(scene, frame)
+
+    def render_frame(self, scene: Scene, frame: Frame) -> np.ndarray:
+        """One ground frame of a fitted scene, float32 [H, W, 3] in [0, 1]: what a method that
+        renders frame by frame defines instead of `render_sequence`."""
+        raise NotImplementedError(f"{self.name}: neither render_sequence nor render_frame is its own")

@@ -10,6 +10,8 @@ every render; it changes colours only, never where things are.
   (render, ground truth) pixel pairs where the render covers the pixel.
 - `Backgrounds`: the colour of uncovered pixels above and below the horizon, the mean ground
   truth colour there on the train lanes (`sky_colour`: from a lane's aerial views, without them).
+- `Appearance`: both, as a reconstruction method holds them (`learn_appearance`: learned from the
+  `mvs` method's reconstructions of train lanes, as `gaussians3d`, `sugar` and `nerf` do).
 """
 
 from __future__ import annotations
@@ -136,3 +138,49 @@ class AppearanceFit:
         sky = self.bg_sum[True] / self.bg_n[True] if self.bg_n[True] else np.asarray(default_sky)
         ground = self.bg_sum[False] / self.bg_n[False] if self.bg_n[False] else np.asarray(default_ground)
         return cmap, Backgrounds(np.asarray(sky, np.float32), np.asarray(ground, np.float32))
+
+
+@dataclass
+class Appearance:
+    """What a reconstruction method (`mvs`, `gaussians3d`, `sugar`, `nerf`) learned on the train
+    split: the colour map and the backgrounds; with none learned, the identity map and the test
+    lane's own backgrounds (`background`)."""
+
+    colour_map: ColourMap = field(default_factory=ColourMap)
+    backgrounds: Backgrounds | None = None
+
+    def background(self, scene, ground: np.ndarray | None = None) -> Backgrounds:
+        """The learned backgrounds, else the lane's own: the sky from its aerial views
+        (`sky_colour`), below the horizon `ground` (a colour [3], e.g. the cloud's lowest layer)
+        or the sky's."""
+        if self.backgrounds is not None:
+            return self.backgrounds
+        sky = sky_colour(list(scene.aerial))
+        return Backgrounds(sky, ground if ground is not None else sky)
+
+    def ground_view(self, colour: np.ndarray, alpha: np.ndarray, scene, cam) -> np.ndarray:
+        """A render in the aerial views' colours, colour [H, W, 3] with coverage alpha [H, W], as
+        the ground frame [H, W, 3] of `cam`: the colour map on it, composited over the scene's
+        backgrounds (`background`; already ground-view colours)."""
+        a = alpha[..., None]
+        return (self.colour_map(colour) * a + self.background(scene).image(cam) * (1 - a)).astype(np.float32)
+
+
+def learn_appearance(owner, dataset) -> Appearance:
+    """The appearance `owner` (a `Method` whose config is a `SceneConfig` with an `mvs_preset`)
+    learns on the train split: the `mvs` method's (found by its id in the registry) at that
+    stereo preset in owner's region, fitted on `train_lanes` lanes in `<workdir>/appearance`, its
+    fits there reused. The seconds it took from caches count in `owner.cached_s`."""
+    from reference.registry import get_method_class
+
+    cfg = owner.config
+    if cfg.train_lanes <= 0:
+        return Appearance()
+    mvs = get_method_class("mvs").from_preset(cfg.mvs_preset, owner.workdir / "appearance", seed=owner.seed,
+                                              progress=owner.progress, train_lanes=cfg.train_lanes,
+                                              device=owner.device, margin_m=cfg.margin_m, z_min=cfg.z_min,
+                                              z_max=cfg.z_max)
+    mvs.jobs = owner.jobs
+    mvs.fit_train(dataset)
+    owner.took_from_cache(mvs.cached_s)
+    return mvs.appearance

@@ -10,7 +10,7 @@ empty field and Instant-NGP's warm-up of the grid. The field and grid are checkp
 `<workdir>/scenes/<scene>/model.pt` (`Method.fit_scene`).
 
 Ground renders: the field over black, the colour map learned on the train split (as `mvs` and
-`gaussians3d`: aerial haze -> ground colours) on what it covers, over the background above / below
+`gaussians3d`, `reference.common.appearance`: aerial haze -> ground colours) on what it covers, over the background above / below
 the horizon. No aerial view sees the sky the ground cameras look at, so the NeRF cannot know it.
 With `renderer="baked"` (the default) the fit ends by baking the field on a grid over the box
 (`reference.common.nerf.bake`; colour seen from the nearest ground camera), and the ground frames
@@ -24,29 +24,32 @@ import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
 
-from reference.common.geometry import region, splat
+from reference.common.appearance import Appearance, learn_appearance
+from reference.common.geometry import splat
+from reference.common.mvs_start import start_cloud
 from reference.common.nerf import BakedField, Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, bake_field
 from reference.common.nerf import camera_rays, pretrain_density, render_baked_camera, render_camera, train
 from reference.common.nerf.bake import VIEWS
 from reference.common.nerf.render import to_unit
-from reference.methods.gaussians3d import Gaussians3D
-from skyeyes_bench.data.layout import Frame, Scene, Sequence
+from reference.common.scene import FitConfig, held_out, region_box
+from reference.method import Method
+from skyeyes_bench.data.layout import Frame, Scene
 from skyeyes_bench.errors import UserError
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
-class NeRFMethodConfig(NeRFConfig):
-    """The NeRF (`NeRFConfig`) plus scene handling.
+class NeRFMethodConfig(FitConfig, NeRFConfig):
+    """The NeRF (`NeRFConfig`) plus the scene's and the fit's (`FitConfig`: the box around the
+    ground cameras, train lanes, device, threads, stereo preset, held-out views) and where the
+    field starts.
 
     Attributes:
-        margin_m, z_min, z_max: the scene box around the ground cameras (as `gaussians3d`).
         init: "none" (an empty field, Instant-NGP's grid warm-up) or "mvs" (occupancy and density
             start from the fused cloud of `mvs_preset`). "none" by default: measured on the smoke
             lane (150 iterations), the MVS start trains 2.2x faster (28 instead of 64 evaluated
@@ -55,10 +58,8 @@ class NeRFMethodConfig(NeRFConfig):
             views are fog (opacity 1.00, ground PSNR 8-12 dB against 14.6-16.2 from "none").
         init_steps: density steps towards the cloud before the photometric fit.
         init_dilate: occupancy cells around each cloud point also marked occupied.
-        train_lanes: train lanes for the learned colour map and backgrounds (0: none).
-        holdout_every: hold out every k-th aerial view from training (0: none), for curves.
-        render_near_m: ground renders start this far from the camera (m): floaters near a ground
-            camera are where the steep aerial views constrain nothing.
+        render_near_m: (`SceneConfig`) 1 m here: ground renders start this far from the camera:
+            floaters near a ground camera are where the steep aerial views constrain nothing.
         ground_far_field: ground renders include the contracted far field. Off by default: the
             aerial views never look up or along the street to the horizon, so the far field the
             ground cameras look through there is untrained (opaque: a fresh field's small density
@@ -72,26 +73,17 @@ class NeRFMethodConfig(NeRFConfig):
             45 deg down; `reference.common.nerf.bake`).
         bake_samples: samples per ground ray through the baked box (0: n_inner, the field
             renderer's).
-        threads: torch intra-op threads (1: see `gaussians3d`).
     """
 
-    margin_m: float = 30.0
-    z_min: float = -1.0
-    z_max: float = 40.0
+    render_near_m: float = 1.0
     init: str = "none"
-    mvs_preset: str = "small"
     init_steps: int = 100
     init_dilate: int = 1
-    train_lanes: int = 2
-    holdout_every: int = 0
-    render_near_m: float = 1.0
     ground_far_field: bool = False
     renderer: str = "baked"
     bake_voxel_m: float = 0.5
     bake_view: str = "camera"
     bake_samples: int = 0
-    device: str = "cpu"
-    threads: int = 1
 
 
 PRESETS = {
@@ -116,17 +108,25 @@ PRESETS = {
 }
 
 
-class NeRF(Gaussians3D):
-    """Shares `gaussians3d`'s appearance learned on the train split (`fit_train`, `_backgrounds`)."""
+class NeRF(Method):
+    """The field on the aerial views; the appearance learned on the train split as `gaussians3d`'s
+    (`reference.common.appearance.learn_appearance`)."""
 
     name = "nerf"
     version = "0.1"
     presets = PRESETS
     scene_checkpoint = "model.pt"
 
+    def __init__(self, config: NeRFMethodConfig, workdir, **kw):
+        super().__init__(config, workdir, **kw)
+        self.appearance = Appearance()
+
+    def fit_train(self, dataset) -> None:
+        """The colour map and backgrounds, learned as `mvs` learns them (`learn_appearance`)."""
+        self.appearance = learn_appearance(self, dataset)
+
     def _box(self, scene: Scene) -> SceneBox:
-        cfg = self.config
-        box = region.region_box(list(scene.ground), cfg.margin_m, (cfg.z_min, cfg.z_max))
+        box = region_box(scene, self.config)
         return SceneBox(box[0], box[1])
 
     def _new_model(self, scene: Scene) -> Model:
@@ -135,7 +135,7 @@ class NeRF(Gaussians3D):
         fld = NeRFField(cfg.field_config(), seed=self.seed).to(dev)
         grid = OccupancyGrid(cfg.occ_res, step_m=cfg.inner_step(box), alpha=cfg.occ_alpha,
                              mean_clamp=cfg.occ_mean_clamp, device=dev)
-        bg = torch.tensor(self._backgrounds(scene).sky, dtype=torch.float32, device=dev)
+        bg = torch.tensor(self.appearance.background(scene).sky, dtype=torch.float32, device=dev)
         return Model(fld, grid, box, bg)
 
     def fit_scene_model(self, scene: Scene, *, progress: bool, callback=None) -> tuple[Model, dict]:
@@ -143,7 +143,7 @@ class NeRF(Gaussians3D):
         (bench/nerf.py draws its curves with it)."""
         cfg = self.config
         aerial = list(scene.aerial)
-        held = [f for i, f in enumerate(aerial) if cfg.holdout_every and i % cfg.holdout_every == cfg.holdout_every - 1]
+        held = held_out(aerial, cfg.holdout_every)
         frames = [f for f in aerial if f not in held]
         model = self._new_model(scene)
         # 1. The start: empty, or the MVS cloud in the occupancy grid and the density.
@@ -184,13 +184,9 @@ class NeRF(Gaussians3D):
     def _mvs_start(self, scene: Scene, model: Model, frames: list[Frame]) -> dict:
         import time
 
-        from reference.methods.mvs import PRESETS as MVS_PRESETS
-        from reference.methods.mvs import reconstruct
-
         cfg = self.config
         t0 = time.perf_counter()
-        mcfg = dataclasses.replace(MVS_PRESETS[cfg.mvs_preset], margin_m=cfg.margin_m, z_min=cfg.z_min, z_max=cfg.z_max)
-        cloud, _ = reconstruct(scene, mcfg, device=self.device, aerial=frames)
+        cloud = start_cloud(scene, cfg, device=self.device, aerial=frames)
         t_mvs = time.perf_counter() - t0
         if len(cloud) == 0:
             log.warning("%s: init: MVS fused no point: starting from an empty field", scene.name)
@@ -240,9 +236,4 @@ class NeRF(Gaussians3D):
         colour = np.clip(rgb / np.maximum(alpha, 1e-6)[..., None], 0, 1)
         if not ground:
             return splat.over(colour, alpha, np.broadcast_to(model.background.cpu().numpy(), colour.shape))
-        return splat.over(self.colour_map(colour), alpha, self._backgrounds(scene).image(cam))
-
-    def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
-        self.use_threads()
-        for frame in sequence:
-            yield self.render_frame(scene, frame)
+        return self.appearance.ground_view(colour, alpha, scene, cam)

@@ -3,7 +3,9 @@ paper's stage one. Vanilla 3DGS warm-up, then opacity entropy, then the SDF / de
 alignment and normal terms with flat Gaussians (see `reference.common.gaussians.sugar_reg`).
 
 SuGaR's later mesh extraction and mesh-bound refinement are left out: the Skyeyes pipeline only
-renders the aligned Gaussians from the ground cameras.
+renders the aligned Gaussians from the ground cameras. The Gaussian-splatting pipeline
+(`reference.common.splatting`, as `gaussians3d`) with SuGaR's regularizer; its presets are the
+pipeline's 3DGS schedule with SuGaR's terms.
 """
 
 from __future__ import annotations
@@ -12,8 +14,8 @@ import dataclasses
 from dataclasses import dataclass
 
 from reference.common.gaussians.sugar_reg import SugarRegularizer, SugarWeights
-from reference.methods.gaussians3d import PRESETS as G3D_PRESETS
-from reference.methods.gaussians3d import Gaussians3D, Gaussians3DConfig
+from reference.common.splatting import PRESETS as SPLATTING_PRESETS
+from reference.common.splatting import Gaussians3DConfig, GaussianSplatting
 
 
 @dataclass
@@ -41,23 +43,23 @@ def _from(base: Gaussians3DConfig, **kw) -> SuGaRConfig:
 
 
 PRESETS = {
-    "smoke": _from(G3D_PRESETS["smoke"], sdf_samples=500, knn=8),
+    "smoke": _from(SPLATTING_PRESETS["smoke"], sdf_samples=500, knn=8),
     # From the MVS start the SDF/normal terms help the ground views on synthtown@1: 16.12 dB
     # before them, 16.51 ~230 iterations after they start, slowly less after (bench/gaussians.py
     # fit, lane 0, 2026-11-24). On synthtown@2 lane 0 (2026-11-25, 1000 iterations, load ~5):
     # 17.42 at 200, 17.28 at 600 (the SDF start), 17.38 at 700, 17.17 at 900. So 500 iterations,
     # the SDF terms from 300: ~200 of them, at half the training cost (docs/reproduce.md).
-    "small": _from(G3D_PRESETS["small"], sdf_samples=1500, iterations=500, densify_until=300),
-    "paper": _from(G3D_PRESETS["paper"], sdf_samples=100_000),
+    "small": _from(SPLATTING_PRESETS["small"], sdf_samples=1500, iterations=500, densify_until=300),
+    "paper": _from(SPLATTING_PRESETS["paper"], sdf_samples=100_000),
 }
 
 
-class SuGaR(Gaussians3D):
+class SuGaR(GaussianSplatting):
     name = "sugar"
-    version = "0.1"
     presets = PRESETS
 
     def regularizer(self, scene):
+        """SuGaR's entropy, SDF and normal terms on the schedule's fractions of `iterations`."""
         c = self.config
         w = SugarWeights(entropy_from=int(c.entropy_from_frac * c.iterations), sdf_from=int(c.sdf_from_frac * c.iterations),
                          entropy_until=int(c.entropy_until_frac * c.iterations),

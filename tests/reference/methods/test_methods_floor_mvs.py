@@ -105,7 +105,7 @@ def test_mvs_with_an_empty_region_renders_the_background_and_warns(synthtown_smo
     seq = next(iter(scene.sequences.values()))
     frames = list(m.render_sequence(scene, seq))
     assert len(frames) == len(seq)
-    bg = m._backgrounds(scene, None)
+    bg = m.appearance.background(scene, None)
     for f, img in zip(seq, frames):
         assert np.isfinite(img).all()
         np.testing.assert_allclose(img, bg.image(f.camera()), atol=1e-6)

@@ -20,13 +20,17 @@ Around these, the same for every method:
 - checkpoints (`checkpointed`): one resume rule, writes through a temporary file renamed into
   place (a killed run never leaves half a checkpoint), statistics beside each in a JSON file;
 - timing: `cached_s`, the original seconds of the work an instance took from caches (resumed
-  checkpoints, cached stages and priors), so a run reports what producing its result cost;
+  checkpoints, cached stages and priors), so a run reports what producing its result cost. It
+  changes in one place: `took_from_cache` counts such seconds (every cache, and every method run
+  inside another, reports through it), `uncounted` leaves out a block's (work a worker process
+  did in this run);
 - per-scene statistics (`scene_stats`, each scene's fit.json) and the device (`device`).
 """
 
 from __future__ import annotations
 
 import abc
+import contextlib
 import dataclasses
 import hashlib
 import inspect
@@ -140,20 +144,36 @@ class Method(abc.ABC):
         #: Per fitted scene, what its fit reported (`fit_seconds` and the method's own numbers;
         #: saved as the scene's fit.json).
         self.scene_stats: dict[str, dict] = {}
-        #: Original seconds of the work this instance took from caches instead of doing it
-        #: (resumed checkpoints, cached stages and priors): a run reports its wall time plus this.
-        self.cached_s = 0.0
+        self._cached_s = 0.0  # `cached_s`: changed by `took_from_cache` and `uncounted` alone
         #: Worker processes for fits of several scenes (`reference.parallel.fit_scenes`): a run
         #: option (`reproduce --jobs`), not config, since it changes run time and never results.
         self.jobs = 1
         self._scene_models: dict[str, Any] = {}
         self.workdir.mkdir(parents=True, exist_ok=True)
 
+    # ---------------------------------------------------------------- time accounting
+    @property
+    def cached_s(self) -> float:
+        """Original seconds of the work this instance took from caches instead of doing it
+        (resumed checkpoints, cached stages and priors, what a method run inside it took): a run
+        reports its wall time plus this."""
+        return self._cached_s
+
     def took_from_cache(self, seconds: float) -> None:
         """Count `seconds`, the original cost of work taken from a cache instead of done (a
         resumed checkpoint, a cached stage or prior, another method's `cached_s`), into
         `cached_s`; negative to take back seconds counted twice."""
-        self.cached_s += seconds
+        self._cached_s += seconds
+
+    @contextlib.contextmanager
+    def uncounted(self) -> Iterator[None]:
+        """Within the block, what is taken from caches does not count: work this run did itself
+        elsewhere (a worker process fitted the scene now; its time is in the caller's clock)."""
+        before = self._cached_s
+        try:
+            yield
+        finally:
+            self._cached_s = before
 
     # ---------------------------------------------------------------- config
     @classmethod
@@ -245,7 +265,7 @@ class Method(abc.ABC):
         if path.is_file():
             value = load(path)
             recorded = fileio.read_json(stats, allow_nan=True) if Path(stats).is_file() else {}
-            self.cached_s += float(recorded.get(seconds, 0.0))
+            self.took_from_cache(float(recorded.get(seconds, 0.0)))
             logging.getLogger(type(self).__module__).info("reusing %s", path)
             return value, recorded
         t0 = time.perf_counter()

@@ -49,6 +49,8 @@ class SceneFitter(Protocol):
 
     def fit_scene(self, scene: "Scene", *, progress: bool = True) -> None: ...
 
+    def uncounted(self) -> contextlib.AbstractContextManager: ...
+
     def scene_dir(self, scene: "Scene") -> Path: ...
 
 #: The most worker processes that ran at once in this process (for the peak memory of a run).
@@ -179,7 +181,6 @@ def fit_scenes(method: SceneFitter, scenes: list["Scene"], *, jobs: int = 1, pro
                 logging.getLogger(record.name).handle(record)
         fresh = {s.name for s in todo}
     for scene in scenes:
-        before = method.cached_s
-        method.fit_scene(scene, progress=progress)
-        if scene.name in fresh:
-            method.cached_s = before  # fitted now by a worker: its time is in the caller's wall clock
+        # fitted now by a worker: its time is in the caller's wall clock, not taken from a cache
+        with method.uncounted() if scene.name in fresh else contextlib.nullcontext():
+            method.fit_scene(scene, progress=progress)

@@ -76,9 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f"{r['preset']:8} {r['precision']:9} {r['s_per_step']:8.3f} {r['s_per_frame']:8.3f}  {r['load']}")
     if a.out:
-        from skyeyes_bench import fileio
+        from skyeyes_bench import outputfiles
 
-        fileio.write_json(a.out, rows)
+        outputfiles.write_json(a.out, rows)
     return 0
 
 

@@ -90,7 +90,7 @@ def figure(runs: list[str], out: str, frames: int = 4) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from skyeyes_bench import fileio
+    from skyeyes_bench import imagefiles, outputfiles
     from skyeyes_bench.data.layout import open_dataset
 
     cfgs = [json.loads((Path(r) / "config.json").read_text()) for r in runs]
@@ -102,7 +102,7 @@ def figure(runs: list[str], out: str, frames: int = 4) -> None:
     cols = ["ground truth"] + [c["method"] for c in cfgs]
     fig, axes = plt.subplots(len(picks), len(cols), figsize=(2 * len(cols), 2 * len(picks)), squeeze=False)
     for i, f in enumerate(picks):
-        imgs = [f.image()] + [fileio.read_image(Path(r) / "submission" / scene.name / f.file) for r in runs]
+        imgs = [f.image()] + [imagefiles.read_image(Path(r) / "submission" / scene.name / f.file) for r in runs]
         for j, img in enumerate(imgs):
             ax = axes[i, j]
             ax.imshow(img)
@@ -112,7 +112,7 @@ def figure(runs: list[str], out: str, frames: int = 4) -> None:
                 ax.set_title(cols[j], fontsize=9)
         axes[i, 0].set_ylabel(f.file.rsplit("/", 1)[-1].split(".")[0], fontsize=7)
     fig.tight_layout()
-    with fileio.atomic_path(out) as tmp:
+    with outputfiles.atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=80)
     print(f"wrote {out}")
 
@@ -160,9 +160,9 @@ def main() -> None:
                   flush=True)
     print(f"load average {os.getloadavg()[0]:.2f} at end")
     if args.json:
-        from skyeyes_bench import fileio
+        from skyeyes_bench import outputfiles
 
-        fileio.write_json(args.json, rows)
+        outputfiles.write_json(args.json, rows)
 
 
 if __name__ == "__main__":

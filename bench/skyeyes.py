@@ -115,9 +115,9 @@ def main(argv=None) -> int:
         print(" | ".join("n/a" if r.get(k) is None else (f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]))
                          for k in keys))
     if a.out:
-        from skyeyes_bench import fileio
+        from skyeyes_bench import outputfiles
 
-        fileio.write_json(a.out, rows)
+        outputfiles.write_json(a.out, rows)
     return 0
 
 

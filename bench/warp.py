@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.metrics.geometry import warp_coords, warp_error
 
@@ -42,7 +42,7 @@ def sequence_errors(data: Path, runs: list[Path]) -> tuple[list[str], np.ndarray
             for a, b in zip(fs[:-1], fs[1:]):
                 uv, valid = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
                 pairs = [(a.image(), b.image())] + [
-                    tuple(fileio.read_image(submission_dir(r) / scene.name / f.file) for f in (a, b)) for r in runs]
+                    tuple(imagefiles.read_image(submission_dir(r) / scene.name / f.file) for f in (a, b)) for r in runs]
                 for k, (x, y) in enumerate(pairs):
                     e, m = warp_error(x, y, uv, valid)
                     sums[k] += e * m if m else 0.0

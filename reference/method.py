@@ -42,7 +42,7 @@ from typing import Any, Callable, ClassVar, Iterator, TypeVar
 
 import numpy as np
 
-from skyeyes_bench import fileio
+from skyeyes_bench import inputfiles, outputfiles
 from skyeyes_bench.data.layout import Dataset, Frame, Scene, Sequence
 from skyeyes_bench.errors import UserError
 
@@ -264,15 +264,15 @@ class Method(abc.ABC):
         path = Path(path)
         if path.is_file():
             value = load(path)
-            recorded = fileio.read_json(stats, allow_nan=True) if Path(stats).is_file() else {}
+            recorded = inputfiles.read_json(stats, allow_nan=True) if Path(stats).is_file() else {}
             self.took_from_cache(float(recorded.get(seconds, 0.0)))
             logging.getLogger(type(self).__module__).info("reusing %s", path)
             return value, recorded
         t0 = time.perf_counter()
         value, info = compute()
         info[seconds] = time.perf_counter() - t0
-        fileio.write_json(stats, info)
-        with fileio.atomic_path(path) as tmp:
+        outputfiles.write_json(stats, info)
+        with outputfiles.atomic_path(path) as tmp:
             save(value, tmp)
         return value, info
 

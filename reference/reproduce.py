@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from reference.method import cache_key, code_sha
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles, inputfiles, outputfiles
 from skyeyes_bench.errors import UserError
 
 log = logging.getLogger("reference.reproduce")
@@ -40,9 +40,9 @@ log = logging.getLogger("reference.reproduce")
 
 def dataset_sha(root: Path, ds) -> str:
     """sha256 of the dataset manifest (dataset.json and every scene.json)."""
-    h = hashlib.sha256(fileio.sha256_file(root / "dataset.json").encode())
+    h = hashlib.sha256(inputfiles.sha256_file(root / "dataset.json").encode())
     for name in sorted(ds.scenes):
-        h.update(fileio.sha256_file(root / name / "scene.json").encode())
+        h.update(inputfiles.sha256_file(root / name / "scene.json").encode())
     return h.hexdigest()
 
 
@@ -60,7 +60,7 @@ def check_out(out: Path, mine: dict, *, force: bool) -> None:
     cfg = out / "config.json"
     if cfg.is_file():
         try:
-            theirs = fileio.read_json(cfg, allow_nan=True)
+            theirs = inputfiles.read_json(cfg, allow_nan=True)
         except UserError:
             theirs = {}
         if "cache_key" in mine and theirs.get("cache_key") == mine["cache_key"]:
@@ -188,19 +188,19 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
               "manifest_sha256": dsha}, "code_sha256": csha, "repeat": f"skyeyes-bench reproduce --method {method} "
               f"--preset {preset} --seed {seed} --data {root} " + " ".join(f"--set {o}" for o in overrides)}
     check_out(out, record, force=force)  # before anything is written to --out
-    # --out is apart from what the run reads; every write below checks again (`fileio.reading`)
+    # --out is apart from what the run reads; every write below checks again (`outputfiles.reading`)
     inputs = (root, config_d.get("pretrained"))
-    fileio.check_apart(out, *inputs, desc="an input of this run (--data, --pretrained)")
+    outputfiles.check_apart(out, *inputs, desc="an input of this run (--data, --pretrained)")
     held = contextlib.ExitStack()
     if ray is not None:  # before any output: Ray missing or unreachable is one line
         held.enter_context(_on_ray(ray))
     handlers = _setup_log(out, fresh=force)
-    held.enter_context(fileio.reading(*inputs))
+    held.enter_context(outputfiles.reading(*inputs))
     try:
         work = out / "work" / key
         if force and work.exists():
             shutil.rmtree(work)
-        fileio.write_json(out / "config.json", record)
+        outputfiles.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
         m = cls(config, work / "method", seed=seed, progress=progress)
         m.jobs = default_jobs(m) if jobs is None else jobs
@@ -246,7 +246,7 @@ def _render(m, scenes: list, renders: Path, progress: bool) -> tuple[dict, float
     from tqdm import tqdm
 
     tfile = renders / "timings.json"
-    timings = fileio.read_json(tfile, allow_nan=True) if tfile.is_file() else {}
+    timings = inputfiles.read_json(tfile, allow_nan=True) if tfile.is_file() else {}
     total = sum(len(s) for sc in scenes for s in sc.sequences.values())
     cached_s = 0.0
     with tqdm(total=total, desc="render", disable=None if progress else True, leave=False) as bar:
@@ -259,12 +259,12 @@ def _render(m, scenes: list, renders: Path, progress: bool) -> tuple[dict, float
                     continue
                 t_prev = time.perf_counter()
                 for frame, img, p in zip(seq, m.render_sequence(scene, seq), paths):
-                    fileio.write_image(p, img)  # atomic per frame
+                    imagefiles.write_image(p, img)  # atomic per frame
                     now = time.perf_counter()
                     timings[f"{scene.name}/{frame.file}"] = now - t_prev
                     t_prev = now
                     bar.update(1)
-                fileio.write_json(tfile, timings)
+                outputfiles.write_json(tfile, timings)
     return timings, cached_s
 
 
@@ -286,7 +286,7 @@ def _copy_figure(fig: Path, dest: Path) -> None:
     """A method's figure (Skyeyes: aerial, prior, generated, ground truth) beside the results, or
     no figure there when this run made none (another run's, replaced with --force)."""
     if fig.is_file():
-        with fileio.atomic_path(dest) as tmp:
+        with outputfiles.atomic_path(dest) as tmp:
             shutil.copyfile(fig, tmp)
         print(f"figure: {dest}")
     elif dest.is_file():
@@ -304,7 +304,7 @@ def _write_submission(sub_dir: Path, ds, scenes: list, renders: Path, method: st
         for sc in scenes:
             for s in sc.sequences.values():
                 for f in s:
-                    w.add(sc.name, f, fileio.read_image(renders / sc.name / f.file))
+                    w.add(sc.name, f, imagefiles.read_image(renders / sc.name / f.file))
         w.finish(timings=timings, peak_memory_mb=peak_rss_mb(), hardware=None)
 
 

@@ -32,3 +32,9 @@ def one_line(e: UserError) -> str:
         return f"{e.problems[0]} (and {len(e.problems) - 1} more problem(s) of {e.what})"
     text = str(e)
     return text.splitlines()[0] if text else type(e).__name__
+
+
+def single_line(msg: str) -> str:
+    """Any message (an OSError, OpenImageIO's errors, which span several lines) as one line: its
+    non-blank lines joined by '; '. User errors are one line."""
+    return "; ".join(part.strip() for part in str(msg).splitlines() if part.strip())

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, fileio, paths
+from . import __version__, imagefiles, inputfiles, outputfiles, outputunit, paths
 from .errors import UserError, ValidationError
 from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
@@ -36,7 +36,7 @@ _FRAME_BATCH = 16
 
 
 def _sha_or_missing(path: Path) -> str:
-    return fileio.sha256_file(path) if path.exists() or path.is_symlink() else "missing"
+    return inputfiles.sha256_file(path) if path.exists() or path.is_symlink() else "missing"
 
 
 def builtin_protocol_ids() -> set[str]:
@@ -145,7 +145,7 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
 def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
     if not out.name:  # '.', '/': no file name to put the sidecar beside
         raise UserError(f"{out}: is a folder; expected the path of an output file")
-    fileio.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
+    outputfiles.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
                         sidecar_kind=FEATURES_OUTPUT)
 
 
@@ -159,7 +159,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         manifest, protocol, ds = open_inputs(sub, data, protocol)
         if out is not None:
             _check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
-            held.enter_context(fileio.output_lock(out))  # a second run to this --out: one line, exit 2
+            held.enter_context(outputunit.output_lock(out))  # a second run to this --out: one line, exit 2
             _check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
         _check_extractors(protocol)
         all_seqs = ds.sequences("test")
@@ -202,7 +202,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
     doc["timing_s"] = timing
     if out is not None:
         _check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
-        with fileio.reading(sub, ds.root):
+        with outputfiles.reading(sub, ds.root):
             write_results(out, doc, features)
     return doc
 
@@ -249,7 +249,7 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
     bar = _tqdm(progress, total=len(frames), desc="per-frame metrics", unit="frame")
     with _stage(timing, "frame_metrics_s"), bar:
         for batch in _frame_batches(frames, _FRAME_BATCH):
-            preds = np.stack([fileio.read_image(sub / frame_relpath(s, f)) for s, f in batch])  # [B, H, W, 3]
+            preds = np.stack([imagefiles.read_image(sub / frame_relpath(s, f)) for s, f in batch])  # [B, H, W, 3]
             gts = np.stack([f.image() for _, f in batch])  # [B, H, W, 3]
             values: dict[str, np.ndarray] = {}  # name -> [B]
             for m in specs:
@@ -263,7 +263,7 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
                 rec = {"scene": scene, "file": f.file, "sequence": seq_index[f"{scene}/{f.sequence}"],
                        "index": int(f.index),
                        "sha256": sub_sha[frame_relpath(scene, f)],
-                       "gt_sha256": fileio.sha256_file(f.path)}
+                       "gt_sha256": inputfiles.sha256_file(f.path)}
                 for name, v in values.items():
                     rec[name] = float(v[i])
                 records.append(rec)
@@ -315,7 +315,7 @@ def _sequence_metrics(sub: Path, ds, frames, protocol, records: list[dict], unav
                         masks[tol] = seen_masks(ds.scenes[scene], fs, tol)
                 return masks[tol]
 
-            data = SequenceData(preds=np.stack([fileio.read_image(sub / frame_relpath(scene, f)) for f in fs]),
+            data = SequenceData(preds=np.stack([imagefiles.read_image(sub / frame_relpath(scene, f)) for f in fs]),
                                 gts=np.stack([f.image() for f in fs]), depths=np.stack([f.depth() for f in fs]),
                                 cameras=[f.camera() for f in fs], seen=seen)
             for entry, ms in groups.items():

@@ -1,7 +1,7 @@
 """Checks for the fields of files that come from outside (datasets, captures, submissions,
 results). Each takes `where` ("<file>: field 'x.y'"), the value and what was expected, and
 returns the value converted or raises a one-line UserError naming all three. Together with
-`fileio.read_json` (the one JSON reader) they are the edge: nothing past it sees an unchecked
+`inputfiles.read_json` (the one JSON reader) they are the edge: nothing past it sees an unchecked
 value.
 """
 

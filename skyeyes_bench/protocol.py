@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+from .inputfiles import read_toml
 from .metricspec import METRICS
 from .paths import protocols_dir
 
@@ -288,12 +289,10 @@ def _short(value: Any, n: int = 40) -> str:
 
 
 def load_protocol_file(path: str | Path) -> Protocol:
-    from . import fileio  # numpy behind it: kept out of `protocols list`'s import time
-
     path = Path(path)
     if not (path.exists() or path.is_symlink()):
         raise UserError(f"{path}: protocol file not found")
-    raw = fileio.read_toml(path, "a protocol TOML file")  # never blocks on a pipe; one line
+    raw = read_toml(path, "a protocol TOML file")  # never blocks on a pipe; one line
     proto = parse_protocol(raw, str(path))
     m = _VERSION_FILE.match(path.name)
     if m and (int(m.group(1)) != proto.version or path.parent.name != proto.id):

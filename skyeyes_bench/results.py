@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fields, fileio, stats
-from .errors import UserError, ValidationError
+from . import fields, inputfiles, outputfiles, outputunit, stats
+from .errors import UserError, ValidationError, single_line
 from .metricspec import FRAME_METRICS, METRICS, metric_def
 from .registry import load_entry_point
 
@@ -202,23 +202,23 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
 # --------------------------------------------------------------------------- I/O
 
 
-#: What `--force` may replace (`fileio.OutputKind`): an earlier results file (final or partial)
+#: What `--force` may replace (`outputfiles.OutputKind`): an earlier results file (final or partial)
 #: and its features sidecar (any zip: one without arrays starts PK\x05\x06).
-RESULTS_OUTPUT = fileio.OutputKind("a results file", formats=(RESULTS_FORMAT, PARTIAL_FORMAT))
-FEATURES_OUTPUT = fileio.OutputKind("a features sidecar", magic=b"PK")
+RESULTS_OUTPUT = outputfiles.OutputKind("a results file", formats=(RESULTS_FORMAT, PARTIAL_FORMAT))
+FEATURES_OUTPUT = outputfiles.OutputKind("a features sidecar", magic=b"PK")
 
 
 def write_results(out: Path, doc: dict, features: dict) -> None:
-    """Write the results JSON `out` and its features sidecar as one unit (`fileio.write_unit`: both
+    """Write the results JSON `out` and its features sidecar as one unit (`outputunit.write_unit`: both
     to temporary names, the sidecar renamed in first and the results last; callers hold the
     output's lock), so two runs never mix their files and a killed run is repeated without
-    --force. The sidecar's bytes depend on the features alone (`fileio.npz_bytes`), so a repeated
+    --force. The sidecar's bytes depend on the features alone (`outputunit.npz_bytes`), so a repeated
     run writes the same file."""
     fpath = features_path(out)
     arrays = {f"{ex_id}|{part}": np.asarray(f[part]) for ex_id, f in features.items() for part in ("sub", "gt", "seq")}
-    blob = fileio.npz_bytes(arrays)
-    doc["features"] = {"file": fpath.name, "sha256": fileio.sha256_bytes(blob)}
-    fileio.write_unit(out, fileio.json_bytes(doc), {fpath: blob})
+    blob = outputunit.npz_bytes(arrays)
+    doc["features"] = {"file": fpath.name, "sha256": inputfiles.sha256_bytes(blob)}
+    outputunit.write_unit(out, outputfiles.json_bytes(doc), {fpath: blob})
 
 
 _RESULTS_SHAPE = {
@@ -317,7 +317,7 @@ def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.
     import zipfile
 
     try:
-        with fileio.open_regular(fpath) as fh, zipfile.ZipFile(fh) as zf:
+        with inputfiles.open_regular(fpath) as fh, zipfile.ZipFile(fh) as zf:
             for info in zf.infolist():
                 if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
                     raise UserError(f"{fpath}: member {info.filename!r} is not a stored .npy array (expected "
@@ -328,7 +328,7 @@ def _read_sidecar(fpath: Path, doc: dict, path: Path) -> dict[str, dict[str, np.
                 ex_id, _, part = key.rpartition("|")
                 out.setdefault(ex_id, {})[part] = z[key]
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, MemoryError) as e:
-        raise UserError(f"{fpath}: not a features sidecar ({fileio._one_line(e)})") from None
+        raise UserError(f"{fpath}: not a features sidecar ({single_line(e)})") from None
     n_seq = len(doc["dataset"]["sequences"])
     for ex_id, f in out.items():
         info = doc["extractors"].get(ex_id)
@@ -355,7 +355,7 @@ def read_results(path, *, features: bool = False, partial: bool = False) -> tupl
     """Read a results (or partial) JSON and optionally its features sidecar (sha256-checked).
     Every field used later is checked here; a bad one is a one-line UserError naming it."""
     path = Path(path)
-    doc = fileio.read_json(path, allow_nan=True)  # a perfect frame's PSNR is Infinity
+    doc = inputfiles.read_json(path, allow_nan=True)  # a perfect frame's PSNR is Infinity
     want = PARTIAL_FORMAT if partial else RESULTS_FORMAT
     if not isinstance(doc, dict) or doc.get("format") != want:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
@@ -372,7 +372,7 @@ def read_results(path, *, features: bool = False, partial: bool = False) -> tupl
     fpath = path.with_name(name)
     if not fpath.is_file():
         raise UserError(f"{fpath}: features sidecar of {path.name} missing (needed to resample set metrics)")
-    if info.get("sha256") and fileio.sha256_file(fpath) != info["sha256"]:
+    if info.get("sha256") and inputfiles.sha256_file(fpath) != info["sha256"]:
         raise UserError(f"{fpath}: sha256 differs from the one recorded in {path.name} (file changed)")
     return doc, _read_sidecar(fpath, doc, path)
 
@@ -458,7 +458,7 @@ def _edited_part(loaded: list[tuple[Path, dict, dict]], want: str, got: str) -> 
         for i, r in enumerate(d["frames"]):
             where = f"{p}: field 'frames[{i}]' (frame {_q(r['scene'] + '/' + r['file'])})"
             try:
-                with fileio.open_regular(Path(folder, r["scene"], r["file"]), root=folder) as fh:
+                with inputfiles.open_regular(Path(folder, r["scene"], r["file"]), root=folder) as fh:
                     if os.fstat(fh.fileno()).st_size > _MAX_FRAME_BYTES:
                         continue
                     h = hashlib.sha256()
@@ -490,7 +490,7 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     inputs = [*map(Path, parts), *(features_path(Path(p)) for p in parts if Path(p).name)]
 
     def check_out() -> None:
-        fileio.check_output(out, force=force, sidecars=[features_path(out)], inputs=inputs,
+        outputfiles.check_output(out, force=force, sidecars=[features_path(out)], inputs=inputs,
                             inputs_are="the parts being merged (or their sidecars)", kind=RESULTS_OUTPUT,
                             sidecar_kind=FEATURES_OUTPUT)
 
@@ -564,7 +564,7 @@ def merge(parts, out=None, *, force: bool = False, progress: bool = True) -> dic
     if out is not None:
         # as evaluate: a second merge to this --out is one line; the inputs are checked again as
         # the files are renamed in
-        with fileio.output_lock(out), fileio.reading(*inputs):
+        with outputunit.output_lock(out), outputfiles.reading(*inputs):
             check_out()
             write_results(out, res, features)
     return res

@@ -12,7 +12,7 @@ reported numbers, a committed list of strip frames):
   (every symlink and '..' of its folder) and refuses it unless it lies under the root;
   `atomic_file`, `atomic_folder` and `remove` call it immediately before they touch the file
   system, so a path that was fine when parsed but meets a planted symlink is still refused.
-  They write through `fileio` (the user's umask) and turn an OS refusal (read-only folder,
+  They write through `outputfiles` (the user's umask) and turn an OS refusal (read-only folder,
   full disk) into one line.
 
 `fields.NAME` is matched with `re.match` and a `$` that also matches before a trailing newline;
@@ -29,7 +29,7 @@ import unicodedata
 from pathlib import Path
 from typing import Any, Iterator
 
-from . import fileio
+from . import outputfiles
 from .errors import UserError
 
 #: A plain name (same alphabet as `fields.NAME`), matched whole: no separator, no NUL, no
@@ -122,7 +122,7 @@ def _os_refusal(path: Path, err: OSError) -> UserError | None:
 
 @contextlib.contextmanager
 def _confined_write(writer, path: str | os.PathLike, root: str | os.PathLike, **kw) -> Iterator[Path]:
-    """`writer` (`fileio.atomic_path` or `atomic_dir`) of `path`, which must lie under `root`
+    """`writer` (`outputfiles.atomic_path` or `atomic_dir`) of `path`, which must lie under `root`
     (checked here, at the point of writing); an OS refusal is one line."""
     target = confined(path, root)
     try:
@@ -135,8 +135,8 @@ def _confined_write(writer, path: str | os.PathLike, root: str | os.PathLike, **
 
 
 def atomic_file(path: str | os.PathLike, *, root: str | os.PathLike, suffix: str | None = None):
-    """`fileio.atomic_path` for a file that must lie under `root` (`_confined_write`)."""
-    return _confined_write(fileio.atomic_path, path, root, suffix=suffix)
+    """`outputfiles.atomic_path` for a file that must lie under `root` (`_confined_write`)."""
+    return _confined_write(outputfiles.atomic_path, path, root, suffix=suffix)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike) -> Path:
@@ -146,8 +146,8 @@ def write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike
 
 
 def atomic_folder(path: str | os.PathLike, *, root: str | os.PathLike, overwrite: bool = False):
-    """`fileio.atomic_dir` for a folder that must lie under `root` (`_confined_write`)."""
-    return _confined_write(fileio.atomic_dir, path, root, overwrite=overwrite)
+    """`outputfiles.atomic_dir` for a folder that must lie under `root` (`_confined_write`)."""
+    return _confined_write(outputfiles.atomic_dir, path, root, overwrite=overwrite)
 
 
 def remove(path: str | os.PathLike, *, root: str | os.PathLike) -> None:

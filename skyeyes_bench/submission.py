@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, fields, fileio
+from . import __version__, fields, imagefiles, inputfiles, outputfiles
 from .errors import UserError, ValidationError
 
 SUBMISSION_FILE = "submission.json"
@@ -33,8 +33,8 @@ FORMAT = "skyeyes-bench/submission@1"
 #: Split whose ground frames a submission must hold.
 SPLIT = "test"
 #: What `submission template` and `SubmissionWriter` write: `overwrite` (--force) replaces only an
-#: empty folder or a folder holding a submission.json (`fileio.OutputKind`).
-SUBMISSION_OUTPUT = fileio.OutputKind("a submission folder", folder=True, marker=SUBMISSION_FILE, formats=(FORMAT,))
+#: empty folder or a folder holding a submission.json (`outputfiles.OutputKind`).
+SUBMISSION_OUTPUT = outputfiles.OutputKind("a submission folder", folder=True, marker=SUBMISSION_FILE, formats=(FORMAT,))
 #: cached_s: how much of fit_s + render_s was taken from caches (reported at its original cost).
 _TIMING_KEYS = ("fit_s", "render_s", "per_frame_render_s", "cached_s")
 
@@ -111,7 +111,7 @@ def make_manifest(ds, *, method: str, method_version: str, config: dict | None, 
     }
 
 
-class SubmissionWriter(fileio.AtomicFolderWriter):
+class SubmissionWriter(outputfiles.AtomicFolderWriter):
     """Write a submission atomically.
 
     ```
@@ -131,7 +131,7 @@ class SubmissionWriter(fileio.AtomicFolderWriter):
     def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
                  overwrite: bool = False):
         fields.name("method name", method, "the method's name")
-        fileio.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[dataset.root],
+        outputfiles.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[dataset.root],
                             inputs_are="the dataset")
         super().__init__(out_dir, overwrite=overwrite, inputs=[dataset.root])
         self.ds = dataset
@@ -155,7 +155,7 @@ class SubmissionWriter(fileio.AtomicFolderWriter):
             raise UserError(f"{scene_name}/{frame.file}: image holds NaN or inf")
         path = self.root / frame_relpath(scene_name, frame)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fileio.write_image(path, img)
+        imagefiles.write_image(path, img)
         self._written.add(key)
         return path
 
@@ -176,11 +176,11 @@ class SubmissionWriter(fileio.AtomicFolderWriter):
                                  hardware=hardware)
         # the method's own numbers pass the same check as a submission read from disk
         problems = _manifest_problems(manifest, self.final / SUBMISSION_FILE)
-        if nonfinite := fileio.json_problem(manifest, allow_nan=False):
+        if nonfinite := inputfiles.json_problem(manifest, allow_nan=False):
             problems.append(f"{self.final / SUBMISSION_FILE}: {nonfinite}")
         if problems:
             raise ValidationError(f"submission {self.final}", problems)
-        fileio.write_json(self.root / SUBMISSION_FILE, manifest)
+        outputfiles.write_json(self.root / SUBMISSION_FILE, manifest)
         self._finished = True
 
 
@@ -248,7 +248,7 @@ def read_submission(sub_dir) -> dict[str, Any]:
     if not file.is_file():
         raise UserError(f"{file}: missing (every submission has one; `skyeyes-bench submission template` "
                         f"shows the format)")
-    m = fileio.read_json(file)
+    m = inputfiles.read_json(file)
     problems = _manifest_problems(m, file)
     if problems:
         raise ValidationError(f"submission {sub}", problems)
@@ -301,7 +301,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
         for name in dirnames + filenames:
             p = d / name
             rel = p.relative_to(sub).as_posix()
-            if p.is_symlink() and not fileio.inside(p, root):
+            if p.is_symlink() and not inputfiles.inside(p, root):
                 problems.append(f"{p}: symlink leaves the submission folder (points to {os.readlink(p)})")
                 escaped.add(rel)
                 continue
@@ -318,7 +318,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
                              file=sys.stderr):
         rel = frame_relpath(scene, frame)
         p = sub / rel
-        if not fileio.inside(p, root):
+        if not inputfiles.inside(p, root):
             reported = any(rel == e or rel.startswith(e + "/") for e in escaped)
             if (p.exists() or p.is_symlink()) and not reported:
                 problems.append(f"{p}: path leaves the submission folder")
@@ -346,19 +346,19 @@ def image_problems(path: Path, width: int, height: int, *, decode: bool = True,
     import struct
 
     try:
-        with fileio.open_regular(path, root=root) as f:  # never a named pipe or a file outside
+        with inputfiles.open_regular(path, root=root) as f:  # never a named pipe or a file outside
             head = f.read(33)
     except UserError as e:
         return [str(e)]
     except OSError as e:
         return [f"{path}: unreadable ({e.strerror})"]
-    if head[:8] != fileio.PNG_MAGIC:
+    if head[:8] != imagefiles.PNG_MAGIC:
         return [f"{path}: not a PNG file"]
     if len(head) < 33 or head[12:16] != b"IHDR":
         return [f"{path}: truncated or corrupt PNG (no IHDR header)"]
     w, h, depth, colour = struct.unpack(">IIBB", head[16:26])
-    if w * h > fileio.MAX_PIXELS:
-        return [f"{path}: absurd image size {w}x{h} (limit {fileio.MAX_PIXELS} pixels; expected {width}x{height})"]
+    if w * h > imagefiles.MAX_PIXELS:
+        return [f"{path}: absurd image size {w}x{h} (limit {imagefiles.MAX_PIXELS} pixels; expected {width}x{height})"]
     out = []
     if (w, h) != (width, height):
         out.append(f"{path}: image is {w}x{h}, expected {width}x{height}")
@@ -369,7 +369,7 @@ def image_problems(path: Path, width: int, height: int, *, decode: bool = True,
     if out or not decode:
         return out
     try:
-        fileio.read_image_uint8(path)
+        imagefiles.read_image_uint8(path)
     except UserError as e:
         return [str(e)]
     return []
@@ -400,12 +400,12 @@ def write_template(ds, out_dir, *, from_ground_truth: bool = False, overwrite: b
             w.finish(timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": [0.0] * len(frames)},
                      peak_memory_mb=0.0)
         return Path(out_dir)
-    fileio.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root], inputs_are="the dataset")
-    with fileio.atomic_dir(out_dir, overwrite=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root]) as tmp:
+    outputfiles.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root], inputs_are="the dataset")
+    with outputfiles.atomic_dir(out_dir, overwrite=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root]) as tmp:
         manifest = make_manifest(ds, method="my-method", method_version="0.0", config={"example": True},
                                  timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": []},
                                  peak_memory_mb=None, hardware=None)
-        fileio.write_json(tmp / SUBMISSION_FILE, manifest)
+        outputfiles.write_json(tmp / SUBMISSION_FILE, manifest)
         (tmp / EXPECTED_FILE).write_text(_expected_listing(frames))
     return Path(out_dir)
 

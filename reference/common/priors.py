@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles, inputfiles, outputfiles
 from skyeyes_bench.data.layout import Dataset, Frame, Scene
 from skyeyes_bench.paths import cache_dir
 
@@ -30,7 +30,7 @@ def scene_aerial_hash(scene: Scene) -> str:
     """Content hash of what a prior may use: scene.json (poses, intrinsics) and aerial pixels."""
     h = hashlib.sha256((scene.root / "scene.json").read_bytes())
     for f in scene.aerial:
-        h.update(fileio.sha256_file(f.path).encode())
+        h.update(inputfiles.sha256_file(f.path).encode())
     return h.hexdigest()
 
 
@@ -85,7 +85,7 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
                 rendered[frame.file] = _to_stored(np.asarray(img))
         fit_s = float(prior_method.scene_stats.get(scene.name, {}).get("fit_seconds", 0.0))
         seconds = np.float64(fit_s + time.perf_counter() - t0)  # what producing this entry cost
-        with fileio.atomic_path(path, suffix=".npz") as tmp:
+        with outputfiles.atomic_path(path, suffix=".npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **rendered, **{_SECONDS: seconds})
         out.update({f"{scene.name}/{k}": _from_stored(v) for k, v in rendered.items()})
@@ -96,7 +96,7 @@ def _to_stored(img: np.ndarray) -> np.ndarray:
     """A render as its cache entry stores it: 8-bit for colour images [H, W, 3] (what a PNG
     would hold), float32 for renders with more channels (gvg's depth and coverage beside the
     colour), which 8 bits would quantise."""
-    return fileio.to_uint8(img) if img.shape[-1] == 3 else img.astype(np.float32)
+    return imagefiles.to_uint8(img) if img.shape[-1] == 3 else img.astype(np.float32)
 
 
 def _from_stored(a: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ from reference.common.geometry import splat
 from reference.common.geometry.cloud import PointCloud
 from reference.common.mvs_start import PRESETS, MVSMethodConfig, reconstruct
 from reference.method import Method
-from skyeyes_bench import fileio
+from skyeyes_bench import inputfiles
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ class MVS(Method):
                                         "backgrounds": fit.backgrounds.to_dict()}, indent=2))
 
         def load(path):
-            d = fileio.read_json(path, allow_nan=True)
+            d = inputfiles.read_json(path, allow_nan=True)
             return Appearance(ColourMap.from_dict(d["colour_map"]), Backgrounds.from_dict(d["backgrounds"]))
 
         self.appearance, info = self.checkpointed(

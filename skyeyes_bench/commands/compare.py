@@ -52,12 +52,12 @@ def _abd(a: float, b: float, adv: float, higher: bool) -> tuple[str, str, str]:
 
 
 def run(args) -> int:
-    from .. import fileio
+    from .. import outputfiles
     from ..evaluate import read_results
     from ..comparison import compare_results
 
     if args.out:  # before any work; compare's output is replaced freely, but never an input
-        fileio.check_output(args.out, force=True, inputs=[args.a, args.b], inputs_are="the results being compared")
+        outputfiles.check_output(args.out, force=True, inputs=[args.a, args.b], inputs_are="the results being compared")
     a, fa = read_results(args.a, features=False)
     b, fb = read_results(args.b, features=False)
     sets = any(m.get("kind") == "set" and m["status"] == "ok" for m in a["metrics"].values())
@@ -72,7 +72,7 @@ def run(args) -> int:
     for w in res.get("warnings", []):
         print(f"skyeyes-bench: warning: {w}", file=sys.stderr)
     if args.out:
-        fileio.write_json(args.out, res)
+        outputfiles.write_json(args.out, res)
     if args.json:
         print(json.dumps(res, indent=2))
         return 0

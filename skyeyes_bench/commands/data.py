@@ -194,14 +194,14 @@ def _synthtown(args) -> int:
 
 
 def _gallery(args) -> int:
-    from .. import fileio
+    from .. import outputfiles
     from ..data.synthtown.gallery import tiles_from_dataset, tiles_rendered, write_gallery
     from ..errors import UserError
 
     if args.rows < 1 or args.size < 16:
         raise UserError("gallery: --rows must be >= 1 and --size >= 16")
     # the image is replaced if it exists (no --force here), but never inside the dataset it shows
-    fileio.check_output(args.out, force=True, inputs=[args.dataset] if args.dataset else [], inputs_are="the dataset")
+    outputfiles.check_output(args.out, force=True, inputs=[args.dataset] if args.dataset else [], inputs_are="the dataset")
     if args.dataset:
         tiles = tiles_from_dataset(Path(args.dataset), args.rows)
     else:
@@ -214,7 +214,7 @@ def _gallery(args) -> int:
 def _capture_carla(args) -> int:
     import shutil
 
-    from .. import fileio
+    from .. import inputfiles, outputfiles
     from ..data.capture import carla_live
     from ..data.capture.carla_plan import PLAN_FILE, WAYPOINTS_FILE, PlanConfig, plan_capture, read_waypoints
     from ..data.capture.carla_plan import waypoints_document
@@ -243,18 +243,18 @@ def _capture_carla(args) -> int:
     # 2. The plan; an existing capture folder must hold the same plan (resume) unless --force.
     plan = plan_capture(args.town, waypoints, cfg)
     old = out / PLAN_FILE
-    if old.is_file() and fileio.read_json(old).get("frames") != plan["frames"]:
+    if old.is_file() and inputfiles.read_json(old).get("frames") != plan["frames"]:
         if not args.force:
             raise UserError(f"{old}: a capture of another plan (town, options or protocol differ); pass --force "
                             "to start over, or another --out")
         for given in (args.waypoints, args.xodr):  # starting over deletes OUT: never a file this run reads
-            if given and fileio.inside(given, out):
+            if given and inputfiles.inside(given, out):
                 raise UserError(f"{given}: lies inside {out}, which --force would delete before reading it; "
                                 "copy it out of OUT first")
         shutil.rmtree(out)
     if not args.waypoints:
-        fileio.write_json(out / WAYPOINTS_FILE, waypoints_document(args.town, waypoints, args.waypoint_distance))
-    fileio.write_json(old, plan)
+        outputfiles.write_json(out / WAYPOINTS_FILE, waypoints_document(args.town, waypoints, args.waypoint_distance))
+    outputfiles.write_json(old, plan)
     nground = sum(r["kind"] == "ground" for r in plan["frames"])
     print(f"planned {old}: {len(plan['plan']['lanes'])} lanes, {nground} ground and "
           f"{len(plan['frames']) - nground} aerial frames ({args.town}, protocol {proto.data_ref})")

@@ -30,7 +30,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .. import fields, fileio
+from .. import fields, imagefiles, inputfiles
 from ..cameras import Camera, K_from_dict, rigid_problem
 from ..errors import UserError, ValidationError
 
@@ -40,7 +40,7 @@ KINDS = ("ground", "aerial")
 LAYERS = ("depth", "semantics")
 _LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
-#: Largest image side accepted in intrinsics (the decoders' pixel limit is fileio.MAX_PIXELS).
+#: Largest image side accepted in intrinsics (the decoders' pixel limit is imagefiles.MAX_PIXELS).
 _MAX_SIDE = 65536
 _PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$")
 
@@ -84,7 +84,7 @@ class Frame:
 
     def image(self) -> np.ndarray:
         """float32 [H, W, 3] in [0, 1]."""
-        return fileio.read_image(self.path)
+        return imagefiles.read_image(self.path)
 
     def layer_path(self, layer: str) -> Path:
         return self.scene_root / layer_file(self.file, layer)
@@ -92,12 +92,12 @@ class Frame:
     def depth(self) -> np.ndarray | None:
         """float32 [H, W] planar depth in metres (inf = sky), or None if the layer is absent."""
         p = self.layer_path("depth")
-        return fileio.read_depth(p) if p.exists() else None
+        return imagefiles.read_depth(p) if p.exists() else None
 
     def semantics(self) -> np.ndarray | None:
         """uint8 [H, W] labels, or None if the layer is absent."""
         p = self.layer_path("semantics")
-        return fileio.read_labels(p) if p.exists() else None
+        return imagefiles.read_labels(p) if p.exists() else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,7 +207,7 @@ def _intrinsics_problem(d: Any, where: str) -> str | None:
 def _escapes(path: Path, root: Path) -> str | None:
     """Why `path` is not inside the dataset `root` once symlinks are resolved, or None if it is:
     the README promises that a dataset's files stay inside its folder."""
-    if fileio.inside(path, root):
+    if inputfiles.inside(path, root):
         return None
     return f"{path}: leaves the dataset folder {root} (a symlink to {os.path.realpath(path)}); files stay inside it"
 
@@ -239,7 +239,7 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         problems.append(f"{sfile}: missing (scene {name!r} is listed in {DATASET_FILE})")
         return None
     try:
-        raw = fileio.read_json(sfile, root=root)  # never a file linked from outside the dataset
+        raw = inputfiles.read_json(sfile, root=root)  # never a file linked from outside the dataset
     except UserError as e:
         problems.append(str(e))
         return None
@@ -349,9 +349,9 @@ def _check_frame_files(frame: Frame, problems: list[str], check_pixels: bool = F
         problems.append(f"{frame.path}: missing file")
         return
     try:
-        w, h, c, _ = fileio.image_header(frame.path)
+        w, h, c, _ = imagefiles.image_header(frame.path)
         if check_pixels:  # a truncated PNG has an intact header; only decoding finds it
-            fileio.read_image_uint8(frame.path)
+            imagefiles.read_image_uint8(frame.path)
     except UserError as e:
         problems.append(str(e))
         return
@@ -366,9 +366,9 @@ def _check_frame_files(frame: Frame, problems: list[str], check_pixels: bool = F
                 problems.append(f"{lp}: missing ({lp.parent.name}/ exists, so every {frame.kind} frame needs one)")
                 continue
             try:
-                lw, lh, _, _ = fileio.image_header(lp)
+                lw, lh, _, _ = imagefiles.image_header(lp)
                 if check_pixels:
-                    (fileio.read_depth if layer == "depth" else fileio.read_labels)(lp)
+                    (imagefiles.read_depth if layer == "depth" else imagefiles.read_labels)(lp)
             except UserError as e:
                 problems.append(str(e))
                 continue
@@ -393,7 +393,7 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check
     if not dfile.is_file():
         return None, [f"{dfile}: missing (not a dataset folder; expected the canonical layout of DESIGN.md)"]
     try:
-        raw = fileio.read_json(dfile, root=root)
+        raw = inputfiles.read_json(dfile, root=root)
     except UserError as e:
         return None, [str(e)]
     if not isinstance(raw, dict):

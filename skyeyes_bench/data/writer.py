@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import fileio
+from .. import imagefiles, outputfiles
 from ..errors import ValidationError
 from .layout import DATASET_FILE, KINDS, SCENE_FILE, layer_file, validate_dataset
 
@@ -40,11 +40,11 @@ class SceneWriter:
         if isinstance(image, (str, os.PathLike)):
             _copy(Path(image), self.root / file)
         else:
-            fileio.write_image(self.root / file, image)
+            imagefiles.write_image(self.root / file, image)
         if depth is not None:
-            fileio.write_depth(self.root / layer_file(file, "depth"), depth)
+            imagefiles.write_depth(self.root / layer_file(file, "depth"), depth)
         if semantics is not None:
-            fileio.write_labels(self.root / layer_file(file, "semantics"), semantics)
+            imagefiles.write_labels(self.root / layer_file(file, "semantics"), semantics)
         self.entries[kind].append({"file": file, "c2w": _c2w_list(c2w), **extra})
         return file
 
@@ -58,7 +58,7 @@ class SceneWriter:
 
     def close(self) -> None:
         """Write scene.json (`DatasetWriter.finish` does it for scenes not closed yet)."""
-        fileio.write_json(self.root / SCENE_FILE, {"intrinsics": self.intrinsics, **self.entries, "meta": self.meta})
+        outputfiles.write_json(self.root / SCENE_FILE, {"intrinsics": self.intrinsics, **self.entries, "meta": self.meta})
         self.closed = True
 
 
@@ -69,7 +69,7 @@ def _copy(src: Path, dst: Path) -> None:
     shutil.copyfile(src, dst)
 
 
-class DatasetWriter(fileio.AtomicFolderWriter):
+class DatasetWriter(outputfiles.AtomicFolderWriter):
     """Writes a dataset into a temporary folder and moves it into place only when complete.
 
     ```
@@ -102,7 +102,7 @@ class DatasetWriter(fileio.AtomicFolderWriter):
         for writer in self._writers:
             if not writer.closed:
                 writer.close()
-        fileio.write_json(self.root / DATASET_FILE, {
+        outputfiles.write_json(self.root / DATASET_FILE, {
             "name": self.name, "protocol": self.protocol, "splits": splits,
             "scenes": self.scenes, "meta": dict(meta or {}),
         })

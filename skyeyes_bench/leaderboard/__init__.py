@@ -77,7 +77,7 @@ def build(root: Path) -> dict[str, bytes]:
 
 def _same_png(a: bytes, b: bytes) -> bool:
     """PNG bytes equal, or (if the encoder differs) the decoded pixels equal. Decoded in memory
-    (`--check` writes nothing), each checked by `fileio.png_problem` before a decoder sees it."""
+    (`--check` writes nothing), each checked by `imagefiles.png_problem` before a decoder sees it."""
     if a == b:
         return True
     import io
@@ -85,9 +85,9 @@ def _same_png(a: bytes, b: bytes) -> bool:
     import numpy as np
     from PIL import Image
 
-    from .. import fileio
+    from .. import imagefiles
 
-    if fileio.png_problem(a) or fileio.png_problem(b):
+    if imagefiles.png_problem(a) or imagefiles.png_problem(b):
         return False
     try:
         pa, pb = (np.asarray(Image.open(io.BytesIO(x)).convert("RGBA")) for x in (a, b))
@@ -126,7 +126,7 @@ def check(root: Path) -> list[str]:
     """Files that differ from what the inputs generate (empty: up to date)."""
     root = Path(root)
     files = build(root)
-    from .. import fileio
+    from .. import inputfiles
 
     stale = []
     for rel, data in files.items():
@@ -134,8 +134,8 @@ def check(root: Path) -> list[str]:
         if not p.is_file():
             stale.append(f"{rel} (missing)")
             continue
-        with fileio.open_regular(p) as f:  # never blocks; a refusal is one line
-            on_disk = f.read(fileio.MAX_JSON_BYTES)  # far above any page or image generated here
+        with inputfiles.open_regular(p) as f:  # never blocks; a refusal is one line
+            on_disk = f.read(inputfiles.MAX_JSON_BYTES)  # far above any page or image generated here
         same = _same_png if rel.endswith(".png") else same_sequence if rel.endswith(".webp") else bytes.__eq__
         if not same(on_disk, data):
             stale.append(f"{rel} (differs)")

@@ -9,7 +9,7 @@ import contextlib
 import json
 from pathlib import Path
 
-from .. import fileio, safe
+from .. import inputfiles, safe
 from ..errors import UserError
 from . import checks
 from .plots import FRAMES_DIR, FRAMES_LIST, GROUND_TRUTH, save_tile, write_frames_list
@@ -77,7 +77,7 @@ def check_results(path: Path) -> dict:
     from ..protocol import load_protocol
     from ..results import PARTIAL_FORMAT, RESULTS_FORMAT, read_results
 
-    raw = fileio.read_json(path, allow_nan=True)
+    raw = inputfiles.read_json(path, allow_nan=True)
     if isinstance(raw, dict) and (raw.get("format") == PARTIAL_FORMAT or raw.get("shard")):
         _fail(path, "format" if raw.get("format") == PARTIAL_FORMAT else "shard",
               f"says these are partial results of one shard; expected complete results ({RESULTS_FORMAT!r}): "
@@ -111,7 +111,7 @@ def _tiles_problem(folder: Path, frames: list[dict], records: dict, sha_key: str
         p = folder / f["scene"] / f["file"]
         if not p.is_file():
             return f"{p} not found"
-        if fileio.sha256_file(p) != records[(f["scene"], f["file"])][sha_key]:
+        if inputfiles.sha256_file(p) != records[(f["scene"], f["file"])][sha_key]:
             return f"{p} differs from the frame that was scored (sha256)"
     return None
 
@@ -225,8 +225,8 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
     try:
         if not listed.is_file() or add_seq:
             if listed.is_file():
-                with fileio.open_regular(listed) as f:
-                    restore.append((listed, f.read(fileio.MAX_JSON_BYTES)))
+                with inputfiles.open_regular(listed) as f:
+                    restore.append((listed, f.read(inputfiles.MAX_JSON_BYTES)))
             else:
                 created.append(listed)
             write_frames_list(listed, frames, root=root, sequence=seq)
@@ -271,6 +271,6 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
 
 
 def write_results_file(dest: Path, doc: dict, *, root: Path) -> None:
-    """The filed results JSON (the bytes `fileio.write_json` writes), confined to `root`."""
+    """The filed results JSON (the bytes `outputfiles.write_json` writes), confined to `root`."""
     with safe.atomic_file(dest, root=root) as tmp:
         tmp.write_text(json.dumps(doc, indent=2, sort_keys=False, allow_nan=True) + "\n")

@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from .. import fields, fileio, safe
+from .. import fields, inputfiles, safe
 from ..errors import UserError
 from ..metricspec import METRICS
 
@@ -179,7 +179,7 @@ def frames_file(path: Path) -> tuple[list[dict], dict | None]:
     (unique). sequence: {scene, sequence, label, frames: 1..MAX_SEQUENCE_FRAMES records {file,
     index}}, each file a frame inside the scene folder (unique), label plain text.
     """
-    raw = fileio.read_json(path)
+    raw = inputfiles.read_json(path)
     frames = raw.get("frames") if isinstance(raw, dict) else None
     tiles = set()
     for f, w in _records(path, "frames", frames, MAX_STRIP_FRAMES, "strip frames"):
@@ -227,7 +227,7 @@ def _sequence(path: Path, seq: Any) -> dict | None:
 def reported_file(path: Path) -> dict:
     """A reported-numbers TOML, checked: what reaches the page is plain text, every score a finite
     number, `decimals` a small integer, `metrics` known metric names."""
-    raw = fileio.read_toml(path, "a TOML file of reported numbers")
+    raw = inputfiles.read_toml(path, "a TOML file of reported numbers")
     w = lambda field: _where(path, field)  # noqa: E731
     for k in ("title", "protocol", "status", "citation", "metrics", "rows"):
         if k not in raw:

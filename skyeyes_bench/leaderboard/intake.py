@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .. import fileio, safe
+from .. import inputfiles, outputfiles, outputunit, safe
 from ..errors import UserError, one_line
 from ..results import _digest
 from .tables import ADD_KEY
@@ -38,7 +38,7 @@ def submission_sha(folder: Path) -> str:
             if p.is_symlink():
                 what = f"link {os.readlink(p)}"
             elif p.is_file():  # a regular file (a FIFO or device is not: never opened)
-                what = fileio.sha256_file(p)
+                what = inputfiles.sha256_file(p)
             else:
                 what = "not a regular file"
             lines.append(f"{rel} {what}\n")
@@ -49,7 +49,7 @@ def _read_state(path: Path) -> dict:
     """The intake's record (empty when there is none yet); a file that is not one is a UserError."""
     if not path.is_file():
         return {"format": STATE_FORMAT, "submissions": {}}
-    doc = fileio.read_json(path)
+    doc = inputfiles.read_json(path)
     if not (isinstance(doc, dict) and doc.get("format") == STATE_FORMAT and isinstance(doc.get("submissions"), dict)):
         raise UserError(f"{path}: field 'format' is not {STATE_FORMAT!r}: not the record of a leaderboard intake "
                         "(choose another --out)")
@@ -63,7 +63,7 @@ def _filed_by_us(root: Path, name: str, results: Path) -> bool:
     if not dest.is_file():
         return False
     try:
-        doc = fileio.read_json(dest, root=root, allow_nan=True)
+        doc = inputfiles.read_json(dest, root=root, allow_nan=True)
     except UserError:
         return False
     added = doc.get(ADD_KEY) if isinstance(doc, dict) else None
@@ -94,9 +94,9 @@ def intake(inbox, *, root, out=None, data: str | None = None, ray: str | None = 
     if not root.is_dir():
         raise UserError(f"{root}: leaderboard folder not found (pass --root DIR)")
     safe.writable(root)
-    fileio.check_apart(out, inbox, desc="the inbox")
+    outputfiles.check_apart(out, inbox, desc="the inbox")
     folders = _folders(inbox)
-    with fileio.output_lock(out / STATE_FILE):  # a second intake into this --out: one line, exit 2
+    with outputunit.output_lock(out / STATE_FILE):  # a second intake into this --out: one line, exit 2
         state = _read_state(out / STATE_FILE)
         lines, todo, codes = _pending(folders, state, root)
         codes += _score_and_file(todo, state, out, root, lines, data=data, ray=ray, shards=shards, device=device,
@@ -146,6 +146,6 @@ def _score_and_file(todo: list[tuple[Path, str]], state: dict, out: Path, root: 
             codes.append(o.exit_code)
             continue
         state["submissions"][f.name] = {"sha256": sha, "filed_as": f.name, "results": o.job.out.name}
-        fileio.write_json(out / STATE_FILE, state)
+        outputfiles.write_json(out / STATE_FILE, state)
         lines.append(f"{f.name}: scored ({o.job.out}) and filed as {f.name!r}")
     return codes

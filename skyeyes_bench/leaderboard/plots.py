@@ -146,7 +146,7 @@ def render_strip(root: Path, t: Table) -> bytes | None:
     row; None when no frames were saved for its protocol and dataset."""
     from PIL import Image, ImageDraw
 
-    from .. import fileio
+    from .. import imagefiles
 
     frames = strip_frames(root, t)
     if not frames:
@@ -170,7 +170,7 @@ def render_strip(root: Path, t: Table) -> bytes | None:
                 draw.rectangle([x + 1, y + 1, x + TILE - 2, y + TILE - 2], fill=(230, 230, 230))
                 draw.text((x + 8, y + TILE // 2 - 6), "no frame", fill=(120, 120, 120), font=font)
                 continue
-            tile = Image.fromarray(fileio.to_uint8(fileio.read_image(p)))
+            tile = Image.fromarray(imagefiles.to_uint8(imagefiles.read_image(p)))
             scale = min((TILE - 2) / tile.width, (TILE - 2) / tile.height)  # fit the tile; small frames grow
             size = (max(1, round(tile.width * scale)), max(1, round(tile.height * scale)))
             tile = tile.resize(size, Image.Resampling.NEAREST if scale > 1 else Image.Resampling.LANCZOS)
@@ -185,9 +185,9 @@ def save_tile(src: Path, dst: Path, *, root: Path) -> None:
     atomically, with the user's umask."""
     from PIL import Image
 
-    from .. import fileio, safe
+    from .. import imagefiles, safe
 
-    tile = Image.fromarray(fileio.to_uint8(fileio.read_image(src)))
+    tile = Image.fromarray(imagefiles.to_uint8(imagefiles.read_image(src)))
     tile.thumbnail((TILE - 2, TILE - 2), Image.Resampling.LANCZOS)
     with safe.atomic_file(dst, root=root) as tmp:
         tile.save(tmp, format="PNG")

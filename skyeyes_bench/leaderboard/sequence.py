@@ -133,9 +133,9 @@ def decode_webp(data: bytes, where: str, *, max_side: int = 8192, frames: int | 
 def read_webp_bytes(path: Path, *, root: Path) -> bytes:
     """The bytes of the WebP file at `path`: a regular file inside `root` (a link out of it, a
     pipe or a folder is refused in one line) of at most MAX_WEBP_BYTES."""
-    from .. import fileio
+    from .. import inputfiles
 
-    with fileio.open_regular(path, root=root) as f:
+    with inputfiles.open_regular(path, root=root) as f:
         data = f.read(MAX_WEBP_BYTES + 1)
     if len(data) > MAX_WEBP_BYTES:
         raise UserError(f"{path}: larger than {MAX_WEBP_BYTES >> 20} MB; expected a small animation")
@@ -147,11 +147,11 @@ def sequence_tiles(folder: Path, sequence: dict) -> list[np.ndarray]:
     uint8 [h, w, 3] tiles, longest side at most TILE px (never enlarged), all the first's size."""
     from PIL import Image
 
-    from .. import fileio
+    from .. import imagefiles
 
     tiles: list[np.ndarray] = []
     for f in sequence["frames"]:
-        img = Image.fromarray(fileio.to_uint8(fileio.read_image(folder / sequence["scene"] / f["file"])))
+        img = Image.fromarray(imagefiles.to_uint8(imagefiles.read_image(folder / sequence["scene"] / f["file"])))
         if not tiles:
             img.thumbnail((TILE, TILE), Image.Resampling.LANCZOS)
         elif img.size != (tiles[0].shape[1], tiles[0].shape[0]):

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import paths
-from ..fileio import atomic_path, read_image, sha256_file
+from ..imagefiles import read_image
+from ..inputfiles import sha256_file
+from ..outputfiles import atomic_path
 from .extractors import current_device, get_extractor
 
 #: What the last call did: {"hits": n, "misses": n, "corrupt": n} (tests and progress output).

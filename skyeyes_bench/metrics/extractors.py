@@ -235,7 +235,7 @@ def preprocess_clips(clips: np.ndarray, size: int = 224):
     import torch
     import torch.nn.functional as F
 
-    from ..fileio import to_uint8
+    from ..imagefiles import to_uint8
 
     n, t, h, w, _ = clips.shape
     x = torch.as_tensor(to_uint8(clips), device="cpu").float()  # [N, T, H, W, 3] in [0, 255]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..fileio import to_uint8
+from ..imagefiles import to_uint8
 
 SIZE = 299
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import paths
-from ..fileio import sha256_file
+from ..inputfiles import sha256_file
 from .cache import read_verified, write_verified
 
 #: Bump when `geometry.seen_mask` changes what it computes: old entries are then never read.

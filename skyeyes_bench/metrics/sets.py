@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import atomic_path, read_json
+from ..inputfiles import read_json
+from ..outputfiles import atomic_path
 
 
 def _clip_spectrum(w: np.ndarray) -> np.ndarray:

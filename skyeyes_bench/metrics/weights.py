@@ -25,7 +25,8 @@ from pathlib import Path
 
 from .. import paths
 from ..errors import UserError
-from ..fileio import atomic_path, sha256_file
+from ..inputfiles import sha256_file
+from ..outputfiles import atomic_path
 
 
 class MetricUnavailable(UserError):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.cameras import Camera
 
 W, H = 8, 6
@@ -40,14 +40,14 @@ def make_carla(src: Path) -> dict:
     def add(kind, town, lane, loc, rot, **extra):
         nonlocal n
         img = _rgba(n)
-        fileio._write_pixels(src / "rgb" / f"{n:06d}.png", img, "uint8")  # 4 channels, like CARLA's BGRA->PNG
+        imagefiles._write_pixels(src / "rgb" / f"{n:06d}.png", img, "uint8")  # 4 channels, like CARLA's BGRA->PNG
         rec = {"kind": kind, "town": town, "lane": lane, "image": f"rgb/{n:06d}.png", "location": loc,
                "rotation": rot, "fov": 90.0, "width": W, "height": H, **extra}
         if kind == "ground":
             d = np.random.default_rng(n).uniform(0.5, 300, (H, W))
             d[0, 0] = np.inf
             rgb, code = _encode_carla_depth(d)
-            fileio.write_image(src / "depth" / f"{n:06d}.png", rgb)
+            imagefiles.write_image(src / "depth" / f"{n:06d}.png", rgb)
             rec["depth"] = f"depth/{n:06d}.png"
             truth[rec["image"]] = {"code": code, "rgb": img[..., :3], "loc": loc, "rot": rot}
         else:
@@ -101,7 +101,7 @@ def make_matrixcity(src: Path, *, step=1.0, paper=False, depth=True, face_major=
         frames = []
         for i, cam in enumerate(cams):
             img = _rgba(1000 + len(truth))[..., :3]
-            fileio.write_image(folder / f"{i:04d}.png", img)
+            imagefiles.write_image(folder / f"{i:04d}.png", img)
             gl = cam.c2w @ GL
             if paper:
                 m = gl.copy()

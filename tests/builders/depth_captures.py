@@ -27,7 +27,7 @@ import numpy as np
 from builders.captures import GL, _encode_carla_depth
 from builders.matrixcity_release import _write_exr
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.cameras import Camera, from_carla
 
 W, H = 40, 32  # ground frames: about the smallest SSIM (11x11 window) and LPIPS-AlexNet (two max-pools) take
@@ -83,8 +83,8 @@ def make_carla_depth(src: Path, *, frames: int = 4) -> dict:
         rgb, depth = render(cam)
         code_rgb, _ = _encode_carla_depth(np.minimum(depth, 1000.0).astype(np.float64))
         image, dfile = f"rgb/{n:06d}.png", f"depth/{n:06d}.png"
-        fileio.write_image(src / image, rgb)
-        fileio.write_image(src / dfile, code_rgb)
+        imagefiles.write_image(src / image, rgb)
+        imagefiles.write_image(src / dfile, code_rgb)
         recs.append({"kind": kind, "town": town, "lane": lane, "image": image, "depth": dfile, "location": loc,
                      "rotation": rot, "fov": FOV, "width": w, "height": h, **extra})
         truth[image] = {"rgb": rgb, "depth": depth, "camera": cam}
@@ -119,7 +119,7 @@ def make_matrixcity_depth(root: Path, *, frames: int = 4) -> tuple[Path, dict]:
         recs = []
         for i, cam in enumerate(cams):
             rgb, depth = render(cam)
-            fileio.write_image(folder / f"{i:04d}.png", rgb)
+            imagefiles.write_image(folder / f"{i:04d}.png", rgb)
             m = cam.c2w @ GL
             m[:3, :3] *= 0.01  # NOTE: MatrixCity stores the raw rotation x 0.01
             recs.append({"frame_index": i, "rot_mat": m.tolist()})

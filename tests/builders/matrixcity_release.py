@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.cameras import Camera
 
 W, H = 8, 6
@@ -65,7 +65,7 @@ def make_release(root: Path, *, aerial_height=100.0, aerial_pitch=-45.0) -> dict
         origin, kept = [], []
         for i, cam in enumerate(cams):
             img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-            fileio.write_image(folder / f"{i:04d}.png", img)
+            imagefiles.write_image(folder / f"{i:04d}.png", img)
             m = cam.c2w @ GL
             m[:3, :3] *= 0.01  # NOTE: MatrixCity stores the raw rotation x 0.01
             rec = {"frame_index": i, "rot_mat": m.tolist()}

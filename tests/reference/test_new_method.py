@@ -52,7 +52,7 @@ class NearestAerial(Method):
 def test_a_new_method_is_one_file_and_one_registry_line(synthtown_smoke, tmp_path, monkeypatch):
     import reference.methods
     from skyeyes_bench.data.layout import open_dataset
-    from skyeyes_bench.fileio import read_image
+    from skyeyes_bench.imagefiles import read_image
 
     pkg = tmp_path / "pkg"
     pkg.mkdir()

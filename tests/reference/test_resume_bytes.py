@@ -116,7 +116,7 @@ def kill_after(monkeypatch, owner, name: str, n: int = 1):
 
 
 def leave_half_written(final: Path, source: Path) -> Path:
-    """The temporary file a kill during `fileio.atomic_path(final)` leaves: half of `source`."""
+    """The temporary file a kill during `outputfiles.atomic_path(final)` leaves: half of `source`."""
     tmp = final.with_name(f".{final.stem}.k1ll3d.tmp{final.suffix}")
     data = source.read_bytes()
     tmp.parent.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ import pytest
 from builders.evaluation import blurred_submission, make_dataset, protocol_env
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import inputfiles
 
 IMAGE_EX = "random-image-64"
 
@@ -64,7 +64,7 @@ def _edit_sidecar(path: Path, fn) -> None:
     fn(arrays)
     with open(side, "wb") as fh:
         np.savez(fh, **arrays)
-    _edit(path, lambda d: d["features"].__setitem__("sha256", fileio.sha256_file(side)))
+    _edit(path, lambda d: d["features"].__setitem__("sha256", inputfiles.sha256_file(side)))
 
 
 def _one_line_exit_2(args, *wants):

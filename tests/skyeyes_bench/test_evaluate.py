@@ -14,7 +14,7 @@ from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env, scores
 
-from skyeyes_bench import comparison, fileio
+from skyeyes_bench import comparison, imagefiles
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.errors import UserError
 from skyeyes_bench.evaluate import evaluate, features_path, read_results
@@ -64,7 +64,7 @@ def test_perfect_and_blurred(scored):
         assert mb[m]["value"] > mp[m]["value"] + 1e-9, m
     # the numbers, recomputed independently
     scene, f = expected_frames(ds)[9]
-    pred = fileio.read_image(blur / scene / f.file).astype(np.float64)
+    pred = imagefiles.read_image(blur / scene / f.file).astype(np.float64)
     gt = f.image().astype(np.float64)
     rec = next(r for r in rb["frames"] if r["scene"] == scene and r["file"] == f.file)
     assert rec["psnr"] == pytest.approx(peak_signal_noise_ratio(gt, pred, data_range=1.0), rel=1e-6)

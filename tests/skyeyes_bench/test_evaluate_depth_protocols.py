@@ -14,7 +14,7 @@ from builders.depth_captures import make_carla_depth, make_matrixcity_depth
 from builders.evaluation import ROOT, blurred_submission
 from builders.weights import require
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.importers import import_carla, import_matrixcity
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.evaluate import evaluate
@@ -102,7 +102,7 @@ def test_importer_writes_v1_data_with_ground_and_aerial_depth(scored):
         scene = ds.scenes[name]
         assert scene.layers()["ground_depth"] and scene.layers()["aerial_depth"] and scene.aerial
         for frame in [*scene.aerial, *scene.ground]:
-            rgb, cam = fileio.read_image_uint8(frame.path), frame.camera()
+            rgb, cam = imagefiles.read_image_uint8(frame.path), frame.camera()
             t = next(v for v in truth.values() if np.allclose(v["camera"].c2w, cam.c2w, atol=1e-9)
                      and np.array_equal(v["rgb"], rgb))  # the view it was rendered from, same pixels
             d = frame.depth()

@@ -148,9 +148,9 @@ def test_add_files_a_result_with_its_frames_and_refuses_overwrite(board, tmp_pat
         assert sorted(p.name for p in (root / "frames" / key / who).iterdir()) == [f"{j}.png" for j in range(4)] + [
             "sequence.webp"]  # the test sequence's animation: test_leaderboard_sequence.py
     gt = np.asarray(__import__("PIL.Image").Image.open(root / "frames" / key / "ground-truth" / "0.png"))
-    from skyeyes_bench import fileio
+    from skyeyes_bench import imagefiles
 
-    truth = fileio.read_image_uint8(Path(original["dataset"]["root"]) / chosen[0]["scene"] / chosen[0]["file"])
+    truth = imagefiles.read_image_uint8(Path(original["dataset"]["root"]) / chosen[0]["scene"] / chosen[0]["file"])
     assert np.array_equal(gt, truth[..., :3])  # 32 px frames are small already: copied as they are
     # a second add under the same name is refused in one line; --force replaces it
     rc, out, err = run_cli("leaderboard", "add", str(src), "--root", str(root), check=2)

@@ -11,7 +11,7 @@ import pytest
 from conftest import ROOT, run_cli
 from builders.evaluation import blurred_submission, make_dataset, protocol_env, scores
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.leaderboard.intake import STATE_FILE, submission_sha
 
 try:
@@ -93,7 +93,7 @@ def test_a_rerun_scores_only_what_changed_and_writes_only_root_and_out(made, tmp
     m["timings"]["fit_s"] = 1.0
     (inbox / "broken" / "submission.json").write_text(json.dumps(m))
     frame = next((inbox / "sharp").rglob("*.png"))
-    fileio.write_image(frame, np.zeros((32, 32, 3), np.float32))
+    imagefiles.write_image(frame, np.zeros((32, 32, 3), np.float32))
     before = (root / "results" / "sharp.json").read_bytes()
     _, out, err = _intake(data, root, inbox, check=0)
     assert "broken: scored" in out and "sharp: scored" in out and "blurry: unchanged" in out and err == ""
@@ -103,7 +103,7 @@ def test_a_rerun_scores_only_what_changed_and_writes_only_root_and_out(made, tmp
     doc = json.loads((root / "results" / "blurry.json").read_text())
     doc["leaderboard"]["added_from"] = "/elsewhere/blurry.results.json"
     (root / "results" / "blurry.json").write_text(json.dumps(doc))
-    fileio.write_image(next((inbox / "blurry").rglob("*.png")), np.ones((32, 32, 3), np.float32))
+    imagefiles.write_image(next((inbox / "blurry").rglob("*.png")), np.ones((32, 32, 3), np.float32))
     _, out, err = _intake(data, root, inbox)
     assert err.startswith("blurry: error: ") and "already filed as 'blurry'" in err and err.count("\n") == 1
     assert json.loads((root / "results" / "blurry.json").read_text())["leaderboard"]["added_from"].startswith("/else")

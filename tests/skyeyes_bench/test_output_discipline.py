@@ -1,8 +1,8 @@
-"""Issue 35: one output discipline for every command (`fileio.check_output`, `reading`,
+"""Issue 35: one output discipline for every command (`outputfiles.check_output`, `reading`,
 `output_lock`, `write_unit`).
 
 - An output never is, holds or lies inside an input, with or without --force; --force replaces an
-  earlier output of the same kind only (`fileio.OutputKind`).
+  earlier output of the same kind only (`outputfiles.OutputKind`).
 - Results and their sidecar are one unit: two runs to one --out never mix them; a run killed at
   any point is repeated without --force and writes the same bytes.
 - Created files and folders get the user's umask.
@@ -30,7 +30,7 @@ from builders.captures import make_carla, make_matrixcity
 from builders.evaluation import TEST_PROTOCOL, make_dataset
 from conftest import ROOT, run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import outputunit
 from skyeyes_bench.evaluate import FEATURES_OUTPUT
 
 NINES = "9" * 5000
@@ -169,7 +169,7 @@ def test_force_replaces_an_earlier_output_of_the_same_kind(w, tmp_path):
         run_cli("evaluate", str(w / "sub"), "--data", str(w / "ds"), "--out", str(res), "--quiet", "--force")
     assert (sub / "submission.json").is_file() and (ds / "dataset.json").is_file()
     # a sidecar without arrays (every set metric unavailable) is an empty zip: still recognised
-    (tmp_path / "e.features.npz").write_bytes(fileio.npz_bytes({}))
+    (tmp_path / "e.features.npz").write_bytes(outputunit.npz_bytes({}))
     assert FEATURES_OUTPUT.recognises(tmp_path / "e.features.npz")
     (tmp_path / "s.features.npz").write_text("my notes\n")
     refused(tmp_path, ["evaluate", str(w / "sub"), "--data", str(w / "ds"), "--out", str(tmp_path / "s.json"),
@@ -234,7 +234,7 @@ def test_two_runs_to_one_out_leave_one_intact_unit(world, w, tmp_path):
     assert snapshot(w) == before
 
 
-#: Runs `skyeyes-bench ARGS` and stops for good at one point of `fileio.write_unit` (marker file
+#: Runs `skyeyes-bench ARGS` and stops for good at one point of `outputunit.write_unit` (marker file
 #: written), where the test kills it with SIGKILL.
 _DRIVER = r'''
 import os, sys, time

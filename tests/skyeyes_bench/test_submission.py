@@ -12,7 +12,7 @@ import pytest
 from conftest import run_cli
 from builders.evaluation import blurred_submission, install_test_protocol, make_dataset
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.errors import UserError
 from skyeyes_bench.submission import SubmissionWriter, expected_frames, read_submission
@@ -36,7 +36,7 @@ def test_writer_layout_and_manifest(tiny, proto, tmp_path):
     scene, f = frames[5]
     p = sub / scene / f.file
     assert p.is_file() and f.file.startswith("ground/")
-    assert fileio.image_header(p)[:3] == (32, 32, 3)
+    assert imagefiles.image_header(p)[:3] == (32, 32, 3)
     m = read_submission(sub)
     assert m["protocol"] == "evaltest@1" and m["dataset"]["name"] == "evaltiny" and m["method"] == "blur"
     assert m["timings"]["fit_s"] == 1.0 and m["hardware"]["cores"] == os.cpu_count()
@@ -94,9 +94,9 @@ def test_every_malformed_case_listed_at_once_and_nothing_written(tiny, proto, tm
     fr = [sub / s / f.file for s, f in expected_frames(ds)]
     fr[0].unlink()  # missing
     (sub / "test-0-lane00" / "ground" / "999999.png").write_bytes(fr[1].read_bytes())  # extra
-    fileio.write_image(fr[2], np.zeros((16, 16, 3)))  # wrong size
+    imagefiles.write_image(fr[2], np.zeros((16, 16, 3)))  # wrong size
     fr[3].write_bytes(fr[3].read_bytes()[:200])  # truncated
-    fileio.write_image(fr[4], np.zeros((32, 32)))  # grey: not RGB
+    imagefiles.write_image(fr[4], np.zeros((32, 32)))  # grey: not RGB
     outside = tmp_path / "outside.png"
     shutil.copyfile(fr[5], outside)
     fr[5].unlink()

@@ -89,13 +89,13 @@ def pretrained_schedule(root: str | Path) -> dict:
     `scheduler/scheduler_config.json`, as CoreConfig fields (`train_timesteps`, `beta_start`,
     `beta_end`, `beta_schedule`, `prediction`): training and sampling must use the model's own
     (SD1.5: scaled_linear 0.00085..0.012, epsilon; SD2: v_prediction), not ours from scratch."""
-    from skyeyes_bench import fileio
+    from skyeyes_bench import inputfiles
     from skyeyes_bench.errors import UserError
 
     path = Path(root) / "scheduler" / "scheduler_config.json"
     if not path.is_file():
         raise UserError(f"{path}: missing; a diffusers Stable Diffusion folder names its noise schedule there")
-    d = fileio.read_json(path)
+    d = inputfiles.read_json(path)
     fields = {"num_train_timesteps": "train_timesteps", "beta_start": "beta_start", "beta_end": "beta_end",
               "beta_schedule": "beta_schedule", "prediction_type": "prediction"}
     out = {}

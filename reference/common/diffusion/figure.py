@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from reference.common.priors import nearest_aerial
-from skyeyes_bench import fileio
+from skyeyes_bench import outputfiles
 from skyeyes_bench.data.layout import Scene, Sequence
 
 
@@ -37,6 +37,6 @@ def write_figure(path: Path, scene: Scene, sequence: Sequence, conds: list[np.nd
             if r == 0:
                 ax.set_title(f"{sequence.name} #{i}", fontsize=7)
     fig.tight_layout()
-    with fileio.atomic_path(path) as tmp:
+    with outputfiles.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from reference.method import json_sha
-from skyeyes_bench import fileio
+from skyeyes_bench import outputfiles
 from skyeyes_bench.paths import cache_dir
 
 from . import core, train, vcm
@@ -116,8 +116,8 @@ class Stages:
             summary["anneal_steps"] = steps - anneal_from
         m.took_from_cache(res["resumed_seconds"])
         if acc.is_main_process:
-            fileio.write_json(m.workdir / "training.json", {**m.training, entry or stage: summary})
-            fileio.write_json(m.workdir / "config.json", m.config_dict())
+            outputfiles.write_json(m.workdir / "training.json", {**m.training, entry or stage: summary})
+            outputfiles.write_json(m.workdir / "config.json", m.config_dict())
         m.training[entry or stage] = summary
         return summary
 

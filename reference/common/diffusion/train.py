@@ -14,7 +14,7 @@ from typing import Callable
 
 import torch
 
-from skyeyes_bench import fileio
+from skyeyes_bench import outputfiles
 
 from .core import ControlledUNet, device_of
 
@@ -146,7 +146,7 @@ def clip_denoise_loss(model, scheduler, x0: torch.Tensor, cond: torch.Tensor,
 
 def save_checkpoint(path: Path, state: dict) -> None:
     """torch.save through a temporary file + rename: a kill never leaves a half checkpoint."""
-    with fileio.atomic_path(path) as tmp:
+    with outputfiles.atomic_path(path) as tmp:
         torch.save(state, tmp)
 
 
@@ -182,7 +182,7 @@ def stage_checkpoint(folder: Path, steps: int) -> Path:
                 continue
         done = sorted(d for d in done if d[0] <= steps)
         if done:
-            with fileio.atomic_path(ckpt) as tmp:
+            with outputfiles.atomic_path(ckpt) as tmp:
                 shutil.copyfile(done[-1][1], tmp)
     return ckpt
 
@@ -198,7 +198,7 @@ def seed_stage(folder: Path, source: Path) -> float:
 
     state = load_checkpoint(source)
     if not (folder.is_dir() and any(folder.glob("train-*.pt"))):
-        with fileio.atomic_path(folder / f"train-{int(state['step'])}.pt") as tmp:
+        with outputfiles.atomic_path(folder / f"train-{int(state['step'])}.pt") as tmp:
             shutil.copyfile(source, tmp)
     return float(state["seconds"])
 

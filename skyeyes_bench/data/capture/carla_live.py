@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ... import fileio
+from ... import imagefiles, outputfiles
 from ...errors import UserError
 from ..importers.carla import CARLA_CAPTURE_FILE
 from .carla_plan import Waypoint
@@ -100,7 +100,7 @@ def town_world(client, town: str):
 def frame_done(out: Path, rec: dict) -> bool:
     """Both files of a planned frame exist with the planned size (an earlier run wrote them)."""
     try:
-        return all(fileio.image_header(out / rec[k])[:2] == (rec["width"], rec["height"]) for k in ("image", "depth"))
+        return all(imagefiles.image_header(out / rec[k])[:2] == (rec["width"], rec["height"]) for k in ("image", "depth"))
     except (UserError, OSError):
         return False
 
@@ -150,7 +150,7 @@ def capture(plan: dict, out: Path, server: Server, *, carla=None, progress: bool
         raise UserError(f"{out}: {len(missing)} planned frames missing, e.g. {missing[0]}")
     doc = {**plan, "captured": {"server": f"{server.host}:{server.port}",
                                 "fixed_delta_seconds": server.fixed_delta_s}}
-    fileio.write_json(out / CARLA_CAPTURE_FILE, doc)
+    outputfiles.write_json(out / CARLA_CAPTURE_FILE, doc)
     return len(todo), len(frames) - len(todo)
 
 
@@ -207,8 +207,8 @@ def _shoot(carla, world, sensors, queues, rec: dict, out: Path, server: Server) 
             last = "the sensor was not at the planned transform"
             log.warning("%s: attempt %d: %s", rec["image"], attempt + 1, last)
             continue
-        fileio.write_image(out / rec["depth"], _pixels(depth))  # depth first: the RGB file marks done
-        fileio.write_image(out / rec["image"], _pixels(rgb))
+        imagefiles.write_image(out / rec["depth"], _pixels(depth))  # depth first: the RGB file marks done
+        imagefiles.write_image(out / rec["image"], _pixels(rgb))
         return
     raise UserError(f"{rec['image']}: no image from the CARLA server after {server.retries + 1} attempts ({last}); "
                     "run the same command again to resume")

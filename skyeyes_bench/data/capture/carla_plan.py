@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import fields, fileio
+from ... import fields, inputfiles
 from ...errors import UserError
 from ..importers.carla import CARLA_FORMAT
 
@@ -114,7 +114,7 @@ def waypoints_document(town: str, waypoints: list[Waypoint], distance_m: float) 
 def read_waypoints(path: str | Path) -> tuple[str, list[Waypoint]]:
     """(town, waypoints) from a waypoint JSON file (docs/formats.md); one-line errors."""
     path = Path(path)
-    raw = fileio.read_json(path)
+    raw = inputfiles.read_json(path)
     if not isinstance(raw, dict) or raw.get("format") != WAYPOINTS_FORMAT:
         _fail(f"{path}: field 'format'", f"expected {WAYPOINTS_FORMAT!r}")
     if raw.get("version") != 1:

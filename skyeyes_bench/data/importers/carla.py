@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import fields, fileio
+from ... import fields, imagefiles, inputfiles
 from ...cameras import from_carla
 from ...errors import UserError
 from .common import (PlannedFrame, PlannedScene, check_out, check_sequences, check_size, ordered_splits, rel_file,
@@ -49,7 +49,7 @@ def plan_carla(src: str | Path, protocol, split: str | None = None) -> tuple[lis
     jfile = src / CARLA_CAPTURE_FILE
     if not src.is_dir():
         raise UserError(f"{src}: not a folder (expected a CARLA capture folder with {CARLA_CAPTURE_FILE})")
-    raw = fileio.read_json(jfile)
+    raw = inputfiles.read_json(jfile)
     if not isinstance(raw, dict) or raw.get("format") != CARLA_FORMAT:
         _fail(f"{jfile}: field 'format'", f"expected {CARLA_FORMAT!r}")
     if raw.get("version") != 1:
@@ -87,7 +87,7 @@ def plan_carla(src: str | Path, protocol, split: str | None = None) -> tuple[lis
             dpath = rel_file(src, f"{at}.depth", rec.get("depth"), "depth-camera PNG")
             if check_size(dpath, f"{at}.depth", width, height) < 3:
                 _fail(f"{at}.depth", f"{dpath} must be the depth camera's 3- or 4-channel encoded PNG")
-            depth = (lambda p=dpath: decode_carla_depth(fileio.read_image_uint8(p)))
+            depth = (lambda p=dpath: decode_carla_depth(imagefiles.read_image_uint8(p)))
         seq = idx = None
         if kind == "ground":
             if rec.get("sequence") is not None:

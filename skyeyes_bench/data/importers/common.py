@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ... import fields, fileio
+from ... import fields, imagefiles, inputfiles, outputfiles
 from ...errors import UserError
 from ..layout import DATASET_FILE
 from ..writer import DatasetWriter
@@ -27,13 +27,13 @@ _fail = fields.fail
 
 #: What the importers (and `data synthtown --out`) write: --force replaces only an empty folder or
 #: a dataset written earlier (a folder holding dataset.json), never SRC or a folder around it.
-DATASET_OUTPUT = fileio.OutputKind("a dataset folder", folder=True, marker=DATASET_FILE)
+DATASET_OUTPUT = outputfiles.OutputKind("a dataset folder", folder=True, marker=DATASET_FILE)
 
 
 def check_out(out: str | Path, force: bool, inputs, inputs_are: str = "the capture (SRC)") -> Path:
     """Refuse, before any work, an OUT that is, holds or lies inside an input (SRC, depth folders),
-    or that exists without --force, or with it is not an earlier dataset (`fileio.check_output`)."""
-    return fileio.check_output(out, force=force, kind=DATASET_OUTPUT, inputs=inputs, inputs_are=inputs_are)
+    or that exists without --force, or with it is not an earlier dataset (`outputfiles.check_output`)."""
+    return outputfiles.check_output(out, force=force, kind=DATASET_OUTPUT, inputs=inputs, inputs_are=inputs_are)
 
 
 @dataclass
@@ -72,16 +72,16 @@ def rel_file(base: Path, where: str, value: Any, what: str, root: Path | None = 
     if not isinstance(value, str) or not value or "\x00" in value:
         _fail(where, f"expected {what} (a path relative to {base}), got {value!r}")
     p = Path(os.path.normpath(base / value))
-    if not fileio.inside(p, root):
+    if not inputfiles.inside(p, root):
         _fail(where, f"{what} {value!r} leaves {root} (through '..', an absolute path or a symlink)")
     if not p.is_file():
         _fail(where, f"{what} {p} not found" + (" (not a regular file)" if p.exists() else ""))
-    return fileio.check_regular(p)
+    return inputfiles.check_regular(p)
 
 
 def check_size(path: Path, where: str, width: int, height: int) -> int:
     """Check an image's size from its header; returns its channel count."""
-    w, h, c, _ = fileio.image_header(path)
+    w, h, c, _ = imagefiles.image_header(path)
     if (w, h) != (width, height):
         _fail(where, f"{path} is {w}x{h}, expected {width}x{height} (fields 'width', 'height')")
     return c
@@ -133,7 +133,7 @@ def write_plan(out: Path, scenes: list[PlannedScene], *, name: str, protocol: st
 
     check_out(out, force, inputs, inputs_are)
     total = sum(len(s.ground) + len(s.aerial) for s in scenes)
-    with fileio.reading(*inputs), \
+    with outputfiles.reading(*inputs), \
             DatasetWriter(out, name=name, protocol=protocol, overwrite=force, validate=True) as w, \
             tqdm(total=total, desc=f"import {name}", unit="frame", file=sys.stderr,
                  disable=None if progress else True) as bar:
@@ -143,7 +143,7 @@ def write_plan(out: Path, scenes: list[PlannedScene], *, name: str, protocol: st
             groups = {k: v or groups["ground"] for k, v in groups.items()}
             sw = w.scene(s.name, groups, meta=s.meta)
             for f in [*s.aerial, *ground]:
-                px = fileio.read_image_uint8(f.image)
+                px = imagefiles.read_image_uint8(f.image)
                 if px.shape[2] not in (3, 4):
                     raise UserError(f"{f.image}: expected an RGB image, got {px.shape[2]} channel(s)")
                 extra = {} if f.intrinsics == groups[f.kind] else {"intrinsics": f.intrinsics}

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import fields, fileio
+from ... import fields, imagefiles, inputfiles
 from ...cameras import from_matrixcity, intrinsics
 from ...errors import UserError
 from .common import (PlannedFrame, PlannedScene, check_out, ordered_splits, rel_file, town_split, write_plan,
@@ -165,9 +165,9 @@ def _raw_image(folder: Path, index: int, where: str, src: Path) -> Path:
     name = f"{index:04d}.png"
     for cand in (folder / name, folder / folder.name / name):
         if cand.is_file():
-            if not fileio.inside(cand, src):
+            if not inputfiles.inside(cand, src):
                 _fail(where, f"image {cand} leaves {src} (through a symlink)")
-            return fileio.check_regular(cand)
+            return inputfiles.check_regular(cand)
     tar = folder.with_name(folder.name + ".tar")
     hint = f" (unpack {tar} into {folder.parent} first)" if tar.is_file() else ""
     _fail(where, f"image {folder / name} not found{hint}")
@@ -192,7 +192,7 @@ def _mc_intrinsics(raw: dict, jfile: Path, img_w: int, img_h: int) -> dict:
 
 
 def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_roots: list[Path]) -> list[_MCFrame]:
-    raw = fileio.read_json(jfile, root=src)  # a pose file linked from outside SRC is refused
+    raw = inputfiles.read_json(jfile, root=src)  # a pose file linked from outside SRC is refused
     if not isinstance(raw, dict) or not isinstance(raw.get("frames"), list) or not raw["frames"]:
         _fail(jfile, "field 'frames' must be a non-empty list")
     kind = _mc_kind(jfile, src)
@@ -223,7 +223,7 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
         mat = fr.get(mat_key)
         m = fields.matrix(f"{at}.{mat_key}", mat, 4, 4, "a pose matrix")
         m[3] = [0, 0, 0, 1]  # NOTE: MatrixCity's rgbd2pc.py also resets the last row (stored scaled)
-        hdr = fileio.image_header(image)
+        hdr = imagefiles.image_header(image)
         if size is None:
             size = hdr[:2]
             intr = _mc_intrinsics(raw, jfile, *size)
@@ -238,9 +238,9 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
                                                        if image.is_relative_to(src) else ())
         depth = _mc_depth_path(image, src, depth_roots)
         if depth is not None:  # beside the image (inside SRC) or in a depth folder, symlinks resolved
-            if not any(fileio.inside(depth, r) for r in (src, *depth_roots)):
+            if not any(inputfiles.inside(depth, r) for r in (src, *depth_roots)):
                 _fail(f"{at}", f"depth {depth} leaves {src} and the depth folders (through a symlink)")
-            fileio.check_regular(depth)
+            inputfiles.check_regular(depth)
         out.append(_MCFrame(block, kind, i, image, cam.c2w, dict(intr), depth, names))
     return out
 
@@ -248,7 +248,7 @@ def _mc_read_pose_file(jfile: Path, src: Path, fmt: str, convention: str, depth_
 def _mc_depth_loader(path: Path | None):
     if path is None:
         return None
-    return lambda: matrixcity_depth_to_metres(fileio.read_depth(path), half=fileio.image_header(path)[3] == "half")
+    return lambda: matrixcity_depth_to_metres(imagefiles.read_depth(path), half=imagefiles.image_header(path)[3] == "half")
 
 
 def _pose_files(src: Path, pose_format: str, include: list[str] | None = None) -> tuple[Path, str, list[Path]]:
@@ -269,7 +269,7 @@ def _pose_files(src: Path, pose_format: str, include: list[str] | None = None) -
         raise UserError(f"{src}: holds several MatrixCity maps ({', '.join(maps)}); pass one as SRC, "
                         f"e.g. {src / maps[0]}")
     if maps and (src / maps[0]).is_dir() and src.name != maps[0]:  # the download's root: use its one map
-        if not fileio.inside(src / maps[0], src):
+        if not inputfiles.inside(src / maps[0], src):
             raise UserError(f"{src / maps[0]}: leaves {src} (a symlink); every file read must lie inside SRC")
         return _pose_files(src / maps[0], pose_format, include)
     raw_files, paper_files = [p for p in raw_files if keep(p)], [p for p in paper_files if keep(p)]

@@ -80,7 +80,7 @@ def write_gallery(tiles: list[dict], out: Path) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    from ... import fileio
+    from ... import outputfiles
     from .render import LABELS, PALETTE, colourise_labels
 
     if not tiles:
@@ -112,7 +112,7 @@ def write_gallery(tiles: list[dict], out: Path) -> Path:
     H = n * tile * h / w + 0.75
     fig.subplots_adjust(left=0.03, right=0.995, top=1 - 0.3 / H, bottom=0.4 / H, wspace=0.03, hspace=0.04)
     out = Path(out)
-    with fileio.atomic_path(out) as tmp:
+    with outputfiles.atomic_path(out) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
     plt.close(fig)
     return out

@@ -213,12 +213,12 @@ def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) 
 
 def _check_cached(path: Path, p: Preset) -> Path:
     """`path` if its dataset.json was made from preset `p` for `p.protocol`; else a one-line UserError."""
-    from ... import fileio
+    from ... import inputfiles
 
     def rendered(cfg: dict) -> dict:  # the fields that decide the pixels (not the preset's name)
         return {k: v for k, v in cfg.items() if k not in ("name", "official")}
 
-    doc = fileio.read_json(path / "dataset.json")
+    doc = inputfiles.read_json(path / "dataset.json")
     cfg = (doc.get("meta") or {}).get("preset_config")
     if doc.get("protocol") != p.protocol or (cfg is not None and rendered(cfg) != rendered(p.to_dict())):
         raise UserError(f"{path}/dataset.json: made for protocol {doc.get('protocol')!r} with another "

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.layout import open_dataset
 
 
@@ -20,13 +20,13 @@ def test_mean_frame_renders_the_numpy_mean_of_the_train_ground_frames(synthtown_
     # Independent: read every train ground PNG straight from the folders, mean in float64.
     train = [p for name in ds.splits["train"] for p in sorted((synthtown_smoke / name / "ground").glob("*.png"))]
     assert len(train) > 10
-    want = np.mean([fileio.read_image(p).astype(np.float64) for p in train], axis=0)
+    want = np.mean([imagefiles.read_image(p).astype(np.float64) for p in train], axis=0)
     (work,) = (out / "work").iterdir()
     renders = sorted((work / "renders").rglob("*.png"))
     n_test = sum(len(s) for sc in ds.split("test") for s in sc.sequences.values())
     assert len(renders) == n_test
     for p in renders[:: max(1, len(renders) // 5)]:
-        got = fileio.read_image(p).astype(np.float64)
+        got = imagefiles.read_image(p).astype(np.float64)
         assert np.abs(got - want).max() <= 0.5 / 255 + 1e-6  # 8-bit rounding of the mean, nothing else
     res = json.loads((out / "results.json").read_text())
     assert res["metrics"]["psnr"]["status"] == "ok"

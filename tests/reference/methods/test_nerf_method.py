@@ -14,7 +14,7 @@ import pytest
 
 from builders.skyeyes import SIZE, make_tiny_dataset
 from conftest import run_cli
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.layout import open_dataset
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -48,7 +48,7 @@ def test_nerf_renders_every_ground_frame_deterministically_and_resumes(tiny, tmp
     renders = _renders(a)
     assert len(renders) == len(frames) == 12
     for p in renders:
-        img = fileio.read_image(p)
+        img = imagefiles.read_image(p)
         assert img.shape == (SIZE, SIZE, 3) and np.isfinite(img).all()
     res = json.loads((a / "results.json").read_text())
     assert res["metrics"]["psnr"]["status"] == "ok" and np.isfinite(res["metrics"]["psnr"]["value"])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.cameras import Camera
 from skyeyes_bench.data.layout import open_dataset, validate_dataset
 from skyeyes_bench.data.writer import DatasetWriter
@@ -96,8 +96,8 @@ def test_write_and_reopen(ds_root):
 
 def test_lazy_loading(ds_root, monkeypatch):
     calls = []
-    real = fileio.read_image
-    monkeypatch.setattr(fileio, "read_image", lambda p: calls.append(p) or real(p))
+    real = imagefiles.read_image
+    monkeypatch.setattr(imagefiles, "read_image", lambda p: calls.append(p) or real(p))
     ds = open_dataset(ds_root)
     assert calls == []  # opening reads headers only
     ds.scenes["test-0-lane00"].ground[2].image()
@@ -107,8 +107,8 @@ def test_lazy_loading(ds_root, monkeypatch):
 def test_depth_exr_round_trip_through_file(tmp_path):
     d = np.random.default_rng(0).uniform(0, 1000, (37, 53)).astype(np.float32)
     d[5, 7], d[0, 0], d[-1, -1] = np.inf, 0.0, 1e-6
-    fileio.write_depth(tmp_path / "d.exr", d)
-    back = fileio.read_depth(tmp_path / "d.exr")
+    imagefiles.write_depth(tmp_path / "d.exr", d)
+    back = imagefiles.read_depth(tmp_path / "d.exr")
     np.testing.assert_array_equal(back, d)  # exact, not scrambled (see DESIGN.md's pitfall)
     # read independently of our reader: OpenImageIO directly
     import OpenImageIO as oiio
@@ -127,8 +127,8 @@ def test_summary(ds_root):
     p, raw = _scene_json(ds_root)
     raw["ground"][1]["intrinsics"] = _intr(32, 24)  # one frame of another size (image too)
     p.write_text(json.dumps(raw))
-    fileio.write_image(ds_root / "test-0-lane00" / raw["ground"][1]["file"], np.zeros((24, 32, 3)))
-    fileio.write_depth(ds_root / "test-0-lane00" / "ground_depth" / "000001.exr", np.ones((24, 32)))
+    imagefiles.write_image(ds_root / "test-0-lane00" / raw["ground"][1]["file"], np.zeros((24, 32, 3)))
+    imagefiles.write_depth(ds_root / "test-0-lane00" / "ground_depth" / "000001.exr", np.ones((24, 32)))
     assert open_dataset(ds_root).summary()["resolution"] == {"aerial": "16x12", "ground": "16x12, 32x24"}
 
 

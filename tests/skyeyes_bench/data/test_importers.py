@@ -10,7 +10,7 @@ import pytest
 from builders.captures import H, W, make_carla, make_matrixcity
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.importers import resample_step, split_lanes
 from skyeyes_bench.data.layout import open_dataset
 
@@ -58,7 +58,7 @@ def test_import_carla(carla_src, tmp_path):
             np.testing.assert_allclose(fr.c2w[:3, 0], right, atol=1e-12)
             np.testing.assert_allclose(fr.camera().center, np.array(t["loc"]) * [1, -1, 1])
             np.testing.assert_allclose(fr.camera().K, [[4, 0, 4], [0, 4, 3], [0, 0, 1]])  # f = 8 / (2 tan 45)
-            np.testing.assert_array_equal(fileio.read_image_uint8(fr.path), t["rgb"])  # RGB kept, alpha dropped
+            np.testing.assert_array_equal(imagefiles.read_image_uint8(fr.path), t["rgb"])  # RGB kept, alpha dropped
             d = fr.depth()
             expect = (t["code"] * f).astype(np.float32)
             expect[0, 0] = np.inf
@@ -185,7 +185,7 @@ def test_import_matrixcity(tmp_path, paper, face_major):
     for fr in [*a.ground, *b.ground]:
         t = road[tuple(np.round(fr.c2w[:3, 3], 3)) + tuple(np.round(fr.c2w[:3, 2], 3))]
         np.testing.assert_allclose(fr.c2w, t["c2w"], atol=1e-5)
-        np.testing.assert_array_equal(fileio.read_image_uint8(fr.path), t["rgb"])
+        np.testing.assert_array_equal(imagefiles.read_image_uint8(fr.path), t["rgb"])
         np.testing.assert_allclose(fr.depth(), t["depth_m"], rtol=1e-6)
         assert np.isinf(fr.depth()[1, 2])
         np.testing.assert_allclose(fr.camera().K, [[4, 0, 4], [0, 4, 3], [0, 0, 1]], atol=1e-9)
@@ -283,8 +283,8 @@ def test_rgba_png_colour_not_premultiplied(tmp_path):
     px = np.random.default_rng(0).integers(0, 256, (H, W, 4), dtype=np.uint8)
     px[..., 3] = 100  # translucent: RGB must still come back as stored
     _png_rgba(tmp_path / "a.png", px)
-    np.testing.assert_array_equal(fileio.read_image_uint8(tmp_path / "a.png"), px)
-    np.testing.assert_array_equal(np.rint(fileio.read_image(tmp_path / "a.png") * 255), px[..., :3])
+    np.testing.assert_array_equal(imagefiles.read_image_uint8(tmp_path / "a.png"), px)
+    np.testing.assert_array_equal(np.rint(imagefiles.read_image(tmp_path / "a.png") * 255), px[..., :3])
 
 
 @pytest.mark.parametrize("field, value", [("image", "ABS"), ("image", "../outside.png"), ("depth", "ABS"),

@@ -11,7 +11,7 @@ import pytest
 from builders.matrixcity_release import FAR_CM, make_release
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.importers import matrixcity_depth_to_metres
 from skyeyes_bench.data.layout import open_dataset
 
@@ -37,8 +37,8 @@ def _frames_by_image(ds):
 
 
 def _match(truth_paths, fr):
-    px = fileio.read_image_uint8(fr.path)
-    hits = [p for p in truth_paths if np.array_equal(fileio.read_image_uint8(p), px)]
+    px = imagefiles.read_image_uint8(fr.path)
+    hits = [p for p in truth_paths if np.array_equal(imagefiles.read_image_uint8(p), px)]
     assert len(hits) == 1, (fr.path, hits)
     return hits[0]
 

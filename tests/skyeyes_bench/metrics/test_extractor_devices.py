@@ -60,7 +60,7 @@ def test_random_extractors_make_every_tensor_where_the_data_is(t):
 def test_features_through_the_cache_under_stray_device(tmp_path, monkeypatch):
     """The path evaluate takes (files -> cache -> extractor), cold cache, inside stray_device:
     the same features as outside it."""
-    from skyeyes_bench.fileio import write_image
+    from skyeyes_bench.imagefiles import write_image
 
     frames = []
     for i, img in enumerate(_images(6)):

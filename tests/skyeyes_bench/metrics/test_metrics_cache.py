@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from skyeyes_bench import paths
-from skyeyes_bench.fileio import read_image, write_image
+from skyeyes_bench.imagefiles import read_image, write_image
 from skyeyes_bench.metrics import cache
 from skyeyes_bench.metrics.extractors import get_extractor
 

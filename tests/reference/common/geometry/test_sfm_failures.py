@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from reference.common.geometry import sfm
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 
 
 def _frames(tmp_path, n=2):
     out = []
     for i in range(n):
         p = tmp_path / f"a{i}.png"
-        fileio.write_image(p, np.full((8, 8, 3), 40 * i, np.uint8))
+        imagefiles.write_image(p, np.full((8, 8, 3), 40 * i, np.uint8))
         out.append(SimpleNamespace(path=p, c2w=np.eye(4),
                                    intrinsics={"width": 8, "height": 8, "fx": 4.0, "fy": 4.0, "cx": 4.0, "cy": 4.0}))
     return out

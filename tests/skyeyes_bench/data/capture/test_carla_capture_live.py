@@ -13,7 +13,7 @@ import pytest
 from builders.carla_capture import expected_pixels, fake_carla, waypoints_json
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.layout import open_dataset
 
 TINY = ["--min-points", "3", "--max-points", "3", "--max-lanes", "1", "--aerial-stride", "3", "--aerial-yaws", "2"]
@@ -66,9 +66,9 @@ def test_capture_fake_server_retries_resumes_and_imports(tiny_protocol, tmp_path
     assert capture["frames"] == plan["frames"] and capture["captured"]["server"] == "localhost:2000"
     # 3. Every file holds what the sensor saw from its planned transform (RGB from BGRA).
     for r in plan["frames"]:
-        np.testing.assert_array_equal(fileio.read_image_uint8(cap / r["image"]),
+        np.testing.assert_array_equal(imagefiles.read_image_uint8(cap / r["image"]),
                                       expected_pixels(r["location"], r["rotation"], 16, 12))
-        np.testing.assert_array_equal(fileio.read_image_uint8(cap / r["depth"]),
+        np.testing.assert_array_equal(imagefiles.read_image_uint8(cap / r["depth"]),
                                       expected_pixels(r["location"], r["rotation"], 16, 12, depth=True))
     # 4. import-carla reads it; data check passes.
     run_cli("data", "import-carla", str(cap), str(tmp_path / "ds"), "--protocol", tiny_protocol, "--no-progress")

@@ -12,7 +12,7 @@ import pytest
 from builders.carla_capture import R1_START, R1_YAW, R2_CENTRE, R2_RADIUS, make_waypoints, road1_point, waypoints_json
 from conftest import run_cli
 
-from skyeyes_bench import fileio
+from skyeyes_bench import imagefiles
 from skyeyes_bench.data.capture import PlanConfig, plan_capture, read_waypoints, select_lanes
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.protocol import load_protocol
@@ -69,8 +69,8 @@ def _fill_images(root, plan, rgb_value=90):
     depth[..., 0], depth[..., 1], depth[..., 2] = code & 255, (code >> 8) & 255, code >> 16
     rgb = np.full((h, w, 3), rgb_value, np.uint8)
     for r in plan["frames"]:
-        fileio.write_image(root / r["image"], rgb)
-        fileio.write_image(root / r["depth"], depth)
+        imagefiles.write_image(root / r["image"], rgb)
+        imagefiles.write_image(root / r["depth"], depth)
 
 
 def _travel(points):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
-from skyeyes_bench import fileio, paths
+from skyeyes_bench import imagefiles, paths
 from skyeyes_bench.cameras import Camera
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.data.synthtown import PRESETS, ensure_dataset
@@ -107,7 +107,7 @@ def test_ensure_dataset_uses_the_cache_copy(synthtown_smoke):
 def test_gallery_from_dataset(synthtown_smoke, tmp_path):
     out = tmp_path / "gallery.png"
     run_cli("data", "gallery", "--dataset", str(synthtown_smoke), "--out", str(out), "--rows", "2")
-    w, h, c, _ = fileio.image_header(out)
+    w, h, c, _ = imagefiles.image_header(out)
     assert w > 6 * 48 and h > 2 * 48 and c in (3, 4)
 
 

@@ -146,7 +146,7 @@ def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
     if not out.name:  # '.', '/': no file name to put the sidecar beside
         raise UserError(f"{out}: is a folder; expected the path of an output file")
     outputfiles.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
-                        sidecar_kind=FEATURES_OUTPUT)
+                             sidecar_kind=FEATURES_OUTPUT)
 
 
 def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: bool, protocol, dev,

@@ -132,7 +132,7 @@ class SubmissionWriter(outputfiles.AtomicFolderWriter):
                  overwrite: bool = False):
         fields.name("method name", method, "the method's name")
         outputfiles.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[dataset.root],
-                            inputs_are="the dataset")
+                                 inputs_are="the dataset")
         super().__init__(out_dir, overwrite=overwrite, inputs=[dataset.root])
         self.ds = dataset
         self.method, self.method_version, self.config = method, str(method_version), dict(config or {})

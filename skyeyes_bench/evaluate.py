@@ -1,4 +1,4 @@
-"""Score a submission: validate, per-frame metrics, features; then `results.finalize` adds the
+"""Score a submission: validate, per-frame metrics, features; then `summary.finalize` adds the
 set metrics and statistics and writes the results file.
 
 ```
@@ -8,7 +8,8 @@ results = merge(["part-0.json", ...], out="results.json")          # == the unsh
 ```
 
 Which metrics exist and which function computes each comes from `metricspec`; the results file
-format (and `merge`, `read_results`, ...) from `results`, re-exported here.
+format (and `read_results`, ...) from `results`, `finalize` from `summary` and `merge` from
+`shards`, re-exported here.
 """
 
 from __future__ import annotations
@@ -26,8 +27,10 @@ from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
     FEATURES_OUTPUT, PARTIAL_FORMAT, RESULTS_FORMAT, RESULTS_OUTPUT, _digest, _stage, _tqdm, default_out,
-    features_path, finalize, format_summary, merge, read_results, write_results)
+    features_path, read_results, write_results)
+from .shards import merge  # noqa: F401  (re-exported)
 from .submission import expected_frames, frame_relpath, read_submission, validate_submission
+from .summary import finalize, format_summary  # noqa: F401  (re-exported)
 
 _FRAME_BATCH = 16
 

@@ -4,7 +4,7 @@ and the leaderboard intake's scoring as Ray tasks. The one module that imports R
 
 ```
 with session(None):                          # a local Ray with this machine's cores (or ray.init(ADDRESS))
-    got = evaluate_many([batch.Job(sub, out)])     # shards as tasks, merged by `results.merge` into out
+    got = evaluate_many([batch.Job(sub, out)])     # shards as tasks, merged by `shards.merge` into out
 ```
 
 (`batch.evaluate_batch` is the entry point the commands use: in turn in the driver, or this.)
@@ -12,7 +12,7 @@ with session(None):                          # a local Ray with this machine's c
 - **Shards.** A submission is split into N shards (`evaluate --shard I/N`: sequences k with
   k % N == I); each runs `evaluate.evaluate` as a task into a temporary folder on its worker and
   returns the part's two files as bytes; the driver writes them into a temporary folder of its own
-  and merges them with `results.merge`, which writes --out once (temporary names, then renames).
+  and merges them with `shards.merge`, which writes --out once (temporary names, then renames).
   So a worker must see the submission and the dataset (a shared path), never --out, and a failure
   leaves nothing in --out. `merge` makes the numbers those of one process whatever N is.
 - **Faults.** A worker that dies mid-task (killed, out of memory, node lost) is retried by Ray up to

@@ -18,7 +18,7 @@ def run(args) -> int:
     from ..evaluate import format_summary, merge
 
     # The output discipline (no part or part's sidecar overwritten, --force for earlier results
-    # only, a lock against a second merge) is `results.merge`'s.
+    # only, a lock against a second merge) is `shards.merge`'s.
     res = merge(args.parts, out=args.out, force=args.force, progress=not args.quiet)
     print(format_summary(res))
     print(f"wrote {args.out}")

@@ -18,7 +18,16 @@ def register(sub) -> None:
                        description="Datasets in the canonical layout of DESIGN.md.")
     p.set_defaults(run=run, group_parser=p)
     ds = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
+    _add_check(ds)
+    _add_synthtown(ds)
+    _add_gallery(ds)
+    _add_capture_carla(ds)
+    _add_import_carla(ds)
+    _add_import_matrixcity(ds)
 
+
+def _add_check(ds) -> None:
+    """`data check DIR`: validate a dataset."""
     q = ds.add_parser("check", help="validate a dataset folder and print a summary",
                       description="Validate a dataset (files, poses, intrinsics, sequences, splits); "
                       "print every problem, or a summary of scenes, sequences and frames per split.")
@@ -27,6 +36,9 @@ def register(sub) -> None:
     q.add_argument("--quick", action="store_true",
                    help="read image headers only (default: decode every image, finding truncated files)")
 
+
+def _add_synthtown(ds) -> None:
+    """`data synthtown`: generate SynthTown."""
     q = ds.add_parser(
         "synthtown", help="generate the built-in SynthTown dataset (protocol synthtown@2; small-v1: @1)",
         description="Render SynthTown, the procedural aerial/ground dataset, in the canonical layout: "
@@ -43,6 +55,9 @@ def register(sub) -> None:
     q.add_argument("--workers", type=int, default=None, help="render processes (default: 1 for smoke, else 2)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
 
+
+def _add_gallery(ds) -> None:
+    """`data gallery`: a PNG of aerial/ground pairs."""
     q = ds.add_parser(
         "gallery", help="write a gallery PNG: aerial/ground pairs with depth and semantics",
         description="Compose one PNG with, per row, an aerial view and a ground view of the same lane, "
@@ -55,6 +70,9 @@ def register(sub) -> None:
     q.add_argument("--rows", type=int, default=3, help="lanes shown (default: 3)")
     q.add_argument("--size", type=int, default=160, help="tile size in pixels when rendering (default: 160)")
 
+
+def _add_capture_carla(ds) -> None:
+    """`data capture-carla`: capture (or plan) a CARLA town."""
     q = ds.add_parser(
         "capture-carla", help="capture a CARLA town on a running server into a capture folder (or plan it)",
         description="Capture the protocol's lanes of a CARLA town (carla-town04@1: ground cameras every 2 m at "
@@ -93,12 +111,18 @@ def register(sub) -> None:
     q.add_argument("--force", action="store_true", help="start over when OUT holds a capture of another plan")
     q.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+
+def _add_import_carla(ds) -> None:
+    """`data import-carla SRC OUT`: a CARLA capture folder."""
     q = ds.add_parser("import-carla", help="convert a CARLA capture folder into the canonical layout",
                       description="Convert a CARLA capture folder (RGB PNGs, depth-camera PNGs, capture.json with "
                       "sensor transforms; see docs/formats.md) into the canonical layout. Poses go to the "
                       "right-handed world (CARLA y negated); depth is decoded to float32 EXR metres.")
     _import_arguments(q, "carla-town04")
 
+
+def _add_import_matrixcity(ds) -> None:
+    """`data import-matrixcity SRC OUT`: MatrixCity / CitySample captures."""
     q = ds.add_parser("import-matrixcity", help="convert MatrixCity / CitySample captures into the canonical layout",
                       description="Convert MatrixCity / CitySample captures (aerial and street blocks; raw "
                       "transforms.json or paper-split transforms_*.json; EXR depth in cm) into the canonical "

@@ -219,37 +219,11 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
     if (sdir.exists() or sdir.is_symlink()) and (why := _escapes(sdir, root)):
         problems.append(why)
         return None
-    folders: dict[Path, str | None] = {}  # folder -> why it leaves the dataset, "" if absent (resolved once)
-
-    def outside(p: Path) -> bool:
-        """Report (once per folder) a file whose folder, or which itself, is linked out of the dataset."""
-        folder = p.parent
-        if folder not in folders:
-            folders[folder] = _escapes(folder, root) if folder.exists() or folder.is_symlink() else ""
-            if folders[folder]:
-                problems.append(folders[folder])
-        if folders[folder] is not None:  # linked out (reported), or absent (nothing to read there)
-            return bool(folders[folder])
-        if p.is_symlink() and (why := _escapes(p, root)):
-            problems.append(why)
-            return True
-        return False
-
-    if not sfile.is_file():
-        problems.append(f"{sfile}: missing (scene {name!r} is listed in {DATASET_FILE})")
+    outside = _link_check(root, problems)
+    raw = _read_scene_json(sfile, name, root, problems)
+    if raw is None:
         return None
-    try:
-        raw = inputfiles.read_json(sfile, root=root)  # never a file linked from outside the dataset
-    except UserError as e:
-        problems.append(str(e))
-        return None
-    if not isinstance(raw, dict):
-        problems.append(f"{sfile}: expected a JSON object")
-        return None
-    intr = raw.get("intrinsics")
-    if not isinstance(intr, dict):
-        problems.append(f"{sfile}: field 'intrinsics' missing (expected {{'ground': {{...}}, 'aerial': {{...}}}})")
-        return None
+    intr = raw["intrinsics"]
     frames: dict[str, list[Frame]] = {k: [] for k in KINDS}
     seen_files: dict[str, int] = {}
     rejected_seqs: set[str] = set()
@@ -269,46 +243,9 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             continue
         accepted: set[int] = set()
         for i, e in enumerate(entries):
-            where = f"{sfile}: {kind}[{i}]"
-            if not isinstance(e, dict) or not isinstance(e.get("file"), str):
-                problems.append(f"{where}: expected an object with 'file' and 'c2w'")
+            frame = _frame_entry(sdir, sfile, kind, i, e, group, seen_files, problems)
+            if frame is None:
                 continue
-            try:
-                fields.rel_path(f"{where} field 'file'", e["file"], "the image file within the scene folder")
-            except UserError as err:
-                problems.append(str(err))
-                continue
-            where = f"{sfile}: {kind}[{i}] ({e['file']})"
-            if e["file"] in seen_files:
-                problems.append(f"{where}: field 'file' repeats {kind}[{seen_files[e['file']]}]'s file")
-                continue
-            seen_files[e["file"]] = i
-            fi = e.get("intrinsics", group)
-            if "intrinsics" in e and (p := _intrinsics_problem(fi, f"{where} field 'intrinsics'")):
-                problems.append(p)
-                continue
-            if "c2w" not in e:
-                problems.append(f"{where}: field 'c2w' missing (expected a 4x4 camera-to-world matrix)")
-                continue
-            try:
-                c2w = fields.matrix(f"{where}: field 'c2w'", e["c2w"], 4, 4, "a camera-to-world matrix")
-            except UserError as err:
-                problems.append(str(err))
-                continue
-            if p := rigid_problem(c2w):
-                problems.append(f"{where}: field 'c2w' is not a rigid transform: {p}")
-                continue
-            seq, idx = e.get("sequence"), e.get("index")
-            if kind == "ground":
-                try:
-                    fields.name(f"{where}: field 'sequence'", seq, "a sequence name")
-                    # an index past the frame count is reported as a gap, which is bounded by the
-                    # frames (not by the index: 10**12 once made a set of 10**12 numbers)
-                    fields.integer(f"{where}: field 'index'", idx, "the frame's position in its sequence")
-                except UserError as err:
-                    problems.append(str(err))
-                    continue
-            frame = Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
             if outside(frame.path) or any(outside(frame.layer_path(layer)) for layer in LAYERS):
                 linked_out = True
                 continue
@@ -329,6 +266,105 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
         problems.append(f"{sfile}: field 'meta' must be an object")
         meta = {}
     scene = Scene(name, sdir, tuple(frames["aerial"]), tuple(frames["ground"]), meta)
+    _check_numbering(scene, sfile, rejected_seqs, unknown_seq_rejected, problems)
+    if not scene.ground and not group_rejected and not linked_out:  # rejected intrinsics or links: reported
+        problems.append(f"{sfile}: scene has no ground frames")
+    return scene
+
+
+def _link_check(root: Path, problems: list[str]):
+    """A function of a file path: True (reported in `problems`) if the file, or its folder, is linked
+    out of the dataset `root`; a folder is resolved and reported once."""
+    folders: dict[Path, str | None] = {}  # folder -> why it leaves the dataset, "" if absent (resolved once)
+
+    def outside(p: Path) -> bool:
+        """Report (once per folder) a file whose folder, or which itself, is linked out of the dataset."""
+        folder = p.parent
+        if folder not in folders:
+            folders[folder] = _escapes(folder, root) if folder.exists() or folder.is_symlink() else ""
+            if folders[folder]:
+                problems.append(folders[folder])
+        if folders[folder] is not None:  # linked out (reported), or absent (nothing to read there)
+            return bool(folders[folder])
+        if p.is_symlink() and (why := _escapes(p, root)):
+            problems.append(why)
+            return True
+        return False
+
+    return outside
+
+
+def _read_scene_json(sfile: Path, name: str, root: Path, problems: list[str]) -> dict | None:
+    """A scene's scene.json, or None after reporting why it is unusable (missing, unreadable, not an
+    object, no 'intrinsics' table)."""
+    if not sfile.is_file():
+        problems.append(f"{sfile}: missing (scene {name!r} is listed in {DATASET_FILE})")
+        return None
+    try:
+        raw = inputfiles.read_json(sfile, root=root)  # never a file linked from outside the dataset
+    except UserError as e:
+        problems.append(str(e))
+        return None
+    if not isinstance(raw, dict):
+        problems.append(f"{sfile}: expected a JSON object")
+        return None
+    intr = raw.get("intrinsics")
+    if not isinstance(intr, dict):
+        problems.append(f"{sfile}: field 'intrinsics' missing (expected {{'ground': {{...}}, 'aerial': {{...}}}})")
+        return None
+    return raw
+
+
+def _frame_entry(sdir: Path, sfile: Path, kind: str, i: int, e: Any, group: dict, seen_files: dict[str, int],
+                 problems: list[str]) -> Frame | None:
+    """The Frame of entry `e`, `kind`[i] of scene.json (group intrinsics `group`), or None after
+    reporting why it is refused. `seen_files`: the scene's files so far -> entry index (updated)."""
+    where = f"{sfile}: {kind}[{i}]"
+    if not isinstance(e, dict) or not isinstance(e.get("file"), str):
+        problems.append(f"{where}: expected an object with 'file' and 'c2w'")
+        return None
+    try:
+        fields.rel_path(f"{where} field 'file'", e["file"], "the image file within the scene folder")
+    except UserError as err:
+        problems.append(str(err))
+        return None
+    where = f"{sfile}: {kind}[{i}] ({e['file']})"
+    if e["file"] in seen_files:
+        problems.append(f"{where}: field 'file' repeats {kind}[{seen_files[e['file']]}]'s file")
+        return None
+    seen_files[e["file"]] = i
+    fi = e.get("intrinsics", group)
+    if "intrinsics" in e and (p := _intrinsics_problem(fi, f"{where} field 'intrinsics'")):
+        problems.append(p)
+        return None
+    if "c2w" not in e:
+        problems.append(f"{where}: field 'c2w' missing (expected a 4x4 camera-to-world matrix)")
+        return None
+    try:
+        c2w = fields.matrix(f"{where}: field 'c2w'", e["c2w"], 4, 4, "a camera-to-world matrix")
+    except UserError as err:
+        problems.append(str(err))
+        return None
+    if p := rigid_problem(c2w):
+        problems.append(f"{where}: field 'c2w' is not a rigid transform: {p}")
+        return None
+    seq, idx = e.get("sequence"), e.get("index")
+    if kind == "ground":
+        try:
+            fields.name(f"{where}: field 'sequence'", seq, "a sequence name")
+            # an index past the frame count is reported as a gap, which is bounded by the
+            # frames (not by the index: 10**12 once made a set of 10**12 numbers)
+            fields.integer(f"{where}: field 'index'", idx, "the frame's position in its sequence")
+        except UserError as err:
+            problems.append(str(err))
+            return None
+    return Frame(sdir, kind, e["file"], c2w, dict(fi), seq, idx)
+
+
+def _check_numbering(scene: Scene, sfile: Path, rejected_seqs: set[str], unknown_seq_rejected: bool,
+                     problems: list[str]) -> None:
+    """Report sequences not numbered 0..n-1, except those with a rejected frame (a hole reported
+    already; any sequence's, when a rejected frame's sequence is unknown)."""
     for seq in scene.sequences.values():
         if seq.name in rejected_seqs or unknown_seq_rejected:
             continue
@@ -339,9 +375,6 @@ def _load_scene(root: Path, name: str, problems: list[str], check_files: bool,
             what = "; ".join(w for w in (f"duplicate indices {dup[:5]}" if dup else "",
                                          f"missing indices {gaps[:5]}" if gaps else "") if w)
             problems.append(f"{sfile}: sequence {seq.name!r} is not numbered 0..n-1 ({what}; field 'index')")
-    if not scene.ground and not group_rejected and not linked_out:  # rejected intrinsics or links: reported
-        problems.append(f"{sfile}: scene has no ground frames")
-    return scene
 
 
 def _check_frame_files(frame: Frame, problems: list[str], check_pixels: bool = False) -> None:

@@ -1,5 +1,6 @@
 """What the importers share: the plan they build (`PlannedScene`, `PlannedFrame`), the checks
-of input fields and files, and `write_plan`, which writes a plan through `DatasetWriter`.
+of input fields and files, cutting capture tracks into lanes (`split_lanes`, `resample_step`),
+and `write_plan`, which writes a plan through `DatasetWriter`.
 
 Every importer works in two phases. *Plan*: read and check every input field and file header,
 convert the poses, group frames into lanes (scenes) and sequences; any bad input raises a
@@ -10,6 +11,7 @@ place only when complete and valid. The source formats are documented in docs/fo
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from dataclasses import dataclass, field
@@ -63,6 +65,47 @@ def yaw_sequence_name(offset_deg: float) -> str:
 
 
 # --------------------------------------------------------------------------- field checks
+
+
+def split_lanes(positions: np.ndarray, *, max_turn_deg: float = 30.0, gap_factor: float = 3.0) -> list[np.ndarray]:
+    """Cut an ordered track of capture points [N, 3] into lanes: straight runs of regular steps.
+
+    A lane ends where a step is longer than `gap_factor` times the median step (a jump to
+    another street) or the direction of travel turns by more than `max_turn_deg` (a corner).
+    Returns index arrays into `positions`, each of at least 2 points.
+    """
+    pts = np.asarray(positions, dtype=np.float64)
+    assert pts.ndim == 2 and pts.shape[1] == 3, pts.shape  # [N, 3]
+    if len(pts) < 2:
+        return []
+    steps = np.diff(pts[:, :2], axis=0)  # [N-1, 2], xy only: lanes are horizontal drives
+    lengths = np.linalg.norm(steps, axis=1)
+    median = float(np.median(lengths[lengths > 1e-6])) if np.any(lengths > 1e-6) else 0.0
+    lanes, start = [], 0
+    ref_dir = None
+    for i, (s, n) in enumerate(zip(steps, lengths)):
+        cut = n > gap_factor * median or n <= 1e-6
+        if not cut and ref_dir is not None:
+            cos = float(s @ ref_dir) / n
+            cut = cos < math.cos(math.radians(max_turn_deg))
+        if cut:
+            if i + 1 - start >= 2:
+                lanes.append(np.arange(start, i + 1))
+            start, ref_dir = i + 1, None
+        elif ref_dir is None:
+            ref_dir = s / n
+    if len(pts) - start >= 2:
+        lanes.append(np.arange(start, len(pts)))
+    return lanes
+
+
+def resample_step(step_m: float, target_m: float, tol: float = 0.1) -> int | None:
+    """Keep every k-th point so that k * step_m matches target_m within tol * target_m; None
+    when no whole k does (e.g. 5 m captures for a 2 m protocol)."""
+    if step_m <= 0:
+        return None
+    k = max(1, int(round(target_m / step_m)))
+    return k if abs(k * step_m - target_m) <= tol * target_m else None
 
 
 def rel_file(base: Path, where: str, value: Any, what: str, root: Path | None = None) -> Path:

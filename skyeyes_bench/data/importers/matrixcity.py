@@ -17,8 +17,8 @@ import numpy as np
 from ... import fields, imagefiles, inputfiles
 from ...cameras import from_matrixcity, intrinsics
 from ...errors import UserError
-from .common import (PlannedFrame, PlannedScene, check_out, ordered_splits, rel_file, town_split, write_plan,
-                     yaw_sequence_name)
+from .common import (PlannedFrame, PlannedScene, check_out, ordered_splits, rel_file, resample_step, split_lanes,
+                     town_split, write_plan, yaw_sequence_name)
 
 _fail, _number, _int, _name = fields.fail, fields.number, fields.integer, fields.name
 
@@ -65,47 +65,6 @@ def matrixcity_depth_to_metres(depth_cm: np.ndarray, *, half: bool) -> np.ndarra
     out = (d / 100.0).astype(np.float32)
     out[bad] = np.inf
     return out
-
-
-def split_lanes(positions: np.ndarray, *, max_turn_deg: float = 30.0, gap_factor: float = 3.0) -> list[np.ndarray]:
-    """Cut an ordered track of capture points [N, 3] into lanes: straight runs of regular steps.
-
-    A lane ends where a step is longer than `gap_factor` times the median step (a jump to
-    another street) or the direction of travel turns by more than `max_turn_deg` (a corner).
-    Returns index arrays into `positions`, each of at least 2 points.
-    """
-    pts = np.asarray(positions, dtype=np.float64)
-    assert pts.ndim == 2 and pts.shape[1] == 3, pts.shape  # [N, 3]
-    if len(pts) < 2:
-        return []
-    steps = np.diff(pts[:, :2], axis=0)  # [N-1, 2], xy only: lanes are horizontal drives
-    lengths = np.linalg.norm(steps, axis=1)
-    median = float(np.median(lengths[lengths > 1e-6])) if np.any(lengths > 1e-6) else 0.0
-    lanes, start = [], 0
-    ref_dir = None
-    for i, (s, n) in enumerate(zip(steps, lengths)):
-        cut = n > gap_factor * median or n <= 1e-6
-        if not cut and ref_dir is not None:
-            cos = float(s @ ref_dir) / n
-            cut = cos < math.cos(math.radians(max_turn_deg))
-        if cut:
-            if i + 1 - start >= 2:
-                lanes.append(np.arange(start, i + 1))
-            start, ref_dir = i + 1, None
-        elif ref_dir is None:
-            ref_dir = s / n
-    if len(pts) - start >= 2:
-        lanes.append(np.arange(start, len(pts)))
-    return lanes
-
-
-def resample_step(step_m: float, target_m: float, tol: float = 0.1) -> int | None:
-    """Keep every k-th point so that k * step_m matches target_m within tol * target_m; None
-    when no whole k does (e.g. 5 m captures for a 2 m protocol)."""
-    if step_m <= 0:
-        return None
-    k = max(1, int(round(target_m / step_m)))
-    return k if abs(k * step_m - target_m) <= tol * target_m else None
 
 
 @dataclass
@@ -350,11 +309,51 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
     # 1. Horizontal cube faces only (the protocol's ground cameras have pitch 0).
     level = math.sin(math.radians(10.0))
     horizontal = [f for f in street if abs(f.c2w[2, 2]) < level]
+    target = protocol.capture.ground_step_m
+    lanes, block_steps, src_step, out_steps, diffs = _street_lanes(src, horizontal, target)
+    # The ground under the street cameras, assumed at the protocol's camera height.
+    ground_z = float(np.median([f.c2w[2, 3] for f in horizontal])) - protocol.capture.ground_height_m
+    if regions:
+        centres = np.array([np.mean([p[0].c2w[:2, 3] for p in lane], axis=0) for lane in lanes]).reshape(-1, 2)
+        towns = _region_of_lanes(centres, aerial, regions, ground_z, aerial_radius_m)
+        if towns.count(None):
+            diffs.append(f"{towns.count(None)} of {len(lanes)} lanes outside every --region left out")
+    else:
+        towns = [town] * len(lanes)
+    scenes, yaws_seen, attached = _lane_scenes(lanes, towns, aerial, protocol, aerial_radius_m)
+    if not scenes:
+        raise UserError(f"{src}: no lane keeps 2 or more capture points after resampling to {target:g} m"
+                        + (" inside a --region" if regions else ""))
+    want = {yaw_sequence_name(y) for y in protocol.capture.yaws_deg}
+    if yaws_seen != want:
+        diffs.append(f"yaw offsets {sorted(yaws_seen)} (protocol: {sorted(want)}): public street captures are "
+                     "cube-map faces; each horizontal face direction is one sequence")
+    dropped = len(street) - len(horizontal)
+    if dropped:
+        diffs.append(f"{dropped} non-horizontal street frames (cube-map up/down faces) left out")
+    if not aerial:
+        diffs.append("no aerial frames found")
+    meta_aerial = _aerial_meta(attached, ground_z, protocol, diffs)
+    _image_differences(frames, protocol, diffs)
+    split_of = {s.name: town_split(s.meta["town"], protocol, split) for s in scenes}
+    meta = {"source": "matrixcity", "pose_format": pose_format, "convention": convention,
+            "source_step_m": round(src_step, 4), "step_m": out_steps[0] if len(out_steps) == 1 else out_steps,
+            "block_steps_m": {b: round(st, 4) for b, (st, _) in block_steps.items()}, **meta_aerial,
+            "depth_roots": [str(d) for d in droots], "protocol_differences": diffs}
+    if regions:
+        meta["regions"] = {t: list(b) for t, b in regions.items()}
+    return scenes, split_of, meta
+
+
+def _street_lanes(src: Path, horizontal: list[_MCFrame], target: float) -> tuple[
+        list[list[list[_MCFrame]]], dict[str, tuple[float, int | None]], float, list[float], list[str]]:
+    """Street lanes (lane -> capture point -> faces) of the horizontal frames, resampled towards the
+    protocol's step `target`; each block's (source step, k), the median source step, the output
+    steps, and the protocol differences they make."""
     # 2. Capture points: frames of one block sharing a position (to 1 cm), ordered by first
     #    appearance, so point-major (all faces at a point) and face-major files both work.
     # 3. Resampling per block: a download holds 5 m (`train`) and 1 m (`train_dense`) blocks.
     lanes: list[list[list[_MCFrame]]] = []  # lane -> point -> faces
-    target = protocol.capture.ground_step_m
     steps_all: list[float] = []
     block_steps: dict[str, tuple[float, int | None]] = {}  # block -> (source step, k)
     for block in dict.fromkeys(f.block for f in horizontal):
@@ -383,15 +382,13 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
         elif k > 1:
             diffs.append(f"ground step resampled from {step:.2f} m to {k * step:.2f} m (one capture point in {k})")
     out_steps = sorted({round(s * (k or 1), 4) for s, k in block_steps.values()})
-    # The ground under the street cameras, assumed at the protocol's camera height.
-    ground_z = float(np.median([f.c2w[2, 3] for f in horizontal])) - protocol.capture.ground_height_m
-    if regions:
-        centres = np.array([np.mean([p[0].c2w[:2, 3] for p in lane], axis=0) for lane in lanes]).reshape(-1, 2)
-        towns = _region_of_lanes(centres, aerial, regions, ground_z, aerial_radius_m)
-        if towns.count(None):
-            diffs.append(f"{towns.count(None)} of {len(lanes)} lanes outside every --region left out")
-    else:
-        towns = [town] * len(lanes)
+    return lanes, block_steps, src_step, out_steps, diffs
+
+
+def _lane_scenes(lanes, towns: list[str | None], aerial: list[_MCFrame], protocol,
+                 aerial_radius_m: float) -> tuple[list[PlannedScene], set[str], dict[int, _MCFrame]]:
+    """A scene per lane that has a town: its ground sequences and the aerial frames that look at it;
+    with the sequence names seen and the aerial frames attached to any scene (by id)."""
     scenes: list[PlannedScene] = []
     yaws_seen: set[str] = set()
     attached: dict[int, _MCFrame] = {}
@@ -425,19 +422,12 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
                 attached[id(f)] = f
         scene.meta["aerial_radius_m"] = aerial_radius_m
         scenes.append(scene)
-    if not scenes:
-        raise UserError(f"{src}: no lane keeps 2 or more capture points after resampling to {target:g} m"
-                        + (" inside a --region" if regions else ""))
-    want = {yaw_sequence_name(y) for y in protocol.capture.yaws_deg}
-    if yaws_seen != want:
-        diffs.append(f"yaw offsets {sorted(yaws_seen)} (protocol: {sorted(want)}): public street captures are "
-                     "cube-map faces; each horizontal face direction is one sequence")
-    dropped = len(street) - len(horizontal)
-    if dropped:
-        diffs.append(f"{dropped} non-horizontal street frames (cube-map up/down faces) left out")
-    if not aerial:
-        diffs.append("no aerial frames found")
-    # 6. The aerial views the dataset holds against the protocol's aerial pitch and altitude.
+    return scenes, yaws_seen, attached
+
+
+def _aerial_meta(attached: dict[int, _MCFrame], ground_z: float, protocol, diffs: list[str]) -> dict:
+    """The aerial views the dataset holds against the protocol's aerial pitch and altitude: their
+    ranges for the dataset's meta; differences appended to `diffs`."""
     meta_aerial = {}
     if attached:
         used = list(attached.values())
@@ -451,6 +441,11 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
         if max(abs(a - want_a) for a in alts) > AERIAL_ALTITUDE_TOL * want_a:
             diffs.append(f"aerial altitude {min(alts):.1f}..{max(alts):.1f} m above the ground under the street "
                          f"cameras (protocol: {want_a:g})")
+    return meta_aerial
+
+
+def _image_differences(frames: list[_MCFrame], protocol, diffs: list[str]) -> None:
+    """Image sizes and fields of view that differ from the protocol's, appended to `diffs`."""
     sizes = sorted({(f.intrinsics["width"], f.intrinsics["height"]) for f in frames})
     if sizes != [(protocol.data.width, protocol.data.height)]:
         diffs.append(f"image sizes {', '.join(f'{w}x{h}' for w, h in sizes)} (protocol: "
@@ -459,14 +454,6 @@ def plan_matrixcity(src: str | Path, protocol, *, town: str = "matrixcity", spli
                    for f in frames})
     if fovs != [round(protocol.data.fov_deg, 2)]:
         diffs.append(f"horizontal fov {', '.join(f'{v:g}' for v in fovs)} deg (protocol: {protocol.data.fov_deg:g})")
-    split_of = {s.name: town_split(s.meta["town"], protocol, split) for s in scenes}
-    meta = {"source": "matrixcity", "pose_format": pose_format, "convention": convention,
-            "source_step_m": round(src_step, 4), "step_m": out_steps[0] if len(out_steps) == 1 else out_steps,
-            "block_steps_m": {b: round(st, 4) for b, (st, _) in block_steps.items()}, **meta_aerial,
-            "depth_roots": [str(d) for d in droots], "protocol_differences": diffs}
-    if regions:
-        meta["regions"] = {t: list(b) for t, b in regions.items()}
-    return scenes, split_of, meta
 
 
 def import_matrixcity(src: str | Path, out: str | Path, *, protocol: str = "citysample-region5", town: str = "matrixcity",

@@ -118,18 +118,7 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
     if out.exists() and not overwrite:  # fail before rendering anything
         raise UserError(f"{out}: already exists; pass --force to replace it")
     towns = plan(p, seed)
-    # Views are rendered in chunks of about 16k pixels: small images share one traversal.
-    chunk = max(1, 16384 // (p.width * p.height))
-    jobs, where = [], []
-    for ti, entry in enumerate(towns):
-        for li, lane in enumerate(entry["lanes"]):
-            ground, aerial = lane_cameras(lane, p)
-            for kind, cams in (("ground", ground), ("aerial", aerial)):
-                for a, b, cam in cams:
-                    where.append((ti, li, kind, a, b, cam))
-                for c0 in range(0, len(cams), chunk):
-                    views = [(c.K, c.c2w, c.width, c.height) for _, _, c in cams[c0:c0 + chunk]]
-                    jobs.append((entry["town"].name, seed, p.blocks, p.cull_m, p.aa, views))
+    chunk, jobs, where = _render_jobs(towns, p, seed)
     from tqdm import tqdm
 
     n_workers = workers or _default_workers(p)
@@ -145,28 +134,7 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
             chunks = map(_render_job, jobs)
         results = (r for c in chunks for r in c)
         with DatasetWriter(out, name=dataset_name(p, seed), protocol=p.protocol, overwrite=overwrite) as w:
-            writers: dict[tuple[int, int], object] = {}
-            for (ti, li, kind, a, b, cam), (rgb, depth, labels) in zip(where, results):
-                entry = towns[ti]
-                if (ti, li) not in writers:
-                    for prev in writers.values():
-                        prev.close()
-                    writers.clear()
-                    lane = entry["lanes"][li]
-                    intr = cam.intrinsics_dict()
-                    writers[(ti, li)] = w.scene(entry["scenes"][li], {"ground": intr, "aerial": intr}, meta={
-                        "town": entry["town"].name, "lane": lane, "preset": p.name, "seed": seed,
-                        "ground_height_m": p.ground_height_m, "aerial_height_m": p.aerial_height_m,
-                        "aerial_pitch_deg": p.aerial_pitch_deg, "step_m": p.step_m,
-                    })
-                sw = writers[(ti, li)]
-                if kind == "ground":
-                    sw.add_ground(rgb, cam.c2w, sequence=a, index=b, depth=depth, semantics=labels)
-                else:
-                    sw.add_aerial(rgb, cam.c2w, depth=depth, semantics=labels, point=a, yaw_offset_deg=b)
-                bar.update(1)
-            for prev in writers.values():
-                prev.close()
+            _write_views(w, towns, where, results, p, seed, bar)
             splits = {
                 "train": [s for e in towns if e["town"].name in TRAIN_TOWNS for s in e["scenes"]],
                 "test": [s for e in towns if e["town"].name in TEST_TOWNS for s in e["scenes"]],
@@ -183,6 +151,51 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
         if pool is not None:
             pool.terminate()
     return out
+
+
+def _render_jobs(towns: list[dict], p: Preset, seed: int) -> tuple[int, list[tuple], list[tuple]]:
+    """Views per render job, render jobs (chunks of one town's views, `_render_job`'s argument) and
+    what each rendered view is, in render order: (town, lane, kind, sequence or point, index or yaw
+    offset, camera)."""
+    # Views are rendered in chunks of about 16k pixels: small images share one traversal.
+    chunk = max(1, 16384 // (p.width * p.height))
+    jobs, where = [], []
+    for ti, entry in enumerate(towns):
+        for li, lane in enumerate(entry["lanes"]):
+            ground, aerial = lane_cameras(lane, p)
+            for kind, cams in (("ground", ground), ("aerial", aerial)):
+                for a, b, cam in cams:
+                    where.append((ti, li, kind, a, b, cam))
+                for c0 in range(0, len(cams), chunk):
+                    views = [(c.K, c.c2w, c.width, c.height) for _, _, c in cams[c0:c0 + chunk]]
+                    jobs.append((entry["town"].name, seed, p.blocks, p.cull_m, p.aa, views))
+    return chunk, jobs, where
+
+
+def _write_views(w: DatasetWriter, towns: list[dict], where: list[tuple], results, p: Preset, seed: int, bar) -> None:
+    """Write the rendered views (`results`, in the order of `where`) into their scenes, one scene open at a time."""
+    writers: dict[tuple[int, int], object] = {}
+    for (ti, li, kind, a, b, cam), (rgb, depth, labels) in zip(where, results):
+        entry = towns[ti]
+        if (ti, li) not in writers:
+            for prev in writers.values():
+                prev.close()
+            writers.clear()
+            lane = entry["lanes"][li]
+            intr = cam.intrinsics_dict()
+            writers[(ti, li)] = w.scene(entry["scenes"][li], {"ground": intr, "aerial": intr}, meta={
+                "town": entry["town"].name, "lane": lane, "preset": p.name, "seed": seed,
+                "ground_height_m": p.ground_height_m, "aerial_height_m": p.aerial_height_m,
+                "aerial_pitch_deg": p.aerial_pitch_deg, "step_m": p.step_m,
+            })
+        sw = writers[(ti, li)]
+        if kind == "ground":
+            sw.add_ground(rgb, cam.c2w, sequence=a, index=b, depth=depth, semantics=labels)
+        else:
+            sw.add_aerial(rgb, cam.c2w, depth=depth, semantics=labels, point=a, yaw_offset_deg=b)
+        bar.update(1)
+    for prev in writers.values():
+        prev.close()
 
 
 def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) -> Path:

@@ -214,64 +214,7 @@ def surface(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, prim: np.
     # Boxes.
     bsel = np.nonzero(~on_ground & (prim >= 0) & (prim < nb))[0]
     if bsel.size:
-        k = prim[bsel]
-        lo, hi = town.box_lo[k], town.box_hi[k]
-        ob, db = o[bsel], d[bsel]
-        tn, tf, an, af = slab(ob, db, lo, hi)
-        axis = np.where(tn > 1e-9, an, af)
-        nn = np.zeros((len(k), 3))
-        r = np.arange(len(k))
-        nn[r, axis] = -np.sign(db[r, axis])
-        nn[r, axis] = np.where(nn[r, axis] == 0, 1.0, nn[r, axis])
-        n[bsel] = nn
-        pb = p[bsel]
-        # Snap the hit coordinate onto its face plane (textures read the exact face coordinate).
-        enter = tn > 1e-9  # entering hits lie on the near face, hits from inside on the far one
-        face = np.where(enter == (db[r, axis] > 0), lo[r, axis], hi[r, axis])
-        pb[r, axis] = face
-        p[bsel] = pb
-        kind = town.box_kind[k]
-        col = town.box_colour[k].copy()
-        lab = np.full(len(k), BUILDING, dtype=np.uint8)
-        top = (axis == 2) & (nn[r, 2] > 0)
-        # Sidewalks: paving slabs with joints on top, a lighter kerb stone along the edge.
-        sw = kind == tw.SIDEWALK
-        if sw.any():
-            x, y = pb[:, 0], pb[:, 1]
-            joint = (np.mod(x / 1.5, 1.0) < 0.03) | (np.mod(y / 1.5, 1.0) < 0.03)
-            edge = np.minimum(np.minimum(x - lo[:, 0], hi[:, 0] - x), np.minimum(y - lo[:, 1], hi[:, 1] - y)) < 0.25
-            pav = col * (0.9 + 0.2 * vnoise(x, y, 1.5, 11))[:, None] * np.where(joint, 0.7, 1.0)[:, None]
-            pav = np.where((edge | ~top)[:, None], np.array([0.5, 0.5, 0.48]), pav)
-            col = np.where(sw[:, None], pav, col)
-            lab[sw] = SIDEWALK
-        gr = kind == tw.GRASS
-        if gr.any():
-            col = np.where(gr[:, None], col * (0.7 + 0.6 * vnoise(pb[:, 0], pb[:, 1], 1.7, 12))[:, None], col)
-            lab[gr] = TERRAIN
-        bl = (kind == tw.BUILDING) | (kind == tw.ROOFUNIT)
-        if bl.any():
-            bi = np.nonzero(bl)[0]
-            b = town.box_obj[k[bi]]
-            fac = (~top[bi]) & (axis[bi] < 2) & (kind[bi] == tw.BUILDING)
-            out = col[bi]
-            if fac.any():
-                out[fac] = _facade(town, b[fac], pb[bi][fac], axis[bi][fac], hi[bi][fac][:, 2])
-            rf = top[bi] & (kind[bi] == tw.BUILDING)
-            if rf.any():
-                out[rf] = _roof(town, b[rf], pb[bi][rf], lo[bi][rf], hi[bi][rf])
-            unit = kind[bi] == tw.ROOFUNIT
-            out[unit] = out[unit] * (0.85 + 0.3 * vnoise(pb[bi][unit][:, 0] + pb[bi][unit][:, 2], pb[bi][unit][:, 1], 0.6, 13))[:, None]
-            col[bi] = out
-            lab[bi] = np.where(top[bi] | (kind[bi] == tw.ROOFUNIT), ROOF, BUILDING)
-        car = (kind == tw.CAR_BODY) | (kind == tw.CAR_CABIN) | (kind == tw.CAR_BASE)
-        if car.any():
-            glass = (kind == tw.CAR_CABIN) & ~top
-            col = np.where(glass[:, None], np.array([0.02, 0.025, 0.035]), col)
-            lab[car] = CAR
-        tr = kind == tw.TRUNK
-        lab[tr] = TRUNK
-        albedo[bsel] = col
-        label[bsel] = lab
+        n[bsel], p[bsel], albedo[bsel], label[bsel] = _box_surface(town, o[bsel], d[bsel], p[bsel], prim[bsel])
     # Ellipsoids (tree crowns).
     esel = np.nonzero(~on_ground & (prim >= nb))[0]
     if esel.size:
@@ -287,6 +230,69 @@ def surface(scene: Scene, o: np.ndarray, d: np.ndarray, t: np.ndarray, prim: np.
         albedo[esel] = town.ell_colour[j] * leaf[:, None]
         label[esel] = VEGETATION
     return p, n, albedo, label
+
+
+def _box_surface(town: tw.Town, ob: np.ndarray, db: np.ndarray, pb: np.ndarray, k: np.ndarray):
+    """`surface` for hits [P] on boxes `k` along rays ob, db: normal, point pb snapped onto its face,
+    albedo and label."""
+    lo, hi = town.box_lo[k], town.box_hi[k]
+    tn, tf, an, af = slab(ob, db, lo, hi)
+    axis = np.where(tn > 1e-9, an, af)
+    nn = np.zeros((len(k), 3))
+    r = np.arange(len(k))
+    nn[r, axis] = -np.sign(db[r, axis])
+    nn[r, axis] = np.where(nn[r, axis] == 0, 1.0, nn[r, axis])
+    # Snap the hit coordinate onto its face plane (textures read the exact face coordinate).
+    enter = tn > 1e-9  # entering hits lie on the near face, hits from inside on the far one
+    face = np.where(enter == (db[r, axis] > 0), lo[r, axis], hi[r, axis])
+    pb[r, axis] = face
+    top = (axis == 2) & (nn[r, 2] > 0)
+    col, lab = _box_material(town, k, pb, lo, hi, axis, top)
+    return nn, pb, col, lab
+
+
+def _box_material(town: tw.Town, k, pb, lo, hi, axis, top):
+    """Albedo [P, 3] and label [P] of hits pb on boxes `k` (corners lo, hi; hit face `axis`, `top` faces)."""
+    kind = town.box_kind[k]
+    col = town.box_colour[k].copy()
+    lab = np.full(len(k), BUILDING, dtype=np.uint8)
+    # Sidewalks: paving slabs with joints on top, a lighter kerb stone along the edge.
+    sw = kind == tw.SIDEWALK
+    if sw.any():
+        x, y = pb[:, 0], pb[:, 1]
+        joint = (np.mod(x / 1.5, 1.0) < 0.03) | (np.mod(y / 1.5, 1.0) < 0.03)
+        edge = np.minimum(np.minimum(x - lo[:, 0], hi[:, 0] - x), np.minimum(y - lo[:, 1], hi[:, 1] - y)) < 0.25
+        pav = col * (0.9 + 0.2 * vnoise(x, y, 1.5, 11))[:, None] * np.where(joint, 0.7, 1.0)[:, None]
+        pav = np.where((edge | ~top)[:, None], np.array([0.5, 0.5, 0.48]), pav)
+        col = np.where(sw[:, None], pav, col)
+        lab[sw] = SIDEWALK
+    gr = kind == tw.GRASS
+    if gr.any():
+        col = np.where(gr[:, None], col * (0.7 + 0.6 * vnoise(pb[:, 0], pb[:, 1], 1.7, 12))[:, None], col)
+        lab[gr] = TERRAIN
+    bl = (kind == tw.BUILDING) | (kind == tw.ROOFUNIT)
+    if bl.any():
+        bi = np.nonzero(bl)[0]
+        b = town.box_obj[k[bi]]
+        fac = (~top[bi]) & (axis[bi] < 2) & (kind[bi] == tw.BUILDING)
+        out = col[bi]
+        if fac.any():
+            out[fac] = _facade(town, b[fac], pb[bi][fac], axis[bi][fac], hi[bi][fac][:, 2])
+        rf = top[bi] & (kind[bi] == tw.BUILDING)
+        if rf.any():
+            out[rf] = _roof(town, b[rf], pb[bi][rf], lo[bi][rf], hi[bi][rf])
+        unit = kind[bi] == tw.ROOFUNIT
+        out[unit] = out[unit] * (0.85 + 0.3 * vnoise(pb[bi][unit][:, 0] + pb[bi][unit][:, 2], pb[bi][unit][:, 1], 0.6, 13))[:, None]
+        col[bi] = out
+        lab[bi] = np.where(top[bi] | (kind[bi] == tw.ROOFUNIT), ROOF, BUILDING)
+    car = (kind == tw.CAR_BODY) | (kind == tw.CAR_CABIN) | (kind == tw.CAR_BASE)
+    if car.any():
+        glass = (kind == tw.CAR_CABIN) & ~top
+        col = np.where(glass[:, None], np.array([0.02, 0.025, 0.035]), col)
+        lab[car] = CAR
+    tr = kind == tw.TRUNK
+    lab[tr] = TRUNK
+    return col, lab
 
 
 def sky_colour(d: np.ndarray, sun: np.ndarray) -> np.ndarray:

@@ -103,106 +103,33 @@ class _Boxes:
         self.colour.append(colour)
 
 
-def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: int = 1) -> Town:
-    """Generate a town.
+class _Scenery:
+    """What `make_town` accumulates from one random stream: boxes, building parameters, tree
+    crowns and the number of parked cars."""
 
-    Args:
-        name: town name; with `seed` it fixes the random stream.
-        seed: dataset seed.
-        blocks: blocks along x and y.
-        scale: multiply the block counts (benchmarks: a town of `scale**2` times the area).
-    """
-    rng = town_rng(name, seed)
-    nbx, nby = blocks[0] * scale, blocks[1] * scale
-    # Block sizes (between kerbs) vary per street so that no two towns share a grid.
-    widths_x = rng.integers(22, 34, size=nbx) * 2.0
-    widths_y = rng.integers(22, 34, size=nby) * 2.0
-    xs = np.concatenate([[0.0], np.cumsum(widths_x + 2 * ROAD_HALF_WIDTH)])
-    ys = np.concatenate([[0.0], np.cumsum(widths_y + 2 * ROAD_HALF_WIDTH)])
-    xs -= xs[-1] / 2
-    ys -= ys[-1] / 2
-    centre_size = max(xs[-1] - xs[0], ys[-1] - ys[0]) / 2
-    boxes = _Boxes()
-    bld: dict[str, list] = {k: [] for k in (
-        "x0", "y0", "facade", "window", "floor_h", "win_dx", "win_w", "win_h", "shop", "band", "roof",
-        "roof_colour", "door_dx")}
-    ell_c, ell_r, ell_col = [], [], []
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.boxes = _Boxes()
+        self.bld: dict[str, list] = {k: [] for k in (
+            "x0", "y0", "facade", "window", "floor_h", "win_dx", "win_w", "win_h", "shop", "band", "roof",
+            "roof_colour", "door_dx")}
+        self.ell_c, self.ell_r, self.ell_col = [], [], []
+        self.n_cars = 0
 
-    def tree(x, y, size=1.0):
+    def tree(self, x, y, size=1.0):
+        """A tree at (x, y): a trunk box and an ellipsoid crown."""
+        rng, boxes = self.rng, self.boxes
         h_trunk = rng.uniform(2.2, 3.2) * size
         boxes.add((x - 0.15, y - 0.15, 0.0), (x + 0.15, y + 0.15, h_trunk + 0.8), TRUNK, -1, (0.16, 0.10, 0.06))
         rxy = rng.uniform(1.6, 2.4) * size
-        ell_c.append((x, y, h_trunk + rng.uniform(1.2, 1.8) * size))
-        ell_r.append((rxy, rxy * rng.uniform(0.9, 1.1), rng.uniform(1.7, 2.6) * size))
+        self.ell_c.append((x, y, h_trunk + rng.uniform(1.2, 1.8) * size))
+        self.ell_r.append((rxy, rxy * rng.uniform(0.9, 1.1), rng.uniform(1.7, 2.6) * size))
         g = rng.uniform(0.7, 1.3)
-        ell_col.append((0.05 * g, 0.14 * g * rng.uniform(0.9, 1.2), 0.03 * g))
+        self.ell_col.append((0.05 * g, 0.14 * g * rng.uniform(0.9, 1.2), 0.03 * g))
 
-    for bi in range(nbx):
-        for bj in range(nby):
-            x0, x1 = xs[bi] + ROAD_HALF_WIDTH, xs[bi + 1] - ROAD_HALF_WIDTH
-            y0, y1 = ys[bj] + ROAD_HALF_WIDTH, ys[bj + 1] - ROAD_HALF_WIDTH
-            boxes.add((x0, y0, 0.0), (x1, y1, KERB_HEIGHT), SIDEWALK, -1, (0.36, 0.35, 0.33))
-            lx0, lx1, ly0, ly1 = x0 + SIDEWALK_WIDTH, x1 - SIDEWALK_WIDTH, y0 + SIDEWALK_WIDTH, y1 - SIDEWALK_WIDTH
-            # Lawn in the interior (courtyards, empty lots); buildings stand on top of it.
-            boxes.add((lx0, ly0, 0.0), (lx1, ly1, GRASS_HEIGHT), GRASS, -1, (0.09, 0.17, 0.05))
-            # Downtown is taller: height scale falls off with distance from the town centre.
-            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-            tall = 1.0 - 0.6 * min(1.0, np.hypot(cx, cy) / centre_size)
-            park = rng.random() < 0.1
-            depth_max = min(lx1 - lx0, ly1 - ly0) / 2 - 1.0
-            # South and north rows span the full lot width; west and east rows fill between them.
-            rows = []
-            d_s = rng.uniform(10, min(18, depth_max))
-            d_n = rng.uniform(10, min(18, depth_max))
-            rows.append(("s", lx0, lx1, ly0, ly0 + d_s))
-            rows.append(("n", lx0, lx1, ly1 - d_n, ly1))
-            d_w = rng.uniform(10, min(18, depth_max))
-            d_e = rng.uniform(10, min(18, depth_max))
-            rows.append(("w", ly0 + d_s, ly1 - d_n, lx0, lx0 + d_w))
-            rows.append(("e", ly0 + d_s, ly1 - d_n, lx1 - d_e, lx1))
-            for side, a0, a1, b0, b1 in rows:
-                a = a0
-                while a1 - a > 6.0:
-                    w = rng.uniform(9.0, 20.0)
-                    if a1 - (a + w) < 8.0:
-                        w = a1 - a
-                    lo_a, hi_a = a, a + w
-                    a += w
-                    if park or rng.random() < 0.08:  # an empty lot: trees on the lawn
-                        if hi_a - lo_a > 6:
-                            for _ in range(rng.integers(1, 3)):
-                                ta, tb = rng.uniform(lo_a + 2.5, hi_a - 2.5), rng.uniform(b0 + 2.5, b1 - 2.5)
-                                tree(*((ta, tb) if side in "sn" else (tb, ta)), size=rng.uniform(0.9, 1.3))
-                        continue
-                    # Footprint: frontage along the street; depth varies per building.
-                    depth = (b1 - b0) * rng.uniform(0.7, 1.0)
-                    if side in "sn":
-                        fb0, fb1 = (b0, b0 + depth) if side == "s" else (b1 - depth, b1)
-                        lo, hi = (lo_a + 0.01, fb0), (hi_a - 0.01, fb1)
-                    else:
-                        fb0, fb1 = (b0, b0 + depth) if side == "w" else (b1 - depth, b1)
-                        lo, hi = (fb0, lo_a + 0.01), (fb1, hi_a - 0.01)
-                    _building(rng, boxes, bld, lo, hi, tall)
-            # Street trees along the kerb, clear of the corners (crosswalks).
-            for side in "snwe":
-                if side in "sn":
-                    y = y0 + 1.3 if side == "s" else y1 - 1.3
-                    pos = np.arange(x0 + 7.0, x1 - 6.0, rng.uniform(9.0, 13.0))
-                    for p in pos:
-                        if rng.random() < 0.55:
-                            tree(p, y)
-                else:
-                    x = x0 + 1.3 if side == "w" else x1 - 1.3
-                    pos = np.arange(y0 + 7.0, y1 - 6.0, rng.uniform(9.0, 13.0))
-                    for p in pos:
-                        if rng.random() < 0.55:
-                            tree(x, p)
-
-    # Parked cars in the parking strips along each street segment (never in intersections).
-    n_cars = 0
-
-    def car(cx, cy, along_x):
-        nonlocal n_cars
+    def car(self, cx, cy, along_x):
+        """A parked car centred at (cx, cy), its length along x or y: base, body and cabin boxes."""
+        rng, boxes, n_cars = self.rng, self.boxes, self.n_cars
         length, width = rng.uniform(4.0, 4.8), rng.uniform(1.7, 1.9)
         hl, hw = (length / 2, width / 2) if along_x else (width / 2, length / 2)
         col = CAR_COLOURS[rng.integers(len(CAR_COLOURS))] * rng.uniform(0.85, 1.1)
@@ -215,8 +142,124 @@ def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: 
         else:
             lo, hi = (cx - hw + 0.12, cy - hl + c0 * length), (cx + hw - 0.12, cy + hl - c1 * length)
         boxes.add((*lo, 0.95), (*hi, rng.uniform(1.4, 1.55)), CAR_CABIN, n_cars, tuple(col))
-        n_cars += 1
+        self.n_cars += 1
 
+
+def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: int = 1) -> Town:
+    """Generate a town.
+
+    Args:
+        name: town name; with `seed` it fixes the random stream.
+        seed: dataset seed.
+        blocks: blocks along x and y.
+        scale: multiply the block counts (benchmarks: a town of `scale**2` times the area).
+    """
+    rng = town_rng(name, seed)
+    nbx, nby = blocks[0] * scale, blocks[1] * scale
+    xs, ys = _street_grid(rng, nbx, nby)
+    centre_size = max(xs[-1] - xs[0], ys[-1] - ys[0]) / 2
+    sc = _Scenery(rng)
+    for bi in range(nbx):
+        for bj in range(nby):
+            x0, x1 = xs[bi] + ROAD_HALF_WIDTH, xs[bi + 1] - ROAD_HALF_WIDTH
+            y0, y1 = ys[bj] + ROAD_HALF_WIDTH, ys[bj + 1] - ROAD_HALF_WIDTH
+            _block(sc, x0, x1, y0, y1, centre_size)
+    _parked_cars(sc, xs, ys)
+    # Sun: elevation 35..55 deg, azimuth away from the street axes so shadows fall obliquely.
+    elev = np.deg2rad(rng.uniform(35, 55))
+    azim = np.deg2rad(rng.uniform(20, 70) + 90 * rng.integers(4))
+    sun = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
+    return _assemble(name, seed, [nbx, nby], xs, ys, sc, elev, azim, sun)
+
+
+def _street_grid(rng, nbx: int, nby: int) -> tuple[np.ndarray, np.ndarray]:
+    """Street centre lines xs [nbx + 1], ys [nby + 1], centred on the origin."""
+    # Block sizes (between kerbs) vary per street so that no two towns share a grid.
+    widths_x = rng.integers(22, 34, size=nbx) * 2.0
+    widths_y = rng.integers(22, 34, size=nby) * 2.0
+    xs = np.concatenate([[0.0], np.cumsum(widths_x + 2 * ROAD_HALF_WIDTH)])
+    ys = np.concatenate([[0.0], np.cumsum(widths_y + 2 * ROAD_HALF_WIDTH)])
+    xs -= xs[-1] / 2
+    ys -= ys[-1] / 2
+    return xs, ys
+
+
+def _block(sc: _Scenery, x0, x1, y0, y1, centre_size) -> None:
+    """One block between kerbs x0..x1, y0..y1: sidewalk, lawn, rows of buildings (or empty lots), street trees."""
+    rng, boxes = sc.rng, sc.boxes
+    boxes.add((x0, y0, 0.0), (x1, y1, KERB_HEIGHT), SIDEWALK, -1, (0.36, 0.35, 0.33))
+    lx0, lx1, ly0, ly1 = x0 + SIDEWALK_WIDTH, x1 - SIDEWALK_WIDTH, y0 + SIDEWALK_WIDTH, y1 - SIDEWALK_WIDTH
+    # Lawn in the interior (courtyards, empty lots); buildings stand on top of it.
+    boxes.add((lx0, ly0, 0.0), (lx1, ly1, GRASS_HEIGHT), GRASS, -1, (0.09, 0.17, 0.05))
+    # Downtown is taller: height scale falls off with distance from the town centre.
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    tall = 1.0 - 0.6 * min(1.0, np.hypot(cx, cy) / centre_size)
+    park = rng.random() < 0.1
+    depth_max = min(lx1 - lx0, ly1 - ly0) / 2 - 1.0
+    # South and north rows span the full lot width; west and east rows fill between them.
+    rows = []
+    d_s = rng.uniform(10, min(18, depth_max))
+    d_n = rng.uniform(10, min(18, depth_max))
+    rows.append(("s", lx0, lx1, ly0, ly0 + d_s))
+    rows.append(("n", lx0, lx1, ly1 - d_n, ly1))
+    d_w = rng.uniform(10, min(18, depth_max))
+    d_e = rng.uniform(10, min(18, depth_max))
+    rows.append(("w", ly0 + d_s, ly1 - d_n, lx0, lx0 + d_w))
+    rows.append(("e", ly0 + d_s, ly1 - d_n, lx1 - d_e, lx1))
+    for side, a0, a1, b0, b1 in rows:
+        _row(sc, side, a0, a1, b0, b1, park, tall)
+    _street_trees(sc, x0, x1, y0, y1)
+
+
+def _row(sc: _Scenery, side: str, a0, a1, b0, b1, park: bool, tall: float) -> None:
+    """One row of lots facing street side `side`: a0..a1 along the street, b0..b1 across it."""
+    rng = sc.rng
+    a = a0
+    while a1 - a > 6.0:
+        w = rng.uniform(9.0, 20.0)
+        if a1 - (a + w) < 8.0:
+            w = a1 - a
+        lo_a, hi_a = a, a + w
+        a += w
+        if park or rng.random() < 0.08:  # an empty lot: trees on the lawn
+            if hi_a - lo_a > 6:
+                for _ in range(rng.integers(1, 3)):
+                    ta, tb = rng.uniform(lo_a + 2.5, hi_a - 2.5), rng.uniform(b0 + 2.5, b1 - 2.5)
+                    sc.tree(*((ta, tb) if side in "sn" else (tb, ta)), size=rng.uniform(0.9, 1.3))
+            continue
+        # Footprint: frontage along the street; depth varies per building.
+        depth = (b1 - b0) * rng.uniform(0.7, 1.0)
+        if side in "sn":
+            fb0, fb1 = (b0, b0 + depth) if side == "s" else (b1 - depth, b1)
+            lo, hi = (lo_a + 0.01, fb0), (hi_a - 0.01, fb1)
+        else:
+            fb0, fb1 = (b0, b0 + depth) if side == "w" else (b1 - depth, b1)
+            lo, hi = (fb0, lo_a + 0.01), (fb1, hi_a - 0.01)
+        _building(rng, sc.boxes, sc.bld, lo, hi, tall)
+
+
+def _street_trees(sc: _Scenery, x0, x1, y0, y1) -> None:
+    """Street trees along the block's kerbs, clear of the corners (crosswalks)."""
+    rng = sc.rng
+    for side in "snwe":
+        if side in "sn":
+            y = y0 + 1.3 if side == "s" else y1 - 1.3
+            pos = np.arange(x0 + 7.0, x1 - 6.0, rng.uniform(9.0, 13.0))
+            for p in pos:
+                if rng.random() < 0.55:
+                    sc.tree(p, y)
+        else:
+            x = x0 + 1.3 if side == "w" else x1 - 1.3
+            pos = np.arange(y0 + 7.0, y1 - 6.0, rng.uniform(9.0, 13.0))
+            for p in pos:
+                if rng.random() < 0.55:
+                    sc.tree(x, p)
+
+
+def _parked_cars(sc: _Scenery, xs: np.ndarray, ys: np.ndarray) -> None:
+    """Parked cars in the parking strips along each street segment (never in intersections)."""
+    rng = sc.rng
+    nbx, nby = len(xs) - 1, len(ys) - 1
     park_off = ROAD_HALF_WIDTH - 1.25
     for j, y in enumerate(ys):
         for i in range(nbx):
@@ -226,7 +269,7 @@ def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: 
                     continue
                 for p in np.arange(a0 + 3.0, a1 - 3.0, 6.5):
                     if rng.random() < 0.4:
-                        car(p + rng.uniform(-0.5, 0.5), y + sgn * park_off, True)
+                        sc.car(p + rng.uniform(-0.5, 0.5), y + sgn * park_off, True)
     for i, x in enumerate(xs):
         for j in range(nby):
             a0, a1 = ys[j] + ROAD_HALF_WIDTH + 5.0, ys[j + 1] - ROAD_HALF_WIDTH - 5.0
@@ -235,29 +278,28 @@ def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: 
                     continue
                 for p in np.arange(a0 + 3.0, a1 - 3.0, 6.5):
                     if rng.random() < 0.4:
-                        car(x + sgn * park_off, p + rng.uniform(-0.5, 0.5), False)
+                        sc.car(x + sgn * park_off, p + rng.uniform(-0.5, 0.5), False)
 
-    # Sun: elevation 35..55 deg, azimuth away from the street axes so shadows fall obliquely.
-    elev = np.deg2rad(rng.uniform(35, 55))
-    azim = np.deg2rad(rng.uniform(20, 70) + 90 * rng.integers(4))
-    sun = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
 
-    bld_arr = {k: np.asarray(v, dtype=np.float64) for k, v in bld.items()}
+def _assemble(name: str, seed: int, blocks: list, xs, ys, sc: _Scenery, elev, azim, sun) -> Town:
+    """The `Town` of the accumulated scenery, with its parameters (`Town.params`)."""
+    boxes, ell_c = sc.boxes, sc.ell_c
+    bld_arr = {k: np.asarray(v, dtype=np.float64) for k, v in sc.bld.items()}
     t = Town(
         name=name, seed=int(seed), xs=xs, ys=ys,
         box_lo=np.asarray(boxes.lo, dtype=np.float64), box_hi=np.asarray(boxes.hi, dtype=np.float64),
         box_kind=np.asarray(boxes.kind, dtype=np.int64), box_obj=np.asarray(boxes.obj, dtype=np.int64),
         box_colour=np.asarray(boxes.colour, dtype=np.float64), bld=bld_arr,
         ell_centre=np.asarray(ell_c, dtype=np.float64).reshape(-1, 3),
-        ell_radii=np.asarray(ell_r, dtype=np.float64).reshape(-1, 3),
-        ell_colour=np.asarray(ell_col, dtype=np.float64).reshape(-1, 3), sun=sun,
+        ell_radii=np.asarray(sc.ell_r, dtype=np.float64).reshape(-1, 3),
+        ell_colour=np.asarray(sc.ell_col, dtype=np.float64).reshape(-1, 3), sun=sun,
     )
     t.params = {
-        "name": name, "seed": int(seed), "rng_stream": [int(seed), zlib.crc32(name.encode())], "blocks": [nbx, nby],
+        "name": name, "seed": int(seed), "rng_stream": [int(seed), zlib.crc32(name.encode())], "blocks": blocks,
         "streets_x_m": [round(float(v), 3) for v in xs], "streets_y_m": [round(float(v), 3) for v in ys],
         "road_half_width_m": ROAD_HALF_WIDTH, "sidewalk_width_m": SIDEWALK_WIDTH, "kerb_height_m": KERB_HEIGHT,
         "sun_elevation_deg": round(float(np.rad2deg(elev)), 3), "sun_azimuth_deg": round(float(np.rad2deg(azim)), 3),
-        "buildings": int(len(bld_arr["x0"])), "trees": len(ell_c), "cars": n_cars, "boxes": len(boxes.lo),
+        "buildings": int(len(bld_arr["x0"])), "trees": len(ell_c), "cars": sc.n_cars, "boxes": len(boxes.lo),
         "max_height_m": round(float(t.box_hi[:, 2].max()), 3),
     }
     return t

@@ -16,6 +16,7 @@ inside; a ray that starts on a face and leaves it does not hit that face (t must
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -183,65 +184,24 @@ def trace(grid: Grid, box_lo, box_hi, ell_c, ell_r, o: np.ndarray, d: np.ndarray
     if idx.size == 0:
         return best_t, best_p
     # 2. DDA set-up for the rays that enter the grid.
-    cs = grid.cell
     oo, dd = o[idx], d[idx]
     tc = t0[idx]
     tend = t1[idx]
-    px = oo[:, 0] + tc * dd[:, 0]
-    py = oo[:, 1] + tc * dd[:, 1]
-    ix = np.clip(np.floor((px - grid.x0) / cs).astype(np.int64), 0, grid.nx - 1)
-    iy = np.clip(np.floor((py - grid.y0) / cs).astype(np.int64), 0, grid.ny - 1)
-    sx = np.where(dd[:, 0] > 0, 1, -1).astype(np.int64)
-    sy = np.where(dd[:, 1] > 0, 1, -1).astype(np.int64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dtx = np.where(dd[:, 0] != 0, cs / np.abs(dd[:, 0]), np.inf)
-        dty = np.where(dd[:, 1] != 0, cs / np.abs(dd[:, 1]), np.inf)
-        nxb = grid.x0 + (ix + (sx > 0)) * cs  # next x boundary in the walking direction
-        nyb = grid.y0 + (iy + (sy > 0)) * cs
-        tmx = np.where(dd[:, 0] != 0, (nxb - oo[:, 0]) / dd[:, 0], np.inf)
-        tmy = np.where(dd[:, 1] != 0, (nyb - oo[:, 1]) / dd[:, 1], np.inf)
+    ix, iy, sx, sy, dtx, dty, tmx, tmy = _dda_start(grid, oo, dd, tc)
     blo = (box_lo[:, 0].copy(), box_lo[:, 1].copy(), box_lo[:, 2].copy())
     bhi = (box_hi[:, 0].copy(), box_hi[:, 1].copy(), box_hi[:, 2].copy())
     with np.errstate(divide="ignore"):
         inv = 1.0 / dd
-    has_par = bool((dd == 0).any())
+    prims = _Prims(blo, bhi, bool((dd == 0).any()), ell_c, ell_r, n_box)
     steps = tests = 0
     # 3. Walk: one column per iteration for every live ray.
     for _ in range(grid.nx + grid.ny + 2):
         te = np.minimum(np.minimum(tmx, tmy), tend)
         cells = iy * grid.nx + ix
-        ox, oy, oz = oo[:, 0], oo[:, 1], oo[:, 2]
-        ivx, ivy, ivz = inv[:, 0], inv[:, 1], inv[:, 2]
         # Height cull: skip the column if the ray's segment in it is above everything there.
         zlow = np.minimum(oo[:, 2] + tc * dd[:, 2], oo[:, 2] + te * dd[:, 2])
         lb = best_t[idx]
-        for layer in grid.layers:
-            start, items, kind = layer.start, layer.items, layer.kind
-            s = start[cells]
-            cnt = np.where(zlow <= layer.col_zmax[cells], start[cells + 1] - s, 0)
-            tot = int(cnt.sum())
-            if tot == 0:
-                continue
-            rep = np.repeat(np.arange(len(idx)), cnt)
-            first = np.cumsum(cnt) - cnt
-            offs = np.arange(tot) - np.repeat(first - s, cnt)
-            prims = items[offs]
-            if kind == 0:
-                t = _box_pairs(ox, oy, oz, ivx, ivy, ivz, rep, prims, blo, bhi, has_par)
-            else:
-                t = ellipsoid_hit(oo[rep], dd[rep], ell_c[prims], ell_r[prims])
-                prims = prims + n_box
-            tests += tot
-            nz = np.nonzero(cnt)[0]
-            mins = np.minimum.reduceat(t, first[nz])
-            better = mins < lb[nz]
-            if better.any():
-                rows = nz[better]
-                lb[rows] = mins[better]
-                is_min = (t == np.repeat(np.where(better, mins, -1.0), cnt[nz]))
-                # Ties (coplanar faces) within a layer: the lowest primitive id wins.
-                wr, wp = rep[is_min][::-1], prims[is_min][::-1]
-                best_p[idx[wr]] = wp
+        tests += _column_hits(grid, cells, zlow, idx, oo, dd, inv, prims, lb, best_p)
         best_t[idx] = lb
         steps += len(idx)
         # A ray is finished if its nearest hit lies inside this column (or any hit, for
@@ -270,6 +230,78 @@ def trace(grid: Grid, box_lo, box_hi, ell_c, ell_r, o: np.ndarray, d: np.ndarray
         stats["steps"] = stats.get("steps", 0) + steps
         stats["tests"] = stats.get("tests", 0) + tests
     return best_t, best_p
+
+
+class _Prims(NamedTuple):
+    """The primitives `trace` tests: box corners per axis, ellipsoids, box count (ellipsoid ids follow)."""
+
+    blo: tuple  # (x, y, z) arrays [N] of the boxes' low corners
+    bhi: tuple
+    has_par: bool  # some ray direction has a zero component
+    ell_c: np.ndarray
+    ell_r: np.ndarray
+    n_box: int
+
+
+def _dda_start(grid: Grid, oo, dd, tc):
+    """2-D DDA state of rays entering the grid at t = tc: column (ix, iy), step direction (sx, sy),
+    t per column crossed (dtx, dty) and t of the next column boundary (tmx, tmy)."""
+    cs = grid.cell
+    px = oo[:, 0] + tc * dd[:, 0]
+    py = oo[:, 1] + tc * dd[:, 1]
+    ix = np.clip(np.floor((px - grid.x0) / cs).astype(np.int64), 0, grid.nx - 1)
+    iy = np.clip(np.floor((py - grid.y0) / cs).astype(np.int64), 0, grid.ny - 1)
+    sx = np.where(dd[:, 0] > 0, 1, -1).astype(np.int64)
+    sy = np.where(dd[:, 1] > 0, 1, -1).astype(np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dtx = np.where(dd[:, 0] != 0, cs / np.abs(dd[:, 0]), np.inf)
+        dty = np.where(dd[:, 1] != 0, cs / np.abs(dd[:, 1]), np.inf)
+        nxb = grid.x0 + (ix + (sx > 0)) * cs  # next x boundary in the walking direction
+        nyb = grid.y0 + (iy + (sy > 0)) * cs
+        tmx = np.where(dd[:, 0] != 0, (nxb - oo[:, 0]) / dd[:, 0], np.inf)
+        tmy = np.where(dd[:, 1] != 0, (nyb - oo[:, 1]) / dd[:, 1], np.inf)
+    return ix, iy, sx, sy, dtx, dty, tmx, tmy
+
+
+def _column_hits(grid: Grid, cells, zlow, idx, oo, dd, inv, pr: _Prims, lb, best_p) -> int:
+    """Test the live rays `idx` against the primitives of their current columns `cells`, layer by
+    layer (a layer only where the ray's lowest point `zlow` there is not above it); where a nearer
+    hit is found, lower `lb` (their nearest t so far) and set `best_p`, in place.
+
+    Returns:
+        the number of ray-primitive tests.
+    """
+    ox, oy, oz = oo[:, 0], oo[:, 1], oo[:, 2]
+    ivx, ivy, ivz = inv[:, 0], inv[:, 1], inv[:, 2]
+    tests = 0
+    for layer in grid.layers:
+        start, items, kind = layer.start, layer.items, layer.kind
+        s = start[cells]
+        cnt = np.where(zlow <= layer.col_zmax[cells], start[cells + 1] - s, 0)
+        tot = int(cnt.sum())
+        if tot == 0:
+            continue
+        rep = np.repeat(np.arange(len(idx)), cnt)
+        first = np.cumsum(cnt) - cnt
+        offs = np.arange(tot) - np.repeat(first - s, cnt)
+        prims = items[offs]
+        if kind == 0:
+            t = _box_pairs(ox, oy, oz, ivx, ivy, ivz, rep, prims, pr.blo, pr.bhi, pr.has_par)
+        else:
+            t = ellipsoid_hit(oo[rep], dd[rep], pr.ell_c[prims], pr.ell_r[prims])
+            prims = prims + pr.n_box
+        tests += tot
+        nz = np.nonzero(cnt)[0]
+        mins = np.minimum.reduceat(t, first[nz])
+        better = mins < lb[nz]
+        if better.any():
+            rows = nz[better]
+            lb[rows] = mins[better]
+            is_min = (t == np.repeat(np.where(better, mins, -1.0), cnt[nz]))
+            # Ties (coplanar faces) within a layer: the lowest primitive id wins.
+            wr, wp = rep[is_min][::-1], prims[is_min][::-1]
+            best_p[idx[wr]] = wp
+    return tests
 
 
 def _box_pairs(ox, oy, oz, ivx, ivy, ivz, rep, prims, blo, bhi, has_par: bool) -> np.ndarray:

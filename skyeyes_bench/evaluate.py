@@ -22,7 +22,7 @@ import numpy as np
 
 from . import __version__, fileio, paths
 from .errors import UserError, ValidationError
-from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
+from .metricspec import FRAME_METRICS, IMAGE_EXTRACTOR, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
     FEATURES_OUTPUT, PARTIAL_FORMAT, RESULTS_FORMAT, RESULTS_OUTPUT, _digest, _stage, _tqdm, default_out,
@@ -373,7 +373,7 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                 extractors[ex_id]["status"] = "unavailable" if gone else "ok"
                 continue
             try:
-                if ex.kind == "image":
+                if ex.kind == IMAGE_EXTRACTOR:
                     sub_paths = [sub / frame_relpath(s, f) for s, f in frames]
                     gt_paths = [f.path for _, f in frames]
                     seq = np.array([seq_index[f"{s}/{f.sequence}"] for s, f in frames], dtype=np.int64)

@@ -23,6 +23,7 @@ import numpy as np
 
 from .. import paths
 from ..fileio import atomic_path, read_image, sha256_file
+from ..metricspec import CLIP_EXTRACTOR, IMAGE_EXTRACTOR
 from .extractors import current_device, get_extractor
 
 #: What the last call did: {"hits": n, "misses": n, "corrupt": n} (tests and progress output).
@@ -129,7 +130,7 @@ def extract_image_features(extractor_id: str, paths_: list[Path], *, batch_size:
         float64 [N, D] in the order of `paths_`.
     """
     ex = get_extractor(extractor_id)
-    if ex.kind != "image":
+    if ex.kind != IMAGE_EXTRACTOR:
         raise ValueError(f"{extractor_id} is a {ex.kind} extractor, not an image one")
     paths_ = [Path(p) for p in paths_]
     keys = [sha256_file(p) for p in paths_]
@@ -145,7 +146,7 @@ def extract_clip_features(extractor_id: str, clips: list[list[Path]], *, batch_s
         float64 [M, D] in the order of `clips`.
     """
     ex = get_extractor(extractor_id)
-    if ex.kind != "video":
+    if ex.kind != CLIP_EXTRACTOR:
         raise ValueError(f"{extractor_id} is a {ex.kind} extractor, not a video one")
     clips = [[Path(p) for p in c] for c in clips]
     memo: dict[Path, str] = {}

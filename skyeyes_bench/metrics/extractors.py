@@ -28,6 +28,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from ..errors import UserError
+from ..metricspec import CLIP_EXTRACTOR, IMAGE_EXTRACTOR
 from ..registry import lookup
 from . import weights as W
 from .weights import MetricUnavailable
@@ -98,7 +99,7 @@ class Extractor:
     """Base: id, kind, dim, weight files; status() and lazy model."""
 
     id: str = ""
-    kind: str = ""
+    kind: str = ""  # what it takes: IMAGE_EXTRACTOR, CLIP_EXTRACTOR (`metricspec`) or "pair" (LPIPS)
     dim: int = 0
     files: tuple[str, ...] = ()
     reference: str = ""
@@ -179,7 +180,7 @@ class Extractor:
 
 
 class InceptionTF2015(Extractor):
-    id, kind, dim = "inception-tf-2015", "image", 2048
+    id, kind, dim = "inception-tf-2015", IMAGE_EXTRACTOR, 2048
     files = ("inception-2015-12-05-fid-helper-default_1.pt",)
     resize = "clean-bicubic"
     chunk = 16  # frames per forward pass
@@ -200,7 +201,7 @@ class InceptionTF2015(Extractor):
 
 
 class I3DKinetics400(Extractor):
-    id, kind, dim = "i3d-kinetics400", "video", 400
+    id, kind, dim = "i3d-kinetics400", CLIP_EXTRACTOR, 400
     files = ("i3d-kinetics-400.ckpt",)
     resize = "stylegan-v-bilinear"
     chunk = 2  # clips per forward pass
@@ -293,7 +294,7 @@ class LPIPSv01(Extractor):
 class RandomImage64(Extractor):
     """Test-only: a seeded random conv net (no weights). Never valid in an official protocol."""
 
-    id, kind, dim = "random-image-64", "image", 64
+    id, kind, dim = "random-image-64", IMAGE_EXTRACTOR, 64
     reference = "none (test-only)"
 
     @property
@@ -333,7 +334,7 @@ class RandomImage64(Extractor):
 class RandomVideo64(RandomImage64):
     """Test-only: per-frame random features, mean and frame-difference halves (32 + 32)."""
 
-    id, kind, dim = "random-video-64", "video", 64
+    id, kind, dim = "random-video-64", CLIP_EXTRACTOR, 64
 
     def features(self, clips: np.ndarray, device=None) -> np.ndarray:
         """clips: float [N, T, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""

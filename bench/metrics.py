@@ -138,9 +138,9 @@ def main() -> int:
     import torch
 
     from skyeyes_bench.metrics import ssim
-    from skyeyes_bench.metrics.extractors import _torch_setup
+    from skyeyes_bench.metrics.extractors import torch_setup
 
-    _torch_setup()
+    torch_setup()
     print(f"cores {os.cpu_count()}, torch threads {torch.get_num_threads()}, load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}, torch {torch.__version__}")
     gfs = matmul_gflops(torch)

@@ -137,12 +137,13 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     sub = Path(submission_dir)
     out = Path(out) if out is not None else None
     if out is not None:  # before any work: a refused output never costs a scoring run
-        _check_out(out, force, [sub])
+        check_out(out, force, [sub])
     with contextlib.ExitStack() as held:  # the output's lock, taken once the dataset is known
         return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held)
 
 
-def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
+def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
+    """`out` and its features sidecar may be written (`fileio.check_output`), outside `inputs`."""
     if not out.name:  # '.', '/': no file name to put the sidecar beside
         raise UserError(f"{out}: is a folder; expected the path of an output file")
     fileio.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
@@ -158,10 +159,10 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
     with _stage(timing, "validate_s"):
         manifest, protocol, ds = open_inputs(sub, data, protocol)
         if out is not None:
-            _check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
+            check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
             held.enter_context(fileio.output_lock(out))  # a second run to this --out: one line, exit 2
-            _check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
-        _check_extractors(protocol)
+            check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
+        check_extractors(protocol)
         all_seqs = ds.sequences("test")
         seq_ids = [q.id for q in all_seqs]
         if shard is not None and shard[1] > len(all_seqs):
@@ -201,7 +202,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
     timing["total_s"] = round(time.perf_counter() - t_start, 4)
     doc["timing_s"] = timing
     if out is not None:
-        _check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
+        check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
         with fileio.reading(sub, ds.root):
             write_results(out, doc, features)
     return doc
@@ -218,7 +219,9 @@ def _scoring_device(device):
     return dev
 
 
-def _check_extractors(protocol) -> None:
+def check_extractors(protocol) -> None:
+    """A built-in protocol names official extractors only, and each metric's `resize` is the one its
+    extractor implements; else UserError."""
     from .errors import UserError
     from .metrics.extractors import EXTRACTORS, assert_official, get_extractor
 

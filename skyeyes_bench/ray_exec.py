@@ -208,14 +208,14 @@ def _prepare(job, force: bool) -> tuple[str, str, str, int]:
     """The driver's checks before any task: the output, the submission's manifest, protocol and
     dataset, and its files (without decoding them; each shard decodes its own frames). Returns
     (submission, dataset root, protocol ref, test sequences), paths absolute for the workers."""
-    from .evaluate import _check_extractors, _check_out, open_inputs
+    from .evaluate import check_extractors, check_out, open_inputs
     from .submission import validate_submission
 
     sub = Path(job.sub)
-    _check_out(job.out, force, [sub])
+    check_out(job.out, force, [sub])
     manifest, protocol, ds = open_inputs(sub, job.data, job.protocol)
-    _check_out(job.out, force, [sub, ds.root])
-    _check_extractors(protocol)
+    check_out(job.out, force, [sub, ds.root])
+    check_extractors(protocol)
     problems = validate_submission(sub, ds, protocol, manifest, decode=False)
     if problems:
         raise ValidationError(f"submission {sub}", problems)

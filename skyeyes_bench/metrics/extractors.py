@@ -67,7 +67,8 @@ def full_fp32(device):
     return exact_fp32(device)
 
 
-def _torch_setup():
+def torch_setup():
+    """torch, with its threads set (`threads.set_threads`), before a network is loaded or run."""
     import torch
 
     from ..threads import set_threads
@@ -147,11 +148,11 @@ class Extractor:
             import torch
 
             dev = torch.device("cuda", torch.cuda.current_device())
-        key = tuple(W._cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
+        key = tuple(W.cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
         if self._model_key != key:
             self._models, self._model_key = {}, key
         if str(dev) not in self._models:
-            _torch_setup()
+            torch_setup()
             self._models[str(dev)] = self._load(files, dev)
         return self._models[str(dev)]
 
@@ -167,7 +168,7 @@ class Extractor:
     def _chunked(self, inputs: np.ndarray, preprocess, device=None) -> np.ndarray:
         """The network on `inputs` [N, ...] in chunks of `self.chunk` -> float64 [N, dim].
         `preprocess` makes a CPU tensor (the reference preprocessing); it is moved to `device`."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         model = self._model_for(device)
         out = np.zeros((len(inputs), self.dim), np.float64)
@@ -280,7 +281,7 @@ class LPIPSv01(Extractor):
         return self._run(pred, gt, spatial=True, device=device)
 
     def _run(self, pred, gt, *, spatial: bool, device=None) -> np.ndarray:
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         model = self._model_for(device)
 
@@ -323,7 +324,7 @@ class RandomImage64(Extractor):
 
     def features(self, images: np.ndarray, device=None) -> np.ndarray:
         """images: float [N, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         images = np.asarray(images, np.float32)
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
@@ -338,7 +339,7 @@ class RandomVideo64(RandomImage64):
 
     def features(self, clips: np.ndarray, device=None) -> np.ndarray:
         """clips: float [N, T, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         clips = np.asarray(clips, np.float32)
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape

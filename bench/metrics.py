@@ -45,36 +45,13 @@ def count_flops(torch, model, x) -> float:
     return float(fc.get_total_flops())
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--images", type=int, default=16, help="frames per Inception / LPIPS / SSIM batch")
-    ap.add_argument("--clips", type=int, default=2, help="16-frame clips per I3D batch")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: OMP_NUM_THREADS or all cores)")
-    ap.add_argument("--size", type=int, default=256, help="input frame size (square)")
-    args = ap.parse_args()
-    if args.threads:
-        os.environ["OMP_NUM_THREADS"] = str(args.threads)
-    warnings.filterwarnings("ignore")
-
-    import torch
-
-    from skyeyes_bench.metrics import ssim, weights as W
-    from skyeyes_bench.metrics.extractors import _torch_setup, get_extractor
-    from skyeyes_bench.metrics.i3d import load_i3d
+def bench_inception(torch, frames: np.ndarray, gfs: float) -> None:
+    """Inception: naive (TorchScript as shipped, batch 1, no_grad, default threads) vs ours."""
+    from skyeyes_bench.metrics import weights as W
+    from skyeyes_bench.metrics.extractors import get_extractor
     from skyeyes_bench.metrics.inception import preprocess
-    from skyeyes_bench.metrics.lpips_net import LPIPSNet
 
-    _torch_setup()
-    print(f"cores {os.cpu_count()}, torch threads {torch.get_num_threads()}, load average "
-          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}, torch {torch.__version__}")
-    gfs = matmul_gflops(torch)
-    print(f"float32 matmul (2048^3): {gfs:.1f} GFLOP/s")
-
-    rng = np.random.default_rng(0)
-    n, s = args.images, args.size
-    frames = rng.random((n, s, s, 3)).astype(np.float32)
-
-    # --- Inception: naive (TorchScript as shipped, batch 1, no_grad, default threads) vs ours
+    n, s = len(frames), frames.shape[1]
     path = W.require("inception-2015-12-05-fid-helper-default_1.pt", "inception-tf-2015")
     raw = torch.jit.load(str(path)).eval()
     x = preprocess(frames).contiguous()
@@ -101,18 +78,29 @@ def main() -> int:
     print(f"  ours, network only (batch {n}):         {n / t_model:.2f} frames/s  ({t_naive / t_model:.2f}x naive)")
     print(f"  ours, with clean resize {s}->299:      {n / t_ours:.2f} frames/s  ({t_naive / t_ours:.2f}x naive)")
 
-    # --- I3D
+
+def bench_i3d(torch, clips: np.ndarray, gfs: float) -> None:
+    """I3D on `clips` [B, 16, H, W, 3]."""
+    from skyeyes_bench.metrics import weights as W
+    from skyeyes_bench.metrics.extractors import get_extractor
+    from skyeyes_bench.metrics.i3d import load_i3d
+
     i3d_path = W.require("i3d-kinetics-400.ckpt", "i3d-kinetics400")
-    clips = rng.random((args.clips, 16, s, s, 3)).astype(np.float32)
     vex = get_extractor("i3d-kinetics400")
     from skyeyes_bench.metrics.extractors import preprocess_clips
 
     f_i3d = count_flops(torch, load_i3d(i3d_path), preprocess_clips(clips[:1]))
     t_i3d = _timeit(lambda: vex.features(clips))
     print(f"i3d-kinetics400: {f_i3d / 1e9:.1f} GFLOP/clip (16x224x224), ceiling {gfs * 1e9 / f_i3d:.2f} clips/s")
-    print(f"  ours (batch {args.clips}):                    {args.clips / t_i3d:.3f} clips/s")
+    print(f"  ours (batch {len(clips)}):                    {len(clips) / t_i3d:.3f} clips/s")
 
-    # --- LPIPS (AlexNet)
+
+def bench_lpips(torch, frames: np.ndarray, gfs: float) -> None:
+    """LPIPS (AlexNet): real weights if present, else a random backbone (same FLOPs)."""
+    from skyeyes_bench.metrics.extractors import get_extractor
+    from skyeyes_bench.metrics.lpips_net import LPIPSNet
+
+    n, s = len(frames), frames.shape[1]
     lex = get_extractor("lpips-alex-v0.1")
     if lex.status()[0] == "present":
         net, note = lex.model, "real weights"
@@ -134,6 +122,36 @@ def main() -> int:
     t_lp = _timeit(lp)
     print(f"lpips-alex-v0.1 ({note}): {f_lp / 1e9:.2f} GFLOP/pair at {s}x{s}, ceiling {gfs * 1e9 / f_lp:.1f} pairs/s")
     print(f"  ours (batch {n}):                      {n / t_lp:.2f} pairs/s")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--images", type=int, default=16, help="frames per Inception / LPIPS / SSIM batch")
+    ap.add_argument("--clips", type=int, default=2, help="16-frame clips per I3D batch")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: OMP_NUM_THREADS or all cores)")
+    ap.add_argument("--size", type=int, default=256, help="input frame size (square)")
+    args = ap.parse_args()
+    if args.threads:
+        os.environ["OMP_NUM_THREADS"] = str(args.threads)
+    warnings.filterwarnings("ignore")
+
+    import torch
+
+    from skyeyes_bench.metrics import ssim
+    from skyeyes_bench.metrics.extractors import torch_setup
+
+    torch_setup()
+    print(f"cores {os.cpu_count()}, torch threads {torch.get_num_threads()}, load average "
+          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}, torch {torch.__version__}")
+    gfs = matmul_gflops(torch)
+    print(f"float32 matmul (2048^3): {gfs:.1f} GFLOP/s")
+
+    rng = np.random.default_rng(0)
+    n, s = args.images, args.size
+    frames = rng.random((n, s, s, 3)).astype(np.float32)
+    bench_inception(torch, frames, gfs)
+    bench_i3d(torch, rng.random((args.clips, 16, s, s, 3)).astype(np.float32), gfs)
+    bench_lpips(torch, frames, gfs)
 
     # --- SSIM (numpy, float64)
     t_ss = _timeit(lambda: ssim(frames, frames[::-1]))

@@ -200,6 +200,80 @@ def _frame_values(doc: dict, name: str,
             np.array([r["sequence"] for r in rows], dtype=np.int64), weights)
 
 
+def _check_comparable(a: dict, b: dict, names: tuple[str, str], count_note: str | None):
+    """The protocol A and B were scored with, or UserError saying why they cannot be compared
+    (with their sample counts when those differ, `count_note`)."""
+    from .errors import UserError
+    from .protocol import load_protocol
+
+    why = _comparable(a, b)
+    if why:
+        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
+    protocol = load_protocol(a["protocol"]["ref"])
+    why = _comparable(a, b, protocol.sha256) or [p for p in [_frames_problem(a, b, names)] if p]
+    if why:  # e.g. a submission scored in part: its counts are said too
+        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
+    return protocol
+
+
+def _paired_frame_samples(a: dict, b: dict, name: str, order: list[tuple[str, str]], cl_of_seq: np.ndarray):
+    """For the per-frame metric `name`: a function of cluster weights c [R, K] returning the
+    metric's values (A [R], B [R]) with the frames weighted by their cluster's weight."""
+    fa, seq, wa = _frame_values(a, name, order)
+    fb, _, wb = _frame_values(b, name, order)
+    clusters = cl_of_seq[seq]
+    pool = METRICS[name].pool if name in METRICS else "mean"
+
+    def samples(f, w, c):
+        return frame_metric_samples(f, clusters, c, w, pool)
+
+    return lambda c: (samples(fa, wa, c), samples(fb, wb, c))
+
+
+def _set_replicates(name: str, a: dict, b: dict, feats_a: dict | None, feats_b: dict | None, protocol,
+                    cl_of_seq: np.ndarray, k: int, counts: np.ndarray) -> tuple | None:
+    """Paired replicates (A, B) of the set metric `name` and the centres of both intervals (None
+    where unknown): the results' stored replicates when made the way this comparison resamples
+    (the centres from the features for an older file without them), else resampled from the
+    features sidecars; None when there are neither."""
+    st, unit = protocol.statistics, protocol.statistics.cluster
+    ma, mb = a["metrics"][name], b["metrics"][name]
+    ra, rb = _usable_replicates(a, ma, st, unit, k), _usable_replicates(b, mb, st, unit, k)
+    ex = ma["extractor"]
+    have = feats_a is not None and feats_b is not None and ex in feats_a and ex in feats_b
+    if ra is not None and rb is not None:
+        reps = tuple(np.array([np.nan if v is None else v for v in x], np.float64) for x in (ra, rb))
+        centres = (ma.get("interval_centre"), mb.get("interval_centre"))
+        if None in centres and have:  # an older file without it: from the features
+            centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
+        return reps, centres
+    if not have:
+        return None
+    reps = []
+    for f in (feats_a[ex], feats_b[ex]):
+        cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
+        fn = set_metric_bootstrap(name, f["sub"], f["gt"], cl, k, protocol.metric(name), st.seed)
+        reps.append(set_metric_samples(fn, cl, cl, counts))
+    return reps, tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
+
+
+def _add_interval(r: dict, name: str, adv: float, reps, centres: tuple, level: float, k: int) -> None:
+    """Into the comparison `r` of one metric: the interval of the advantage `adv` from the paired
+    replicates `reps` (A, B), centred on the advantage of the two intervals' centres when both
+    are known, and P(A better) over the replicates."""
+    d = advantage(reps[0], reps[1], name)
+    centre = None
+    if None not in centres:  # both intervals' centres: the difference's is their advantage
+        centre = float(advantage(np.array([centres[0]], np.float64), np.array([centres[1]], np.float64),
+                                 name)[0])
+        r["interval_centre"] = centre
+    iv = interval_from_replicates(adv, d, level, k, centre)
+    if iv is not None:
+        r["bootstrap_interval"] = [iv[0], iv[1]]
+        r["interval_widened"] = iv[2]
+        r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv if centre is None else centre, d, k) > 0))
+
+
 def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict | None = None,
                     *, emcee_steps: int | None = None, names: tuple[str, str] = ("A", "B")) -> dict:
     """Paired comparison of two results of the same protocol and ground truth, metric by metric.
@@ -218,17 +292,8 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     Raises:
         UserError: the results are not comparable (the message says why).
     """
-    from .errors import UserError
-    from .protocol import load_protocol
-
     count_note = sample_count_warning([(names[0], a["metrics"]), (names[1], b["metrics"])])
-    why = _comparable(a, b)
-    if why:
-        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
-    protocol = load_protocol(a["protocol"]["ref"])
-    why = _comparable(a, b, protocol.sha256) or [p for p in [_frames_problem(a, b, names)] if p]
-    if why:  # e.g. a submission scored in part: its counts are said too
-        raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
+    protocol = _check_comparable(a, b, names, count_note)
     st = protocol.statistics
     steps = emcee_steps or st.emcee_steps
     burn = min(st.emcee_burn, steps // 3) if emcee_steps else st.emcee_burn
@@ -264,56 +329,26 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
         reps = None
         centres = (None, None)  # set metrics with random subsets (FD∞): their intervals' centres
         if ma["kind"] == "frame":
-            fa, seq, wa = _frame_values(a, name, order)
-            fb, _, wb = _frame_values(b, name, order)
-            clusters = cl_of_seq[seq]
-            pool = METRICS[name].pool if name in METRICS else "mean"
-
-            def samples(f, w, c):
-                return frame_metric_samples(f, clusters, c, w, pool)
-
-            d = advantage(samples(fa, wa, np.eye(k)), samples(fb, wb, np.eye(k)), name)
+            samples = _paired_frame_samples(a, b, name, order, cl_of_seq)
+            d = advantage(*samples(np.eye(k)), name)
             r["bayes"] = bayes_summary(d, unit=unit, walkers=st.emcee_walkers, steps=steps, burn=burn, seed=st.seed)
             if counts is not None:
-                reps = (samples(fa, wa, counts), samples(fb, wb, counts))
+                reps = samples(counts)
         else:
             r["bayes"] = {"fitted": False, "p_a_better": None, "hdi": None,
                           "note": f"set metric: no per-{unit} values; paired resampling only"}
             if counts is not None:
-                ra, rb = _usable_replicates(a, ma, st, unit, k), _usable_replicates(b, mb, st, unit, k)
-                ex = ma["extractor"]
-                have = feats_a is not None and feats_b is not None and ex in feats_a and ex in feats_b
-                if ra is not None and rb is not None:
-                    reps = tuple(np.array([np.nan if v is None else v for v in x], np.float64) for x in (ra, rb))
-                    centres = (ma.get("interval_centre"), mb.get("interval_centre"))
-                    if None in centres and have:  # an older file without it: from the features
-                        centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
-                elif have:
-                    reps = []
-                    for f in (feats_a[ex], feats_b[ex]):
-                        cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
-                        fn = set_metric_bootstrap(name, f["sub"], f["gt"], cl, k, protocol.metric(name), st.seed)
-                        reps.append(set_metric_samples(fn, cl, cl, counts))
-                    centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
-                else:
+                got = _set_replicates(name, a, b, feats_a, feats_b, protocol, cl_of_seq, k, counts)
+                if got is None:
                     out["metrics"][name] = {"status": "skipped", "a": va, "b": vb, "advantage": adv,
                                             "note": "no replicates of the same resampling in the results and no "
                                                     "features sidecars: set metrics are compared by resampling"}
                     continue
+                reps, centres = got
         if few:
             r["interval_note"] = few
         else:
-            d = advantage(reps[0], reps[1], name)
-            centre = None
-            if None not in centres:  # both intervals' centres: the difference's is their advantage
-                centre = float(advantage(np.array([centres[0]], np.float64), np.array([centres[1]], np.float64),
-                                         name)[0])
-                r["interval_centre"] = centre
-            iv = interval_from_replicates(adv, d, st.interval, k, centre)
-            if iv is not None:
-                r["bootstrap_interval"] = [iv[0], iv[1]]
-                r["interval_widened"] = iv[2]
-                r["p_a_better_bootstrap"] = float(np.mean(replicate_draws(adv if centre is None else centre, d, k) > 0))
+            _add_interval(r, name, adv, reps, centres, st.interval, k)
         r["advantage_mean"] = adv  # the name older readers use; the same number
         out["metrics"][name] = r
     return out

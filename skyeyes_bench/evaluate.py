@@ -23,11 +23,11 @@ import numpy as np
 
 from . import __version__, imagefiles, inputfiles, outputfiles, outputunit, paths
 from .errors import UserError, ValidationError
-from .metricspec import FRAME_METRICS, SEQUENCE_METRICS, metric_def
+from .metricspec import FRAME_METRICS, IMAGE_EXTRACTOR, SEQUENCE_METRICS, metric_def
 from .registry import load_entry_point
 from .results import (  # noqa: F401  (re-exported: callers import these from evaluate)
-    FEATURES_OUTPUT, PARTIAL_FORMAT, RESULTS_FORMAT, RESULTS_OUTPUT, _digest, _stage, _tqdm, default_out,
-    features_path, read_results, write_results)
+    FEATURES_OUTPUT, PARTIAL_FORMAT, RESULTS_FORMAT, RESULTS_OUTPUT, default_out, features_path, lines_digest,
+    progress_bar, read_results, timed_stage, write_results)
 from .shards import merge  # noqa: F401  (re-exported)
 from .submission import expected_frames, frame_relpath, read_submission, validate_submission
 from .summary import finalize, format_summary  # noqa: F401  (re-exported)
@@ -140,12 +140,13 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     sub = Path(submission_dir)
     out = Path(out) if out is not None else None
     if out is not None:  # before any work: a refused output never costs a scoring run
-        _check_out(out, force, [sub])
+        check_out(out, force, [sub])
     with contextlib.ExitStack() as held:  # the output's lock, taken once the dataset is known
         return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held)
 
 
-def _check_out(out: Path, force: bool, inputs: list[Path]) -> None:
+def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
+    """`out` and its features sidecar may be written (`outputfiles.check_output`), outside `inputs`."""
     if not out.name:  # '.', '/': no file name to put the sidecar beside
         raise UserError(f"{out}: is a folder; expected the path of an output file")
     outputfiles.check_output(out, force=force, sidecars=[features_path(out)], outside=inputs, kind=RESULTS_OUTPUT,
@@ -158,13 +159,13 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
 
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
-    with _stage(timing, "validate_s"):
+    with timed_stage(timing, "validate_s"):
         manifest, protocol, ds = open_inputs(sub, data, protocol)
         if out is not None:
-            _check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
+            check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
             held.enter_context(outputunit.output_lock(out))  # a second run to this --out: one line, exit 2
-            _check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
-        _check_extractors(protocol)
+            check_out(out, force, [sub, ds.root])  # again, holding the lock: a run that just ended may have written it
+        check_extractors(protocol)
         all_seqs = ds.sequences("test")
         seq_ids = [q.id for q in all_seqs]
         if shard is not None and shard[1] > len(all_seqs):
@@ -188,7 +189,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         "submission": {"path": str(sub.resolve()), **{k: manifest.get(k) for k in (
             "method", "method_version", "protocol", "created", "timings", "peak_memory_mb", "hardware", "config")},
             # every frame, not only this shard's: `merge` refuses parts of different submissions
-            "frames_sha256": _digest([f"{rel} {sha}\n" for rel, sha in sub_sha.items()])},
+            "frames_sha256": lines_digest([f"{rel} {sha}\n" for rel, sha in sub_sha.items()])},
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
     seq_index = {sid: k for k, sid in enumerate(seq_ids)}
@@ -204,7 +205,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
     timing["total_s"] = round(time.perf_counter() - t_start, 4)
     doc["timing_s"] = timing
     if out is not None:
-        _check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
+        check_out(out, force, [sub, ds.root])  # at the point of writing too, and at each rename:
         with outputfiles.reading(sub, ds.root):
             write_results(out, doc, features)
     return doc
@@ -221,7 +222,9 @@ def _scoring_device(device):
     return dev
 
 
-def _check_extractors(protocol) -> None:
+def check_extractors(protocol) -> None:
+    """A built-in protocol names official extractors only, and each metric's `resize` is the one its
+    extractor implements; else UserError."""
     from .errors import UserError
     from .metrics.extractors import EXTRACTORS, assert_official, get_extractor
 
@@ -249,8 +252,8 @@ def _frame_metrics(sub: Path, frames, protocol, seq_index, sub_sha: dict[str, st
     functions = {m.name: load_entry_point(metric_def(m.name).per_frame) for m in specs}
     unavailable: dict[str, dict] = {}
     records = []
-    bar = _tqdm(progress, total=len(frames), desc="per-frame metrics", unit="frame")
-    with _stage(timing, "frame_metrics_s"), bar:
+    bar = progress_bar(progress, total=len(frames), desc="per-frame metrics", unit="frame")
+    with timed_stage(timing, "frame_metrics_s"), bar:
         for batch in _frame_batches(frames, _FRAME_BATCH):
             preds = np.stack([imagefiles.read_image(sub / frame_relpath(s, f)) for s, f in batch])  # [B, H, W, 3]
             gts = np.stack([f.image() for _, f in batch])  # [B, H, W, 3]
@@ -306,15 +309,15 @@ def _sequence_metrics(sub: Path, ds, frames, protocol, records: list[dict], unav
         by_seq.setdefault((s, f.sequence), []).append(f)
     rec_of = {(r["scene"], r["file"]): r for r in records}
     timing.setdefault("masks_s", 0.0)
-    bar = _tqdm(progress, total=len(by_seq), desc="depth metrics", unit="sequence")
-    with _stage(timing, "sequence_metrics_s"), bar:
+    bar = progress_bar(progress, total=len(by_seq), desc="depth metrics", unit="sequence")
+    with timed_stage(timing, "sequence_metrics_s"), bar:
         for (scene, _), fs in by_seq.items():
             fs = sorted(fs, key=lambda f: f.index)
             masks: dict[float, np.ndarray] = {}
 
             def seen(tol: float, scene=scene, fs=fs, masks=masks) -> np.ndarray:
                 if tol not in masks:
-                    with _stage(timing, "masks_s"):
+                    with timed_stage(timing, "masks_s"):
                         masks[tol] = seen_masks(ds.scenes[scene], fs, tol)
                 return masks[tol]
 
@@ -360,7 +363,7 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
             frame_users.setdefault(m.extractor, []).append(m.name)
     features: dict[str, dict[str, np.ndarray]] = {}
     extractors: dict[str, dict] = {}
-    with _stage(timing, "features_s"):
+    with timed_stage(timing, "features_s"):
         for ex_id, specs in wanted.items():
             try:
                 ex = get_extractor(ex_id)
@@ -376,7 +379,7 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
                 extractors[ex_id]["status"] = "unavailable" if gone else "ok"
                 continue
             try:
-                if ex.kind == "image":
+                if ex.kind == IMAGE_EXTRACTOR:
                     sub_paths = [sub / frame_relpath(s, f) for s, f in frames]
                     gt_paths = [f.path for _, f in frames]
                     seq = np.array([seq_index[f"{s}/{f.sequence}"] for s, f in frames], dtype=np.int64)

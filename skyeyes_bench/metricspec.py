@@ -14,6 +14,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+#: What a set metric's features are computed on, one row each (`MetricDef.features`): a frame, or
+#: a clip (`clip_length` consecutive frames of one sequence). One idea, spelled three ways in stored
+#: formats, which stay as they are (old files read the same, new output keeps its bytes):
+#: results.json `metrics.<name>.unit` says "frame" / "clip", and `extractors.<id>.kind` (also
+#: printed by `skyeyes-bench weights`) says "image" / "video" for the network that makes them.
+#: Code names the idea "clip" and compares through these constants; "video" is only that kind's
+#: stored spelling (and part of extractor ids: "random-video-64").
+IMAGE_FEATURES = "image"
+CLIP_FEATURES = "clip"
+#: `Extractor.kind` of the extractors of image and of clip features (their stored spelling).
+IMAGE_EXTRACTOR = "image"
+CLIP_EXTRACTOR = "video"
+
 
 @dataclass(frozen=True)
 class MetricDef:
@@ -26,7 +39,7 @@ class MetricDef:
     label: str  # column heading
     decimals: int  # digits shown on the leaderboard
     extractor: bool = False  # the protocol must name the extractor (network weights) it uses
-    features: str | None = None  # set metrics: "image" (a row per frame) or "clip" (a row per clip)
+    features: str | None = None  # set metrics: IMAGE_FEATURES (a row per frame) or CLIP_FEATURES (a row per clip)
     # kind "frame": f(preds [B, H, W, 3], gts [B, H, W, 3], settings: protocol.MetricSpec) -> [B];
     #   may raise metrics.MetricUnavailable (the metric is then reported unavailable).
     per_frame: str | None = None
@@ -88,13 +101,13 @@ METRICS: dict[str, MetricDef] = {m.name: m for m in (
     MetricDef("lpips", "frame", False, frozenset({"aggregate", "extractor"}), "LPIPS", 3, extractor=True,
               per_frame="skyeyes_bench.estimators:lpips"),
     MetricDef("fid", "set", False, frozenset({"extractor", "resize"}), "FID", 2, extractor=True,
-              features="image", **_FRECHET),
-    MetricDef("fid_inf", "set", False, _INF_KEYS, "FID∞", 2, extractor=True, features="image", **_FRECHET_INF),
-    MetricDef("kid", "set", False, _KID_KEYS, "KID", 4, extractor=True, features="image", **_MMD),
-    MetricDef("fvd", "set", False, _CLIP_KEYS, "FVD", 2, extractor=True, features="clip", **_FRECHET),
-    MetricDef("fvd_inf", "set", False, _CLIP_KEYS | _INF_KEYS, "FVD∞", 2, extractor=True, features="clip",
+              features=IMAGE_FEATURES, **_FRECHET),
+    MetricDef("fid_inf", "set", False, _INF_KEYS, "FID∞", 2, extractor=True, features=IMAGE_FEATURES, **_FRECHET_INF),
+    MetricDef("kid", "set", False, _KID_KEYS, "KID", 4, extractor=True, features=IMAGE_FEATURES, **_MMD),
+    MetricDef("fvd", "set", False, _CLIP_KEYS, "FVD", 2, extractor=True, features=CLIP_FEATURES, **_FRECHET),
+    MetricDef("fvd_inf", "set", False, _CLIP_KEYS | _INF_KEYS, "FVD∞", 2, extractor=True, features=CLIP_FEATURES,
               **_FRECHET_INF),
-    MetricDef("kvd", "set", False, _CLIP_KEYS | _KID_KEYS, "KVD", 2, extractor=True, features="clip", **_MMD),
+    MetricDef("kvd", "set", False, _CLIP_KEYS | _KID_KEYS, "KVD", 2, extractor=True, features=CLIP_FEATURES, **_MMD),
     MetricDef("psnr_seen", "frame", True, _DEPTH, "PSNR seen", 2, weighted=True, pool="mse", **_REGIONS),
     MetricDef("psnr_unseen", "frame", True, _DEPTH, "PSNR unseen", 2, weighted=True, pool="mse", **_REGIONS),
     MetricDef("ssim_seen", "frame", True, _DEPTH | _SSIM_KEYS, "SSIM seen", 3, weighted=True, **_REGIONS),

@@ -17,7 +17,7 @@ from typing import Any
 
 from .errors import UserError
 from .inputfiles import read_toml
-from .metricspec import METRICS
+from .metricspec import CLIP_FEATURES, METRICS
 from .paths import protocols_dir
 
 #: Largest protocol version (9 digits): a longer number in a file name or a reference is refused in one
@@ -221,7 +221,7 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
         if METRICS[m.name].depth and not (m.depth_tolerance is not None and 0 < m.depth_tolerance < 1):
             raise UserError(f"{file}: key 'metrics.{m.name}.depth_tolerance' must lie in (0, 1) (a relative depth "
                             f"tolerance), got {m.depth_tolerance!r}")
-        if METRICS[m.name].features == "clip" and (m.clip_length or 0) < 2:
+        if METRICS[m.name].features == CLIP_FEATURES and (m.clip_length or 0) < 2:
             raise UserError(f"{file}: key 'metrics.{m.name}.clip_length' must be >= 2")
         if METRICS[m.name].extractor and not m.extractor:
             raise UserError(f"{file}: missing key 'metrics.{m.name}.extractor'")

@@ -208,14 +208,14 @@ def _prepare(job, force: bool) -> tuple[str, str, str, int]:
     """The driver's checks before any task: the output, the submission's manifest, protocol and
     dataset, and its files (without decoding them; each shard decodes its own frames). Returns
     (submission, dataset root, protocol ref, test sequences), paths absolute for the workers."""
-    from .evaluate import _check_extractors, _check_out, open_inputs
+    from .evaluate import check_extractors, check_out, open_inputs
     from .submission import validate_submission
 
     sub = Path(job.sub)
-    _check_out(job.out, force, [sub])
+    check_out(job.out, force, [sub])
     manifest, protocol, ds = open_inputs(sub, job.data, job.protocol)
-    _check_out(job.out, force, [sub, ds.root])
-    _check_extractors(protocol)
+    check_out(job.out, force, [sub, ds.root])
+    check_extractors(protocol)
     problems = validate_submission(sub, ds, protocol, manifest, decode=False)
     if problems:
         raise ValidationError(f"submission {sub}", problems)
@@ -250,7 +250,7 @@ def evaluate_many(jobs: list, *, shards: int | None = None, device: str | None =
     running Ray (`session`); merge each into its `out` as soon as its shards are in. shards: per
     submission (default: one per task the cluster runs at once, at most one per test sequence).
     Returns per job {"results", "error", "exit_code", "shard_s", "merge_s"} (`batch.Outcome`)."""
-    from .results import _tqdm
+    from .results import progress_bar
 
     ray = require_ray()
     dev, gpus = plan_device(device)
@@ -270,7 +270,7 @@ def evaluate_many(jobs: list, *, shards: int | None = None, device: str | None =
         for k in range(n):
             pending[task.remote(sub, data, (k, n), ref, dev, env)] = (i, k)
     parts: dict[int, dict[int, dict]] = {}
-    with _tqdm(progress, total=len(pending), desc="shards", unit="shard") as bar:
+    with progress_bar(progress, total=len(pending), desc="shards", unit="shard") as bar:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             i, k = pending.pop(done[0])

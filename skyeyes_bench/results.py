@@ -33,7 +33,7 @@ PARTIAL_FORMAT = "skyeyes-bench/partial@1"
 # --------------------------------------------------------------------------- small helpers
 
 
-def _tqdm(progress: bool, **kw):
+def progress_bar(progress: bool, **kw):
     """A progress bar on stderr, drawn only when stderr is a terminal (disable=None: tqdm's TTY test)."""
     from tqdm import tqdm
 
@@ -41,13 +41,13 @@ def _tqdm(progress: bool, **kw):
 
 
 @contextlib.contextmanager
-def _stage(timing: dict, name: str):
+def timed_stage(timing: dict, name: str):
     t0 = time.perf_counter()
     yield
     timing[name] = round(timing.get(name, 0.0) + time.perf_counter() - t0, 4)
 
 
-def _digest(lines: list[str]) -> str:
+def lines_digest(lines: list[str]) -> str:
     return hashlib.sha256("".join(sorted(lines)).encode()).hexdigest()
 
 
@@ -110,9 +110,9 @@ def _not_nan(where: str, value) -> None:
         fields.fail(where, "expected a number or null, got NaN (results write an undefined value as null)")
 
 
-def _q(text: str) -> str:
+def quoted(text: str) -> str:
     """A name read from a file, quoted for a one-line message (newlines, bidi overrides escaped)."""
-    return fields._short(text, 120)
+    return fields.short(text, 120)
 
 
 def _results_problem(doc: dict, path: Path, partial: bool) -> None:
@@ -127,7 +127,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         key = (r["scene"], r["file"])
         if key in seen:  # pairing (compare) and merging go by frame: one record each
             fields.fail(f"{path}: field 'frames[{i}]'",
-                        f"frame {_q(key[0] + '/' + key[1])} is listed twice (also frames[{seen[key]}])")
+                        f"frame {quoted(key[0] + '/' + key[1])} is listed twice (also frames[{seen[key]}])")
         seen[key] = i
         for name in FRAME_METRICS:
             if name in r:
@@ -144,7 +144,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         fields.integer(f"{path}: field 'shard.index'", shard["index"], "the shard's number", 0, shard["count"] - 1)
     if not partial:
         if not isinstance(doc.get("statistics", {}), dict):
-            fields.fail(f"{path}: field 'statistics'", f"expected an object, got {fields._short(doc['statistics'])}")
+            fields.fail(f"{path}: field 'statistics'", f"expected an object, got {fields.short(doc['statistics'])}")
         for name, m in doc["metrics"].items():
             if m["status"] == "ok":
                 fields.conform(str(path), m, {"kind": str, "value": fields.Number}, f"metrics.{name}")
@@ -160,7 +160,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
                             _not_nan(f"{path}: field 'metrics.{name}.{key}[{j}]'", v)
                 if m["kind"] not in ("frame", "set"):
                     fields.fail(f"{path}: field 'metrics.{name}.kind'",
-                                f"expected 'frame' or 'set', got {fields._short(m['kind'])}")
+                                f"expected 'frame' or 'set', got {fields.short(m['kind'])}")
                 if m["kind"] == "frame":  # compared per sequence: every sequence holds a value
                     # (pixel-weighted metrics: null where the sequence has no pixel of the region)
                     weighted = name in METRICS and METRICS[name].weighted
@@ -225,7 +225,7 @@ def read_results(path, *, features: bool = False, partial: bool = False) -> tupl
     want = PARTIAL_FORMAT if partial else RESULTS_FORMAT
     if not isinstance(doc, dict) or doc.get("format") != want:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise UserError(f"{path}: field 'format' is {fields._short(got)}, expected {want!r}")
+        raise UserError(f"{path}: field 'format' is {fields.short(got)}, expected {want!r}")
     _results_problem(doc, path, partial)
     if not features:
         return doc, None

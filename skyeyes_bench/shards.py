@@ -13,7 +13,7 @@ import numpy as np
 from . import inputfiles, outputfiles, outputunit, stats
 from .errors import UserError, ValidationError
 from .metricspec import FRAME_METRICS
-from .results import (FEATURES_OUTPUT, RESULTS_OUTPUT, _digest, _q, features_path, read_results,
+from .results import (FEATURES_OUTPUT, RESULTS_OUTPUT, lines_digest, quoted, features_path, read_results,
                       write_results)
 from .summary import finalize
 
@@ -153,11 +153,11 @@ def _frame_records_problems(loaded: list[tuple[Path, dict, dict]]) -> list[str]:
         own: list[str] = []  # this part's problems; the first is reported (one edit, one line)
         for i, r in enumerate(d["frames"]):
             key, sid = (r["scene"], r["file"]), seq_ids[r["sequence"]]
-            where = f"{p}: field 'frames[{i}]' (frame {_q(key[0] + '/' + key[1])})"
+            where = f"{p}: field 'frames[{i}]' (frame {quoted(key[0] + '/' + key[1])})"
             if r["sequence"] % n != mine:
-                own.append(f"{where}: of sequence {_q(sid)}, which shard {mine}/{n} does not score")
+                own.append(f"{where}: of sequence {quoted(sid)}, which shard {mine}/{n} does not score")
             elif stats.scene_of(sid) != r["scene"]:
-                own.append(f"{where}: not in scene {_q(stats.scene_of(sid))} of its sequence {_q(sid)}")
+                own.append(f"{where}: not in scene {quoted(stats.scene_of(sid))} of its sequence {quoted(sid)}")
             elif key in owner:
                 own.append(f"{where}: also in {owner[key]}")
             owner.setdefault(key, p)
@@ -167,12 +167,12 @@ def _frame_records_problems(loaded: list[tuple[Path, dict, dict]]) -> list[str]:
             other = f["seq"][f["seq"] % n != mine]
             rows = np.bincount(f["seq"], minlength=len(seq_ids))
             if len(other):
-                own.append(f"{features_path(p)}: array {_q(ex_id + '|seq')} holds rows of sequence "
-                           f"{_q(seq_ids[int(other[0])])}, which shard {mine}/{n} does not score")
+                own.append(f"{features_path(p)}: array {quoted(ex_id + '|seq')} holds rows of sequence "
+                           f"{quoted(seq_ids[int(other[0])])}, which shard {mine}/{n} does not score")
             elif d["extractors"][ex_id].get("kind") == "image" and (rows != records).any():
                 # one feature row per scored frame: a record added or removed afterwards shows here
                 k = int(np.flatnonzero(rows != records)[0])
-                own.append(f"{p}: field 'frames' holds {records[k]} records of sequence {_q(seq_ids[k])}, but "
+                own.append(f"{p}: field 'frames' holds {records[k]} records of sequence {quoted(seq_ids[k])}, but "
                            f"{features_path(p).name} holds features of {rows[k]} of its frames: records were "
                            f"added or removed")
         problems += own[:1]
@@ -188,7 +188,7 @@ def _frame_records_problems(loaded: list[tuple[Path, dict, dict]]) -> list[str]:
                 return [f"{p}: field 'frames[{i}].{lack[0]}' missing (protocol {protocol.ref} scores it and the part "
                         f"does not list it unavailable)"]
     want = first["submission"].get("frames_sha256")
-    got = _digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for _, d, _ in loaded for r in d["frames"]])
+    got = lines_digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for _, d, _ in loaded for r in d["frames"]])
     if want is not None and got != want:
         return [_edited_part(loaded, want, got)]
     return []
@@ -204,7 +204,7 @@ def _edited_part(loaded: list[tuple[Path, dict, dict]], want: str, got: str) -> 
         if not (isinstance(folder, str) and folder and Path(folder, "submission.json").is_file()):
             continue
         for i, r in enumerate(d["frames"]):
-            where = f"{p}: field 'frames[{i}]' (frame {_q(r['scene'] + '/' + r['file'])})"
+            where = f"{p}: field 'frames[{i}]' (frame {quoted(r['scene'] + '/' + r['file'])})"
             try:
                 with inputfiles.open_regular(Path(folder, r["scene"], r["file"]), root=folder) as fh:
                     if os.fstat(fh.fileno()).st_size > _MAX_FRAME_BYTES:
@@ -214,11 +214,11 @@ def _edited_part(loaded: list[tuple[Path, dict, dict]], want: str, got: str) -> 
                         h.update(block)
                     sha = h.hexdigest()
             except UserError:
-                return (f"{where}: no such frame in the submission {_q(folder)} it was scored from: the record "
+                return (f"{where}: no such frame in the submission {quoted(folder)} it was scored from: the record "
                         f"was edited")
             if sha != r["sha256"]:
                 return (f"{where}: sha256 {ascii(r['sha256'][:12])[1:-1]}... recorded, {sha[:12]}... in the submission "
-                        f"{_q(folder)}: the record was edited")
+                        f"{quoted(folder)}: the record was edited")
     names = ", ".join(str(p) for p, _, _ in loaded)
     return (f"merge: the frame records of one of {names} were edited: together they hash to {got[:12]}..., not to "
             f"the {want[:12]}... of the submission every part records (field 'submission.frames_sha256')")

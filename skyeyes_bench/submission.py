@@ -204,7 +204,7 @@ def _manifest_problems(m: Any, file: Path) -> list[str]:
             problems.append(str(e))
 
     if m.get("format") != FORMAT:
-        problems.append(f"{file}: field 'format' is {fields._short(m.get('format'))}, expected {FORMAT!r}")
+        problems.append(f"{file}: field 'format' is {fields.short(m.get('format'))}, expected {FORMAT!r}")
     check(fields.name, "method", m.get("method"), "the method's name")
     check(fields.string, "protocol", m.get("protocol"), "a protocol '<id>@<N>'", pattern=_PROTOCOL_REF)
     if m.get("protocol_sha256") is not None:
@@ -212,13 +212,13 @@ def _manifest_problems(m: Any, file: Path) -> list[str]:
               pattern=_SHA256)
     for key in ("method_version", "created", "tool_version"):
         if key in m and not isinstance(m[key], str):
-            problems.append(f"{file}: field '{key}' must be a string, got {fields._short(m[key])}")
+            problems.append(f"{file}: field '{key}' must be a string, got {fields.short(m[key])}")
     ds = m.get("dataset")
     if not isinstance(ds, dict) or not isinstance(ds.get("name"), str) or not ds.get("name"):
         problems.append(f"{file}: field 'dataset.name' missing (the dataset the frames were made for)")
     for key in ("hardware", "config"):
         if m.get(key) is not None and not isinstance(m[key], dict):
-            problems.append(f"{file}: field '{key}' must be an object, got {fields._short(m[key])}")
+            problems.append(f"{file}: field '{key}' must be an object, got {fields.short(m[key])}")
     t = m.get("timings", {})
     if not isinstance(t, dict):
         problems.append(f"{file}: field 'timings' must be an object with {', '.join(_TIMING_KEYS)}")
@@ -232,7 +232,7 @@ def _manifest_problems(m: Any, file: Path) -> list[str]:
         pf = t.get("per_frame_render_s", [])
         if not (isinstance(pf, list) and all(fields.is_number(v) and v >= 0 for v in pf)):
             problems.append(f"{file}: field 'timings.per_frame_render_s' must be a list of seconds >= 0, "
-                            f"got {fields._short(pf)}")
+                            f"got {fields.short(pf)}")
     if m.get("peak_memory_mb") is not None:
         check(fields.number, "peak_memory_mb", m["peak_memory_mb"], "a number of MB >= 0 or null", 0,
               lo_open=False)

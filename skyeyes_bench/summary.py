@@ -14,7 +14,7 @@ from . import stats
 from .errors import UserError
 from .metricspec import FRAME_METRICS, metric_def
 from .registry import load_entry_point
-from .results import RESULTS_FORMAT, _digest, _stage, _tqdm
+from .results import RESULTS_FORMAT, lines_digest, timed_stage, progress_bar
 
 
 # --------------------------------------------------------------------------- summary
@@ -78,8 +78,8 @@ def finalize(doc: dict, features: dict, *, timing: dict | None = None, progress:
     res["format"] = RESULTS_FORMAT
     res["frames"] = frames
     res["sha256"] = {
-        "submission_frames": _digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for r in frames]),
-        "ground_truth": _digest([f"{r['scene']}/{r['file']} {r['gt_sha256']}\n" for r in frames]),
+        "submission_frames": lines_digest([f"{r['scene']}/{r['file']} {r['sha256']}\n" for r in frames]),
+        "ground_truth": lines_digest([f"{r['scene']}/{r['file']} {r['gt_sha256']}\n" for r in frames]),
     }
     res["statistics"] = {
         "method": f"half-sampling of {st.cluster}s without replacement (paired submission/ground truth): each "
@@ -108,7 +108,7 @@ def _frame_metrics(doc: dict, frames: list[dict], protocol, rs: _Resampling,
     metrics: dict[str, dict] = {}
     per_seq: dict[str, dict] = {sid: {"frames": int((seqs == i).sum())} for i, sid in enumerate(seq_ids)}
     # over: means of values near 1e308 (only a hostile part holds them) are +-inf, without a warning
-    with _stage(timing, "bootstrap_s"), np.errstate(over="ignore"):
+    with timed_stage(timing, "bootstrap_s"), np.errstate(over="ignore"):
         for name in FRAME_METRICS:
             if not protocol.metric(name):
                 continue
@@ -164,15 +164,15 @@ def _set_metrics(doc: dict, features: dict, protocol, rs: _Resampling, timing: d
                                f"frames; need at least {spec.min_rows}",
                                "fix": "sequences must hold at least clip_length frames"}
             continue
-        with _stage(timing, "set_metrics_s"):
+        with timed_stage(timing, "set_metrics_s"):
             value = float(load_entry_point(spec.estimator)(xs, xg, m, st.seed))
         reps = centre = None
         if rs.counts is not None:
-            with _stage(timing, "bootstrap_s"):
+            with timed_stage(timing, "bootstrap_s"):
                 if spec.centre:  # an estimate with random subsets: its interval's centre (MetricDef.centre)
                     centre = float(load_entry_point(spec.centre)(xs, xg, m, st.seed))
                 fn = stats.set_metric_bootstrap(m.name, xs, xg, cl, k, m, st.seed)
-                bar = _tqdm(progress, total=len(rs.counts), desc=f"resample {m.name}", unit="replicate")
+                bar = progress_bar(progress, total=len(rs.counts), desc=f"resample {m.name}", unit="replicate")
                 with bar:
                     reps = stats.set_metric_samples(fn, cl, cl, rs.counts, progress=bar.update)
         metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,

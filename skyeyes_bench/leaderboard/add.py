@@ -145,20 +145,8 @@ def _hardware_here() -> dict:
     return hw
 
 
-def add_result(results_path, *, root, name: str | None = None, force: bool = False) -> list[str]:
-    """File `results_path` as `<root>/results/<name>.json` and save its strip frames and the test
-    sequence's animation.
-
-    Returns the lines to print (what was filed, what the strip and the animation have or lack).
-    Raises UserError (one line) for a file the leaderboard cannot use or an existing name; then
-    nothing is left behind: every check runs before the first write, and what this call created
-    is removed if a write fails. Every path written or deleted is checked to lie under `root`
-    where it is written (`safe`). Without `force` nothing is replaced or deleted.
-    """
-    path, root = Path(results_path), Path(root)
-    if not root.is_dir():
-        raise UserError(f"{root}: leaderboard folder not found (pass --root DIR)")
-    doc = check_results(path)
+def _name_to_file(path: Path, doc: dict, name: str | None) -> str:
+    """The name to file the result under: `name` (--name), else the submission's method; checked."""
     if name is None:
         name = doc["submission"].get("method")
         if name is None:
@@ -167,8 +155,12 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
                           "--name)")
     else:
         checks.filed_name("--name", name, "the name to file the result under")
-    safe.writable(root)
-    # 1. where everything goes, checked before anything is written
+    return name
+
+
+def _destinations(root: Path, doc: dict, name: str, force: bool) -> tuple[Path, Path, Path]:
+    """Where the results file (`dest`), the frames of its protocol and dataset (`base`) and the strip
+    frames of `name` (`mine`) go, checked before anything is written: (dest, base, mine)."""
     dest = root / "results" / f"{name}.json"
     if dest.is_dir():
         raise UserError(f"{dest}: is a folder; expected the results file filed as {name!r} (or nothing)")
@@ -184,7 +176,16 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
                         f"pass --force to replace them or --name to file the result under another name")
     if mine.exists() and not mine.is_dir():
         raise UserError(f"{mine}: is a file; expected the folder of {name!r}'s strip frames (or nothing)")
-    listed = base / FRAMES_LIST
+    return dest, base, mine
+
+
+def _strip_and_sequence(path: Path, doc: dict, listed: Path) -> tuple[list[dict], dict, bool, dict, list[dict]]:
+    """The strip frames and the test sequence: those of the frames list `listed` if there is one,
+    else chosen from `doc`; checked against the results' frame records.
+
+    Returns (frames, sequence, whether the list lacks the sequence, records by (scene, file),
+    the sequence's frames as [{"scene", "file"}]).
+    """
     frames, seq = checks.frames_file(listed) if listed.is_file() else (choose_frames(doc), None)
     records = {(r["scene"], r["file"]): r for r in doc["frames"]}
     if not frames:
@@ -200,6 +201,54 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
     if any((f["scene"], f["file"]) not in records for f in seq_frames):
         raise UserError(f"{path}: field 'frames' lacks the test sequence's frames listed in {listed}: not the "
                         f"dataset the other results of {doc['protocol']['ref']} were scored on")
+    return frames, seq, add_seq, records, seq_frames
+
+
+def _added_fields(path: Path, doc: dict, lines: list[str]) -> dict:
+    """What `add` records in the filed results (ADD_KEY): where the file came from, and this
+    machine's hardware when the run recorded none (said so in `lines`, and on the page)."""
+    added: dict = {"added_from": str(path.resolve())}
+    if not format_hardware(doc["submission"].get("hardware")):
+        added["hardware"] = _hardware_here()
+        added["hardware_source"] = "the machine that ran `skyeyes-bench leaderboard add` (not recorded by the run)"
+        lines.append(f"  hardware: not in the results; recorded this machine's ({format_hardware(added['hardware'])})")
+    return added
+
+
+def _undo(created: list[Path], restore: list[tuple[Path, bytes]], new_dirs: list[Path], *, root: Path) -> None:
+    """After a failed write: remove what was created, restore the files changed, and remove the
+    folders made (if left empty)."""
+    for p in reversed(created):
+        with contextlib.suppress(UserError):
+            safe.remove(p, root=root)
+    for p, old in restore:
+        with contextlib.suppress(UserError):
+            safe.write_bytes(p, old, root=root)
+    for d in reversed(new_dirs):
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only if empty: a folder this call made and left nothing in
+
+
+def add_result(results_path, *, root, name: str | None = None, force: bool = False) -> list[str]:
+    """File `results_path` as `<root>/results/<name>.json` and save its strip frames and the test
+    sequence's animation.
+
+    Returns the lines to print (what was filed, what the strip and the animation have or lack).
+    Raises UserError (one line) for a file the leaderboard cannot use or an existing name; then
+    nothing is left behind: every check runs before the first write, and what this call created
+    is removed if a write fails. Every path written or deleted is checked to lie under `root`
+    where it is written (`safe`). Without `force` nothing is replaced or deleted.
+    """
+    path, root = Path(results_path), Path(root)
+    if not root.is_dir():
+        raise UserError(f"{root}: leaderboard folder not found (pass --root DIR)")
+    doc = check_results(path)
+    name = _name_to_file(path, doc, name)
+    safe.writable(root)
+    # 1. where everything goes, checked before anything is written
+    dest, base, mine = _destinations(root, doc, name, force)
+    listed = base / FRAMES_LIST
+    frames, seq, add_seq, records, seq_frames = _strip_and_sequence(path, doc, listed)
     gt, gt_src = base / GROUND_TRUTH, Path(doc["dataset"].get("root") or ".")
     gt_seq = gt / SEQUENCE_FILE
     sub_src = Path(doc["submission"].get("path") or ".")
@@ -210,11 +259,7 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
     seq_why = _tiles_problem(sub_src, seq_frames, records, "sha256")
     lines = [f"{dest}: {doc['submission'].get('method')} on {doc['protocol']['ref']}"]
     # 2. hardware: the run's, else this machine's (said so in the file and on the page)
-    added: dict = {"added_from": str(path.resolve())}
-    if not format_hardware(doc["submission"].get("hardware")):
-        added["hardware"] = _hardware_here()
-        added["hardware_source"] = "the machine that ran `skyeyes-bench leaderboard add` (not recorded by the run)"
-        lines.append(f"  hardware: not in the results; recorded this machine's ({format_hardware(added['hardware'])})")
+    added = _added_fields(path, doc, lines)
     # 3. write: the frames list (once per protocol and dataset; the sequence added to an older
     # one), the ground truth's and this method's strip frames and animation, then the results
     # file, last (atomic). A failure removes what this call created and restores the list it
@@ -257,15 +302,7 @@ def add_result(results_path, *, root, name: str | None = None, force: bool = Fal
         doc[ADD_KEY] = added
         write_results_file(dest, doc, root=root)
     except BaseException:
-        for p in reversed(created):
-            with contextlib.suppress(UserError):
-                safe.remove(p, root=root)
-        for p, old in restore:
-            with contextlib.suppress(UserError):
-                safe.write_bytes(p, old, root=root)
-        for d in reversed(new_dirs):
-            with contextlib.suppress(OSError):
-                d.rmdir()  # only if empty: a folder this call made and left nothing in
+        _undo(created, restore, new_dirs, root=root)
         raise
     return lines
 

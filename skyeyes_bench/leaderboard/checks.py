@@ -47,7 +47,7 @@ def _where(path, field: str) -> str:
 def protocol_ref(where: str, value: Any) -> str:
     if not (isinstance(value, str) and len(value) <= 72 and REF.fullmatch(value)):
         raise UserError(f"{where}: expected a protocol reference 'ID@N' (ID: lowercase letters, digits, '-', '_', "
-                        f"'.'; N: a version 1..999999), got {safe._short(value)}")
+                        f"'.'; N: a version 1..999999), got {fields.short(value)}")
     return value
 
 
@@ -71,7 +71,7 @@ def hardware(path, field: str, hw: Any) -> None:
         return
     if not isinstance(hw, dict):
         raise UserError(f"{_where(path, field)}: expected an object {{cpu, cores, gpu}} or null, got "
-                        f"{safe._short(hw)}")
+                        f"{fields.short(hw)}")
     for key in ("cpu", "gpu"):
         _optional_text(_where(path, f"{field}.{key}"), hw.get(key), "a hardware name")
     if hw.get("cores") is not None:
@@ -88,7 +88,7 @@ def run_seconds(path, timings: Any, *, required: bool) -> tuple[float | None, fl
             out.append(None)
             continue
         if not (fields.is_number(v) and 0 <= v <= MAX_RUN_S):
-            what = "missing" if v is None else f"is {fields._short(v)}"
+            what = "missing" if v is None else f"is {fields.short(v)}"
             raise UserError(f"{_where(path, f'submission.timings.{key}')} {what}; expected the seconds the submission "
                             f"reports (a number in 0..{MAX_RUN_S:g}): the leaderboard shows and plots run time (fit + "
                             f"render)")
@@ -104,7 +104,7 @@ def _rel_path(where: str, value: Any, what: str) -> None:
     if not (isinstance(value, str) and 0 < len(value) <= 1024 and all(
             safe.NAME.fullmatch(part) and ".." not in part for part in value.split("/"))):
         raise UserError(f"{where}: expected {what} (a relative path of plain names such as 'ground/000012.png'), "
-                        f"got {safe._short(value)}")
+                        f"got {fields.short(value)}")
 
 
 def results_fields(doc: dict, path) -> None:
@@ -136,10 +136,10 @@ def results_fields(doc: dict, path) -> None:
     if added is not None:
         if not isinstance(added, dict):
             raise UserError(f"{w('leaderboard')}: expected what `leaderboard add` records (an object), got "
-                            f"{safe._short(added)}")
+                            f"{fields.short(added)}")
         hardware(path, "leaderboard.hardware", added.get("hardware"))
     for ex_id, info in doc["extractors"].items():
-        safe.plain_name(w(f"extractors.{safe._short(ex_id, 40)}"), ex_id, "an extractor id")
+        safe.plain_name(w(f"extractors.{fields.short(ex_id, 40)}"), ex_id, "an extractor id")
         if info.get("weights_sha256") is not None:
             safe.hex_digest(w(f"extractors.{ex_id}.weights_sha256"), info["weights_sha256"], "the weights' sha256")
     for name, m in doc["metrics"].items():
@@ -149,7 +149,7 @@ def results_fields(doc: dict, path) -> None:
     st = doc.get("statistics")
     if st is not None:
         if not isinstance(st, dict):
-            raise UserError(f"{w('statistics')}: expected an object, got {safe._short(st)}")
+            raise UserError(f"{w('statistics')}: expected an object, got {fields.short(st)}")
         if "resamples" in st:
             fields.integer(w("statistics.resamples"), st["resamples"], "the number of resamples", 1, MAX_RESAMPLES)
         if "seed" in st:
@@ -198,10 +198,10 @@ def _records(path: Path, field: str, records: Any, most: int, what: str):
     its scene folder) and `index` (an integer): yields (record, where), where(name) naming the
     record's field `name` in errors."""
     if not (isinstance(records, list) and 1 <= len(records) <= most):
-        raise UserError(f"{_where(path, field)}: expected a list of 1..{most} {what}, got {safe._short(records)}")
+        raise UserError(f"{_where(path, field)}: expected a list of 1..{most} {what}, got {fields.short(records)}")
     for i, f in enumerate(records):
         if not isinstance(f, dict):
-            raise UserError(f"{_where(path, f'{field}[{i}]')}: expected an object, got {safe._short(f)}")
+            raise UserError(f"{_where(path, f'{field}[{i}]')}: expected an object, got {fields.short(f)}")
         w = lambda name, i=i: _where(path, f"{field}[{i}].{name}")  # noqa: E731
         _rel_path(w("file"), f.get("file"), "the frame's file in its scene")
         fields.integer(w("index"), f.get("index"), "the frame's index in its sequence")
@@ -212,7 +212,7 @@ def _sequence(path: Path, seq: Any) -> dict | None:
     if seq is None:
         return None
     if not isinstance(seq, dict):
-        raise UserError(f"{_where(path, 'sequence')}: expected the test sequence (an object), got {safe._short(seq)}")
+        raise UserError(f"{_where(path, 'sequence')}: expected the test sequence (an object), got {fields.short(seq)}")
     safe.plain_name(_where(path, "sequence.scene"), seq.get("scene"), "a scene name")
     safe.plain_text(_where(path, "sequence.sequence"), seq.get("sequence"), "a sequence id", max_len=1000, empty=False)
     safe.plain_text(_where(path, "sequence.label"), seq.get("label"), "the sequence's label", max_len=1000)
@@ -233,7 +233,7 @@ def reported_file(path: Path) -> dict:
         if k not in raw:
             raise UserError(f"{path}: missing key '{k}'")
     if raw["status"] != "reported":
-        raise UserError(f"{path}: key 'status' must be \"reported\", got {safe._short(raw['status'])}")
+        raise UserError(f"{path}: key 'status' must be \"reported\", got {fields.short(raw['status'])}")
     safe.plain_text(w("title"), raw["title"], "the table's title", empty=False)
     protocol_ref(w("protocol"), raw["protocol"])
     safe.plain_text(w("citation"), raw["citation"], "the paper it is copied from", max_len=1000, empty=False)
@@ -243,13 +243,13 @@ def reported_file(path: Path) -> dict:
     metrics = raw["metrics"]
     if not (isinstance(metrics, list) and metrics and all(isinstance(m, str) for m in metrics)
             and len(set(metrics)) == len(metrics)):
-        raise UserError(f"{w('metrics')}: expected a list of metric names (each once), got {safe._short(metrics)}")
+        raise UserError(f"{w('metrics')}: expected a list of metric names (each once), got {fields.short(metrics)}")
     unknown = [m for m in metrics if m not in METRICS]
     if unknown:
-        raise UserError(f"{path}: unknown metrics {safe._short(sorted(unknown))} (known: {', '.join(METRICS)})")
+        raise UserError(f"{path}: unknown metrics {fields.short(sorted(unknown))} (known: {', '.join(METRICS)})")
     rows = raw["rows"]
     if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-        raise UserError(f"{w('rows')}: expected a list of tables ([[rows]]), got {safe._short(rows)}")
+        raise UserError(f"{w('rows')}: expected a list of tables ([[rows]]), got {fields.short(rows)}")
     for i, r in enumerate(rows):
         if "method" not in r:
             raise UserError(f"{path}: rows[{i}] has no 'method'")
@@ -259,5 +259,5 @@ def reported_file(path: Path) -> dict:
             v = r.get(m)
             if v is not None and not (fields.is_number(v) and math.isfinite(v)):
                 raise UserError(f"{w(f'rows[{i}].{m}')}: expected the score the paper prints (a finite number, or "
-                                f"leave the key out), got {safe._short(v)}")
+                                f"leave the key out), got {fields.short(v)}")
     return raw

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .. import inputfiles, outputfiles, outputunit, safe
 from ..errors import UserError, one_line
-from ..results import _digest
+from ..results import lines_digest
 from .tables import ADD_KEY
 
 #: The intake's record in --out, and its format.
@@ -42,7 +42,7 @@ def submission_sha(folder: Path) -> str:
             else:
                 what = "not a regular file"
             lines.append(f"{rel} {what}\n")
-    return _digest(lines)
+    return lines_digest(lines)
 
 
 def _read_state(path: Path) -> dict:

@@ -126,7 +126,8 @@ def strip_rows(root: Path, t: Table) -> list[tuple[str, Path | None]]:
     return out
 
 
-def _font(size: int = 11):
+def label_font(size: int = 11):
+    """The font of the labels drawn on the strip and the animation (Pillow's default)."""
     from PIL import ImageFont
 
     try:
@@ -135,7 +136,8 @@ def _font(size: int = 11):
         return ImageFont.load_default()
 
 
-def _fit_text(draw, text: str, font, width: int) -> str:
+def fit_text(draw, text: str, font, width: int) -> str:
+    """`text` cut (ending in "…") to fit `width` px in `font`."""
     while text and draw.textlength(text, font=font) > width:
         text = text[:-2] + "…" if len(text) > 2 else ""
     return text
@@ -155,14 +157,14 @@ def render_strip(root: Path, t: Table) -> bytes | None:
     k = len(frames)
     img = Image.new("RGB", (LABEL_W + k * TILE, HEAD_H + len(rows) * TILE), (255, 255, 255))
     draw = ImageDraw.Draw(img)
-    font = _font()
+    font = label_font()
     for j, f in enumerate(frames):
         for n, line in enumerate(str(f["label"]).rsplit("/", 1)):  # "scene" / "sequence #index"
-            draw.text((LABEL_W + j * TILE + 4, 3 + 14 * n), _fit_text(draw, line, font, TILE - 8), fill=(0, 0, 0),
+            draw.text((LABEL_W + j * TILE + 4, 3 + 14 * n), fit_text(draw, line, font, TILE - 8), fill=(0, 0, 0),
                       font=font)
     for i, (label, folder) in enumerate(rows):
         y = HEAD_H + i * TILE
-        draw.text((4, y + TILE // 2 - 6), _fit_text(draw, label, font, LABEL_W - 8), fill=(0, 0, 0), font=font)
+        draw.text((4, y + TILE // 2 - 6), fit_text(draw, label, font, LABEL_W - 8), fill=(0, 0, 0), font=font)
         for j, f in enumerate(frames):
             x = LABEL_W + j * TILE
             p = folder / f["tile"] if folder is not None else None

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from .plots import FRAMES_DIR, FRAMES_LIST, GROUND_TRUTH, TILE, _fit_text, _font
+from .plots import FRAMES_DIR, FRAMES_LIST, GROUND_TRUTH, TILE, fit_text, label_font
 from .tables import Table
 
 #: The animation of one row, in its folder `frames/<key>/<name>/` (and `ground-truth/`).
@@ -213,11 +213,11 @@ def compose(tiles: list[tuple[str, list[np.ndarray]]]) -> list[np.ndarray]:
     rows = -(-len(tiles) // cols)
     base = Image.new("RGB", (cols * TILE + (cols - 1) * GAP, rows * (LABEL_H + TILE) + (rows - 1) * GAP),
                      (255, 255, 255))
-    draw, font = ImageDraw.Draw(base), _font()
+    draw, font = ImageDraw.Draw(base), label_font()
     cells = []
     for i, (label, frames) in enumerate(tiles):
         x, y = (i % cols) * (TILE + GAP), (i // cols) * (LABEL_H + TILE + GAP)
-        draw.text((x + 2, y + 1), _fit_text(draw, label, font, TILE - 4), fill=(0, 0, 0), font=font)
+        draw.text((x + 2, y + 1), fit_text(draw, label, font, TILE - 4), fill=(0, 0, 0), font=font)
         h, w = frames[0].shape[:2]
         scale = min(TILE / w, TILE / h)
         size = (max(1, round(w * scale)), max(1, round(h * scale)))

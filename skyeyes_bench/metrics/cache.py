@@ -24,6 +24,7 @@ import numpy as np
 from .. import paths
 from ..imagefiles import read_image
 from ..inputfiles import sha256_file
+from ..metricspec import CLIP_EXTRACTOR, IMAGE_EXTRACTOR
 from ..outputfiles import atomic_path
 from .extractors import current_device, get_extractor
 
@@ -131,7 +132,7 @@ def extract_image_features(extractor_id: str, paths_: list[Path], *, batch_size:
         float64 [N, D] in the order of `paths_`.
     """
     ex = get_extractor(extractor_id)
-    if ex.kind != "image":
+    if ex.kind != IMAGE_EXTRACTOR:
         raise ValueError(f"{extractor_id} is a {ex.kind} extractor, not an image one")
     paths_ = [Path(p) for p in paths_]
     keys = [sha256_file(p) for p in paths_]
@@ -147,7 +148,7 @@ def extract_clip_features(extractor_id: str, clips: list[list[Path]], *, batch_s
         float64 [M, D] in the order of `clips`.
     """
     ex = get_extractor(extractor_id)
-    if ex.kind != "video":
+    if ex.kind != CLIP_EXTRACTOR:
         raise ValueError(f"{extractor_id} is a {ex.kind} extractor, not a video one")
     clips = [[Path(p) for p in c] for c in clips]
     memo: dict[Path, str] = {}

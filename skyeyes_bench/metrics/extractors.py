@@ -28,6 +28,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from ..errors import UserError
+from ..metricspec import CLIP_EXTRACTOR, IMAGE_EXTRACTOR
 from ..registry import lookup
 from . import weights as W
 from .weights import MetricUnavailable
@@ -66,7 +67,8 @@ def full_fp32(device):
     return exact_fp32(device)
 
 
-def _torch_setup():
+def torch_setup():
+    """torch, with its threads set (`threads.set_threads`), before a network is loaded or run."""
     import torch
 
     from ..threads import set_threads
@@ -98,7 +100,7 @@ class Extractor:
     """Base: id, kind, dim, weight files; status() and lazy model."""
 
     id: str = ""
-    kind: str = ""
+    kind: str = ""  # what it takes: IMAGE_EXTRACTOR, CLIP_EXTRACTOR (`metricspec`) or "pair" (LPIPS)
     dim: int = 0
     files: tuple[str, ...] = ()
     reference: str = ""
@@ -146,11 +148,11 @@ class Extractor:
             import torch
 
             dev = torch.device("cuda", torch.cuda.current_device())
-        key = tuple(W._cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
+        key = tuple(W.cached_sha256(f) for f in files)  # same bytes elsewhere: no reload
         if self._model_key != key:
             self._models, self._model_key = {}, key
         if str(dev) not in self._models:
-            _torch_setup()
+            torch_setup()
             self._models[str(dev)] = self._load(files, dev)
         return self._models[str(dev)]
 
@@ -166,7 +168,7 @@ class Extractor:
     def _chunked(self, inputs: np.ndarray, preprocess, device=None) -> np.ndarray:
         """The network on `inputs` [N, ...] in chunks of `self.chunk` -> float64 [N, dim].
         `preprocess` makes a CPU tensor (the reference preprocessing); it is moved to `device`."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         model = self._model_for(device)
         out = np.zeros((len(inputs), self.dim), np.float64)
@@ -179,7 +181,7 @@ class Extractor:
 
 
 class InceptionTF2015(Extractor):
-    id, kind, dim = "inception-tf-2015", "image", 2048
+    id, kind, dim = "inception-tf-2015", IMAGE_EXTRACTOR, 2048
     files = ("inception-2015-12-05-fid-helper-default_1.pt",)
     resize = "clean-bicubic"
     chunk = 16  # frames per forward pass
@@ -200,7 +202,7 @@ class InceptionTF2015(Extractor):
 
 
 class I3DKinetics400(Extractor):
-    id, kind, dim = "i3d-kinetics400", "video", 400
+    id, kind, dim = "i3d-kinetics400", CLIP_EXTRACTOR, 400
     files = ("i3d-kinetics-400.ckpt",)
     resize = "stylegan-v-bilinear"
     chunk = 2  # clips per forward pass
@@ -279,7 +281,7 @@ class LPIPSv01(Extractor):
         return self._run(pred, gt, spatial=True, device=device)
 
     def _run(self, pred, gt, *, spatial: bool, device=None) -> np.ndarray:
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         model = self._model_for(device)
 
@@ -293,7 +295,7 @@ class LPIPSv01(Extractor):
 class RandomImage64(Extractor):
     """Test-only: a seeded random conv net (no weights). Never valid in an official protocol."""
 
-    id, kind, dim = "random-image-64", "image", 64
+    id, kind, dim = "random-image-64", IMAGE_EXTRACTOR, 64
     reference = "none (test-only)"
 
     @property
@@ -322,7 +324,7 @@ class RandomImage64(Extractor):
 
     def features(self, images: np.ndarray, device=None) -> np.ndarray:
         """images: float [N, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         images = np.asarray(images, np.float32)
         assert images.ndim == 4 and images.shape[-1] == 3, images.shape
@@ -333,11 +335,11 @@ class RandomImage64(Extractor):
 class RandomVideo64(RandomImage64):
     """Test-only: per-frame random features, mean and frame-difference halves (32 + 32)."""
 
-    id, kind, dim = "random-video-64", "video", 64
+    id, kind, dim = "random-video-64", CLIP_EXTRACTOR, 64
 
     def features(self, clips: np.ndarray, device=None) -> np.ndarray:
         """clips: float [N, T, H, W, 3] in [0, 1] -> float64 [N, 64] (computed on `device`)."""
-        torch = _torch_setup()
+        torch = torch_setup()
         dev = current_device(device)
         clips = np.asarray(clips, np.float32)
         assert clips.ndim == 5 and clips.shape[-1] == 3, clips.shape

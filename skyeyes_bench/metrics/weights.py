@@ -135,7 +135,7 @@ def check(name: str) -> tuple[str, str, str]:
     w = WEIGHT_FILES[name]
     if not w.path.is_file():
         return "missing", f"{w.path} not found ({w.note})", w.fix
-    digest = _cached_sha256(w.path)
+    digest = cached_sha256(w.path)
     if digest != w.sha256:
         return ("mismatch", f"{w.path}: sha256 {digest}, expected {w.sha256}",
                 f"delete it, then {w.fix}")
@@ -145,7 +145,7 @@ def check(name: str) -> tuple[str, str, str]:
 _SHA_MEMO: dict[tuple[str, int, int, int, int], str] = {}
 
 
-def _cached_sha256(path: Path) -> str:
+def cached_sha256(path: Path) -> str:
     """sha256 of a file, memoised on (path, size, mtime) so repeated checks are free."""
     st = path.stat()
     key = (str(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)

@@ -127,7 +127,7 @@ def test_shards_merge_to_the_unsharded_numbers(tiny, scored, tmp_path):
 
 
 def test_official_protocol_refuses_random_extractors():
-    from skyeyes_bench.evaluate import _check_extractors
+    from skyeyes_bench.evaluate import check_extractors
     from skyeyes_bench.protocol import load_protocol
 
     p = load_protocol("synthtown@1")
@@ -135,7 +135,7 @@ def test_official_protocol_refuses_random_extractors():
         m.__class__(**{**m.__dict__, "extractor": "random-image-64"}) if m.name == "fid" else m
         for m in p.metrics)})
     with pytest.raises(UserError, match="test-only"):
-        _check_extractors(bad)
+        check_extractors(bad)
 
 
 def test_compare_cli(scored, tmp_path):
@@ -217,16 +217,16 @@ def test_done_when_real_extractors(synthtown_smoke, tmp_path):
 
 
 def test_protocol_resize_must_match_the_extractor():
-    from skyeyes_bench.evaluate import _check_extractors
+    from skyeyes_bench.evaluate import check_extractors
     from skyeyes_bench.protocol import load_protocol
 
     p = load_protocol("synthtown@1")
-    _check_extractors(p)  # the shipped protocol agrees with its extractors
+    check_extractors(p)  # the shipped protocol agrees with its extractors
     bad = p.__class__(**{**p.__dict__, "metrics": tuple(
         m.__class__(**{**m.__dict__, "resize": "legacy-tf-bilinear"}) if m.name == "fid" else m
         for m in p.metrics)})
     with pytest.raises(UserError, match="metrics.fid.resize"):
-        _check_extractors(bad)
+        check_extractors(bad)
 
 
 @pytest.mark.parametrize("tty", [False, True])

@@ -278,6 +278,55 @@ def precision_for(device: torch.device | str, requested: str, *, cuda: bool, bf1
     return "no"
 
 
+def _ema(params: list[torch.nn.Parameter], decay: float):
+    """An exponential moving average of `params` (diffusers' `EMAModel`), or None for decay 0."""
+    if not decay > 0:
+        return None
+    from diffusers.training_utils import EMAModel
+
+    return EMAModel(params, decay=decay)
+
+
+def _resume(ckpt: Path, model, opt, ema, device) -> tuple[int, list, float, float]:
+    """Load the checkpoint `ckpt`, if there is one, into the model, the optimizer and the EMA.
+
+    Returns (steps done, their losses, wall seconds, CPU seconds) so far: (0, [], 0.0, 0.0)
+    without one.
+    """
+    if not ckpt.is_file():
+        return 0, [], 0.0, 0.0
+    state = load_checkpoint(ckpt)
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    if ema is not None:
+        ema.load_state_dict(state["ema"])
+        # the checkpoint is read onto the CPU; the average must live with the weights
+        ema.to(device=device)
+    start, losses, seconds = state["step"], list(state["losses"]), float(state["seconds"])
+    return start, losses, seconds, float(state.get("cpu_seconds", 0.0))
+
+
+def _train_step(acc, net, opt, params, ema, loss_fn, part: tuple[int, int], *, seed: int, step: int,
+                grad_clip: float, micro_batches: int) -> torch.Tensor:
+    """One optimisation step at the optimizer's learning rate; returns this process's loss.
+
+    1. batch + noise from the step's own generator; 2. loss (this process's share);
+    3. gradients averaged over processes, clipped, AdamW update; 4. EMA.
+    """
+    opt.zero_grad(set_to_none=True)
+    if micro_batches == 1:
+        loss = loss_fn(net, step_generator(seed, step), part)
+        acc.backward(loss)
+    else:
+        loss = _accumulate(acc, net, loss_fn, step_generator, seed, step, part, micro_batches)
+    if grad_clip:
+        acc.clip_grad_norm_(params, grad_clip)
+    opt.step()
+    if ema is not None:
+        ema.step(params)
+    return loss
+
+
 def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                loss_fn: Callable[..., torch.Tensor], *, steps: int, lr: float,
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
@@ -315,22 +364,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     ckpt = Path(ckpt)
     model.to(acc.device)
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.0)
-    ema = None
-    if ema_decay > 0:
-        from diffusers.training_utils import EMAModel
-
-        ema = EMAModel(params, decay=ema_decay)
-    start, losses, seconds, cpu = 0, [], 0.0, 0.0
-    if ckpt.is_file():
-        state = load_checkpoint(ckpt)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        if ema is not None:
-            ema.load_state_dict(state["ema"])
-            # the checkpoint is read onto the CPU; the average must live with the weights
-            ema.to(device=acc.device)
-        start, losses, seconds = state["step"], list(state["losses"]), float(state["seconds"])
-        cpu = float(state.get("cpu_seconds", 0.0))
+    ema = _ema(params, ema_decay)
+    start, losses, seconds, cpu = _resume(ckpt, model, opt, ema, acc.device)
     net, opt = acc.prepare(model, opt)
     part = (acc.process_index, acc.num_processes)
     t0, c0 = time.perf_counter(), time.process_time()
@@ -350,22 +385,11 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                leave=False, initial=start, total=steps)
     done_now = start
     for step in bar:
-        # 1. batch + noise from the step's own generator; 2. loss (this process's share);
-        # 3. gradients averaged over processes, clipped, AdamW update; 4. EMA.
         if anneal_from is not None:
             for group in opt.param_groups:
                 group["lr"] = lr * anneal_factor(step, anneal_from, steps)
-        opt.zero_grad(set_to_none=True)
-        if micro_batches == 1:
-            loss = loss_fn(net, step_generator(seed, step), part)
-            acc.backward(loss)
-        else:
-            loss = _accumulate(acc, net, loss_fn, step_generator, seed, step, part, micro_batches)
-        if grad_clip:
-            acc.clip_grad_norm_(params, grad_clip)
-        opt.step()
-        if ema is not None:
-            ema.step(params)
+        loss = _train_step(acc, net, opt, params, ema, loss_fn, part, seed=seed, step=step,
+                           grad_clip=grad_clip, micro_batches=micro_batches)
         losses.append(float(acc.reduce(loss.detach(), reduction="mean")))
         bar.set_postfix(loss=f"{losses[-1]:.4f}")
         done_now = step + 1

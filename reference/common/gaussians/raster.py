@@ -227,6 +227,26 @@ def _step(x: torch.Tensor) -> torch.Tensor:
     return x.mul_(_STEP).clamp_(0.0, 1.0)
 
 
+def _stopping(Ta, stop, T_in, T_out, scalar):
+    """Tiles with a pixel that stops in this block (`stop` [T, P]): mask the Gaussians it does not use (dense on
+    those tiles only; a pixel that does not stop here uses all of its Gaussians). Returns T_out with the stopping
+    pixels' T after their last used Gaussian, those tiles ts, dense, and the mask used (0/1; None: no ts)."""
+    ts = stop.any(-1).nonzero().squeeze(1)
+    dense = len(ts) > Ta.shape[0] // 2  # most tiles: cheaper on the whole block than gathered
+    used = None
+    if len(ts):
+        Tsub = Ta if dense else Ta.index_select(0, ts)  # [k, B, P]
+        used = _step(Tsub - torch.nextafter(scalar(T_MIN), scalar(0.0)))
+        # T after the last used Gaussian (T_in if none) for the stopping pixels.
+        n_used = used.sum(1).long()  # [k, P]
+        val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
+        if dense:
+            T_out = torch.where(stop, torch.where(n_used > 0, val, T_in), T_out)
+        else:
+            T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
+    return T_out, ts, dense, used
+
+
 def _block(feat, k, o, real, T_in, done_in, need_grad):
     """Composite one depth block of a chunk of tiles.
 
@@ -286,20 +306,7 @@ def _block(feat, k, o, real, T_in, done_in, need_grad):
     stop = ~done_in & (last < T_MIN)
     done_out = done_in | stop
     T_out = torch.where(done_out, T_in, last)
-    # Tiles with a pixel that stops in this block: mask the Gaussians it does not use (dense on
-    # those tiles only; a pixel that does not stop here uses all of its Gaussians).
-    ts = stop.any(-1).nonzero().squeeze(1)
-    dense = len(ts) > Ta.shape[0] // 2  # most tiles: cheaper on the whole block than gathered
-    if len(ts):
-        Tsub = Ta if dense else Ta.index_select(0, ts)  # [k, B, P]
-        used = _step(Tsub - torch.nextafter(scalar(T_MIN), scalar(0.0)))
-        # T after the last used Gaussian (T_in if none) for the stopping pixels.
-        n_used = used.sum(1).long()  # [k, P]
-        val = Tsub.gather(1, (n_used - 1).clamp_min(0)[:, None, :])[:, 0, :]
-        if dense:
-            T_out = torch.where(stop, torch.where(n_used > 0, val, T_in), T_out)
-        else:
-            T_out[ts] = torch.where(stop[ts], torch.where(n_used > 0, val, T_in[ts]), T_out[ts])
+    T_out, ts, dense, used = _stopping(Ta, stop, T_in, T_out, scalar)
     w = Ta.mul_(r)
     if lv is not None:
         r.mul_(lv)

@@ -86,6 +86,22 @@ def _protocol_sha(ref: str) -> str | None:
         return None
 
 
+def _scores_same_data(ref: str, protocol) -> bool:
+    """Whether a submission written for protocol `ref` holds the frames `protocol` scores: `ref` is
+    `protocol` itself, the protocol whose data it scores, or another version of the same id
+    that scores the same data (synthtown@3 and synthtown@4 both score synthtown@2's)."""
+    from .protocol import load_protocol
+
+    if ref in (protocol.ref, protocol.data_ref):
+        return True
+    if ref.partition("@")[0] != protocol.id:
+        return False
+    try:
+        return load_protocol(ref).data_ref == protocol.data_ref
+    except UserError:
+        return False
+
+
 def make_manifest(ds, *, method: str, method_version: str, config: dict | None, timings: dict | None,
                   peak_memory_mb: float | None, hardware: dict | None) -> dict[str, Any]:
     """The content of `submission.json` for a submission of dataset `ds`."""
@@ -273,13 +289,15 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     root = sub.resolve()
     problems: list[str] = []
     mfile = sub / SUBMISSION_FILE
-    # A protocol that scores another one's data (synthtown@3: synthtown@2's frames) also scores
-    # submissions written for that one; its protocol_sha256 is then checked against that file.
-    written_for = protocol.ref if manifest["protocol"] == protocol.ref else protocol.data_ref
+    # A protocol also scores submissions written for another that scores the same data: the one
+    # whose data it is (synthtown@3 scores synthtown@2's frames) or a sibling version (a
+    # synthtown@4 submission scored as synthtown@3, to file it in that table). Its
+    # protocol_sha256 is then checked against that protocol's file.
+    written_for = manifest["protocol"] if _scores_same_data(manifest["protocol"], protocol) else protocol.ref
     if manifest["protocol"] != written_for:
-        also = f" (or {protocol.data_ref!r}, whose data it scores)" if protocol.data_ref != protocol.ref else ""
         problems.append(f"{mfile}: field 'protocol' is {manifest['protocol']!r}, the evaluation uses "
-                        f"{protocol.ref!r}{also}")
+                        f"{protocol.ref!r}, which scores the data of {protocol.data_ref!r} (and submissions "
+                        f"written for any protocol that scores that data)")
     sha = manifest.get("protocol_sha256")
     want = protocol.sha256 if written_for == protocol.ref else _protocol_sha(written_for)
     if sha and want and sha != want:

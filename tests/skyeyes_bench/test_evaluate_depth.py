@@ -153,6 +153,41 @@ def test_old_submission_rescored_with_a_later_protocol(depth_scored, synthtown_s
     assert "field 'protocol' is 'synthtown@1', the evaluation uses 'synthtown@2'" in err
 
 
+def test_submission_scored_with_an_earlier_version_of_the_same_data(depth_scored, synthtown_smoke, tmp_path):
+    """A submission written for a later version (synthtown@10 here, as synthtown@4 is to
+    synthtown@3) is scored by an earlier one that scores the same data, with that one's numbers;
+    its protocol_sha256 is checked against the later file, and other data is still refused."""
+    from skyeyes_bench.protocol import load_protocol
+
+    ds, subs, res, tmp = depth_scored
+    v10 = tmp / "protocols" / "synthtown" / "v10.toml"
+    v10.write_text(DEPTH_PROTOCOL.replace("version = 9", "version = 10"))
+    try:
+        later = tmp_path / "later"
+        shutil.copytree(subs["noise"], later)
+        man = json.loads((later / "submission.json").read_text())
+        man.update(protocol="synthtown@10", protocol_sha256=load_protocol("synthtown@10").sha256)
+        (later / "submission.json").write_text(json.dumps(man))
+        again = evaluate(later, data=synthtown_smoke, protocol="synthtown@9", progress=False)
+        assert again["protocol"]["ref"] == "synthtown@9" and again["submission"]["protocol"] == "synthtown@10"
+        for name in ("psnr", *SEQUENCE_METRICS):
+            assert again["metrics"][name].get("value") == res["noise"]["metrics"][name].get("value"), name
+        # a changed protocol file is caught against the version the submission names
+        man.update(protocol_sha256="0" * 64)
+        (later / "submission.json").write_text(json.dumps(man))
+        rc, out, err = run_cli("evaluate", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@9",
+                               "--out", str(tmp_path / "r.json"), check=2)
+        assert "'protocol_sha256' does not match protocol synthtown@10" in err
+        # a version that scores other data (synthtown@2: synthtown-v2-small) refuses it
+        man.update(protocol_sha256=load_protocol("synthtown@10").sha256)
+        (later / "submission.json").write_text(json.dumps(man))
+        rc, out, err = run_cli("evaluate", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@2",
+                               "--out", str(tmp_path / "r2.json"), check=2)
+        assert "field 'protocol' is 'synthtown@10', the evaluation uses 'synthtown@2'" in err
+    finally:
+        v10.unlink()
+
+
 def test_shards_merge_to_the_unsharded_numbers(depth_scored, synthtown_smoke, tmp_path):
     _, subs, res, _ = depth_scored
     parts = [tmp_path / f"p{i}.json" for i in range(3)]

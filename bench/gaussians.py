@@ -184,7 +184,7 @@ def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = No
         rows.append({"iteration": it, "train_s": secs, "gaussians": len(model), "aerial_psnr": pa, "ground_psnr": pg})
         print(f"{it:>6} {secs:>8.1f} {len(model):>9} {pa:>11.2f} {pg:>11.2f}", flush=True)
 
-    m.use_threads()  # as fit_scene would; the model is not checkpointed: a curve, not a fit to keep
+    m.use_threads()  # as fit_one_scene would; the model is not checkpointed: a curve, not a fit to keep
     m.fit_scene_model(scene, progress=False, callback=cb)
     return rows
 

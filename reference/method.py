@@ -7,10 +7,12 @@ scripts, and by a method run inside another, as Skyeyes runs its prior).
    a method from it. Configs are saved with every run so a run can be repeated from its output.
 2. `fit_train(dataset)`: learn what carries across scenes from the *train* split (a diffusion
    model, a colour map). Optional; methods that only reconstruct a scene leave it empty.
-3. `fit_scene(scene)`: per test scene (a lane). Only the scene's aerial images and poses may be
-   used, plus the *poses and intrinsics* of its ground cameras (never their pixels). The base
-   class resumes the scene from its checkpoint or calls `fit_scene_model` and saves what it
-   returns; a method with nothing to keep per scene overrides `fit_scene` itself.
+3. `fit_scenes(scenes)`: per test scene (a lane). Only the scene's aerial images and poses may
+   be used, plus the *poses and intrinsics* of its ground cameras (never their pixels). A
+   method's one hook here is `fit_scene_model(scene)`; the base class resumes each scene from
+   its checkpoint (`scene_checkpoint`) or calls the hook and saves what it returns, in worker
+   processes where the method allows it (`parallel_scenes`). Parts a method is assembled from
+   that fit on every scene at once (a diffusion model's prior renders: `scene_parts`) fit first.
 4. `render_sequence(scene, sequence)`: yield one float32 [H, W, 3] image in [0, 1] per ground
    frame of the sequence, in order (by default `render_frame` of each frame).
 
@@ -38,7 +40,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterator, TypeVar
+from typing import Any, Callable, ClassVar, Iterator, Protocol, TypeVar
 
 import numpy as np
 
@@ -127,13 +129,22 @@ def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str,
 # --------------------------------------------------------------------------- the method
 
 
+class SceneParts(Protocol):
+    """A part of a method that fits on many scenes at once, before the method's own per-scene
+    fits (`Method.scene_parts`)."""
+
+    def fit_scenes(self, scenes: list[Scene], *, progress: bool, jobs: int) -> float:
+        """Fit on `scenes`; return the original seconds of the work taken from caches."""
+        ...
+
+
 class Method(abc.ABC):
     name: ClassVar[str]
     version: ClassVar[str] = "0.1"
     #: preset name -> config dataclass instance
     presets: ClassVar[dict[str, Any]]
-    #: File in `scene_dir(scene)` that holds a fitted scene (`save_scene_model`); methods with
-    #: nothing to keep per scene override `fit_scene` and leave it None.
+    #: File in `scene_dir(scene)` that holds a fitted scene (`save_scene_model`); None: what
+    #: `fit_scene_model` returns is not saved, the hook runs again in every run.
     scene_checkpoint: ClassVar[str | None] = None
 
     def __init__(self, config: Any, workdir: Path, *, seed: int = 0, progress: bool = True):
@@ -280,32 +291,54 @@ class Method(abc.ABC):
     def fit_train(self, dataset: Dataset) -> None:  # noqa: B027  (optional hook)
         """Learn from the train split. Default: nothing to learn across scenes."""
 
-    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
-        """Fit on one test scene's aerial views (and its ground camera poses, not pixels), or
-        resume it from `scene_dir(scene)/scene_checkpoint`. progress: the fit's bars (None: the
-        method's setting)."""
-        if self.scene_checkpoint is None:
-            raise NotImplementedError(f"{self.name}: no scene_checkpoint, so fit_scene must be its own")
-        self.use_threads()
+    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
+        """Fit every scene of `scenes`: first the method's `scene_parts`, on all of them at once,
+        then `fit_one_scene` of each, `self.jobs` at a time in worker processes where
+        `parallel_scenes` allows it (`reference.parallel`); the same result as in turn."""
+        from reference.parallel import fit_scenes
+
         progress = self.progress if progress is None else progress
-        folder = self.scene_dir(scene)
-        model, stats = self.checkpointed(folder / self.scene_checkpoint,
-                                         lambda: self.fit_scene_model(scene, progress=progress),
-                                         save=self.save_scene_model, load=self.load_scene_model,
-                                         stats=folder / "fit.json", seconds="fit_seconds")
+        for part in self.scene_parts():
+            self.took_from_cache(part.fit_scenes(scenes, progress=progress, jobs=self.jobs))
+        fit_scenes(self, scenes, jobs=self.jobs, progress=progress)
+
+    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+        """`fit_scenes` of one scene."""
+        self.fit_scenes([scene], progress=progress)
+
+    def fit_one_scene(self, scene: Scene, *, progress: bool) -> None:
+        """One scene's step of `fit_scenes` (what a worker process runs): resume it from
+        `scene_dir(scene)/scene_checkpoint`, or `fit_scene_model` it (and save that when the
+        method has a checkpoint). The parts must have fitted already."""
+        self.use_threads()
+        if self.scene_checkpoint is None:
+            model, stats = self.fit_scene_model(scene, progress=progress)
+        else:
+            folder = self.scene_dir(scene)
+            model, stats = self.checkpointed(folder / self.scene_checkpoint,
+                                             lambda: self.fit_scene_model(scene, progress=progress),
+                                             save=self.save_scene_model, load=self.load_scene_model,
+                                             stats=folder / "fit.json", seconds="fit_seconds")
         self._scene_models[scene.name] = model
         self.scene_stats[scene.name] = stats
 
-    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
-        """`fit_scene` for each scene, `self.jobs` of them at once in worker processes where the
-        method allows it (`reference.parallel`); the same result as fitting them in turn."""
-        from reference.parallel import fit_scenes
+    def scene_parts(self) -> list[SceneParts]:
+        """Parts of the method that fit on every test scene before its own per-scene fits, all
+        scenes at once (the diffusion family's conditions: `reference.common.diffusion`). None
+        by default."""
+        return []
 
-        fit_scenes(self, scenes, jobs=self.jobs, progress=self.progress if progress is None else progress)
+    @property
+    def parallel_scenes(self) -> bool:
+        """Whether `fit_scenes` may fit this method's scenes in worker processes (`--jobs`): it
+        keeps a checkpoint per scene to hand back, and fits on one torch thread (more would
+        oversubscribe the cores). A method may say otherwise."""
+        return self.scene_checkpoint is not None and getattr(self.config, "threads", None) == 1
 
     def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[Any, dict]:
-        """Fit `scene` from scratch: (what `save_scene_model` saves, the fit's statistics)."""
-        raise NotImplementedError
+        """The hook of the per-scene fit: fit `scene` from scratch, return (what
+        `save_scene_model` saves, or what rendering needs; the fit's statistics)."""
+        raise NotImplementedError(f"{self.name}: fit_scene_model is not its own")
 
     def save_scene_model(self, model: Any, path: Path) -> None:
         """Write a fitted scene to `path` (a temporary file that is then renamed)."""
@@ -316,7 +349,7 @@ class Method(abc.ABC):
         raise NotImplementedError
 
     def scene_model(self, scene: Scene) -> Any:
-        """What `fit_scene` fitted on (or resumed for) `scene`."""
+        """What `fit_scene_model` fitted on (or resumed for) `scene`."""
         if scene.name not in self._scene_models:
             raise RuntimeError(f"{self.name}: {scene.name} rendered before fit_scene")
         return self._scene_models[scene.name]

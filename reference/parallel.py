@@ -5,7 +5,7 @@ each lane on one torch thread (a second OpenMP thread only spins on this shared 
 `Gaussians3DConfig.threads`), so one process leaves the other cores idle. Lanes are independent
 (each fit seeds itself from the method's seed, never from a previous lane), so `jobs` worker
 processes fit `jobs` lanes at a time and the result is the same, bit for bit, as fitting them in
-turn: each worker runs the method's own `fit_scene`, which writes the lane's checkpoint through
+turn: each worker runs the method's `fit_one_scene`, which writes the lane's checkpoint through
 a temporary file; the calling process then loads every checkpoint as a resumed fit would.
 
 With `reproduce --ray` (`on_ray`) the same worker function runs as Ray tasks instead (one CPU
@@ -28,7 +28,7 @@ import pickle
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Protocol
+from typing import TYPE_CHECKING, Iterator, Protocol
 
 if TYPE_CHECKING:
     from skyeyes_bench.data.layout import Scene
@@ -42,12 +42,14 @@ class SceneFitter(Protocol):
 
     name: str
     device: str
-    config: Any
     scene_checkpoint: str | None
     progress: bool
     cached_s: float
 
-    def fit_scene(self, scene: "Scene", *, progress: bool = True) -> None: ...
+    @property
+    def parallel_scenes(self) -> bool: ...
+
+    def fit_one_scene(self, scene: "Scene", *, progress: bool) -> None: ...
 
     def uncounted(self) -> contextlib.AbstractContextManager: ...
 
@@ -79,19 +81,13 @@ GPU_LANES = 8
 def default_jobs(method: SceneFitter) -> int:
     """Worker processes when the user did not say: every core for a method on the CPU, up to
     `GPU_LANES` (and the cores) on a GPU, else 1. `fit_scenes` uses them only for methods that
-    fit a scene on one thread (`parallel_ok`)."""
+    allow it (`Method.parallel_scenes`)."""
     device = method.device
     if device == "cpu":
         return available_cores()
     if device.startswith("cuda"):
         return min(available_cores(), GPU_LANES)
     return 1
-
-
-def parallel_ok(method: SceneFitter) -> bool:
-    """Whether `method`'s scenes may be fitted in worker processes: it keeps a checkpoint per
-    scene to hand back, and fits on one torch thread (more would oversubscribe the cores)."""
-    return method.scene_checkpoint is not None and getattr(method.config, "threads", None) == 1
 
 
 class _Keep(logging.Handler):
@@ -118,7 +114,7 @@ def _fit_one(method: SceneFitter, scene: "Scene") -> list[logging.LogRecord]:
     root.addHandler(keep)
     root.setLevel(logging.INFO)
     method.progress = False
-    method.fit_scene(scene, progress=False)
+    method.fit_one_scene(scene, progress=False)
     return keep.records
 
 
@@ -158,11 +154,12 @@ def _in_workers(method: SceneFitter, todo: list["Scene"], jobs: int) -> Iterator
 
 
 def fit_scenes(method: SceneFitter, scenes: list["Scene"], *, jobs: int = 1, progress: bool = True) -> None:
-    """`method.fit_scene` for every scene, `jobs` scenes at a time in worker processes (1: in
-    this process, in turn). Afterwards every scene is fitted in `method` as `fit_scene` leaves
-    it, and `method.cached_s` counts only work earlier runs did."""
+    """`method.fit_one_scene` for every scene, `jobs` scenes at a time in worker processes
+    where the method allows it (`parallel_scenes`; 1: in this process, in turn). Afterwards
+    every scene is fitted in `method` as `fit_one_scene` leaves it, and `method.cached_s` counts
+    only work earlier runs did."""
     todo = []
-    if (jobs > 1 or _ON_RAY.get()) and parallel_ok(method):
+    if (jobs > 1 or _ON_RAY.get()) and method.parallel_scenes:
         todo = [s for s in scenes if not (method.scene_dir(s) / method.scene_checkpoint).is_file()]
     if len(todo) > 1:
         try:
@@ -183,4 +180,4 @@ def fit_scenes(method: SceneFitter, scenes: list["Scene"], *, jobs: int = 1, pro
     for scene in scenes:
         # fitted now by a worker: its time is in the caller's wall clock, not taken from a cache
         with method.uncounted() if scene.name in fresh else contextlib.nullcontext():
-            method.fit_scene(scene, progress=progress)
+            method.fit_one_scene(scene, progress=progress)

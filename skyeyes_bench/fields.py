@@ -96,9 +96,6 @@ def short(value: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
-# results.py still calls it by its old name (it is being split in parallel); drop once it says `short`
-_short = short
-
 
 def gaps(indices: list[int], limit: int = 5) -> list[int]:
     """The first `limit` numbers missing from 0..max(indices), in O(len(indices)) time and memory

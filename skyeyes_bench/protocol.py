@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+from .fields import short
 from .inputfiles import read_toml
 from .metricspec import CLIP_FEATURES, METRICS
 from .paths import protocols_dir
@@ -200,7 +201,7 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     if (not isinstance(raw["version"], int) or isinstance(raw["version"], bool)
             or not 1 <= raw["version"] <= MAX_VERSION):
         raise UserError(f"{file}: key 'version' must be an int >= 1 (at most {MAX_VERSION}), "
-                        f"got {_short(raw['version'])}")
+                        f"got {short(raw['version'])}")
     for section in ("data", "capture", "metrics", "statistics"):
         if section not in raw:
             raise UserError(f"{file}: missing table [{section}]")
@@ -282,12 +283,6 @@ def available(root: Path | None = None) -> dict[str, list[int]]:
     return out
 
 
-def _short(value: Any, n: int = 40) -> str:
-    """repr of `value`, cut to `n` characters: a 5000-digit number stays a one-line error."""
-    text = repr(value)
-    return text if len(text) <= n else f"{text[:n]}... ({len(text)} characters)"
-
-
 def load_protocol_file(path: str | Path) -> Protocol:
     path = Path(path)
     if not (path.exists() or path.is_symlink()):
@@ -307,10 +302,10 @@ def load_protocol(ref: str, root: Path | None = None) -> Protocol:
     """`load_protocol("carla-town04@1")`; without `@N`, the latest version."""
     m = _REF.match(ref.strip())
     if not m:
-        raise UserError(f"protocol reference {_short(ref)}: expected 'ID' or 'ID@N' (e.g. 'synthtown@1')")
+        raise UserError(f"protocol reference {short(ref)}: expected 'ID' or 'ID@N' (e.g. 'synthtown@1')")
     pid, version = m.group(1), m.group(2)
     if version is not None and len(version.lstrip("0") or "0") > len(str(MAX_VERSION)):
-        raise UserError(f"protocol reference {_short(ref)}: version of {len(version)} digits; expected at "
+        raise UserError(f"protocol reference {short(ref)}: version of {len(version)} digits; expected at "
                         f"most {MAX_VERSION}")
     known = available(root)
     if pid not in known:

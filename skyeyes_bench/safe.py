@@ -31,6 +31,7 @@ from typing import Any, Iterator
 
 from . import outputfiles
 from .errors import UserError
+from .fields import short
 
 #: A plain name (same alphabet as `fields.NAME`), matched whole: no separator, no NUL, no
 #: newline, never '', '.', '..', a hidden file or an option.
@@ -42,16 +43,11 @@ HEX = re.compile(r"[0-9a-f]+")
 _NOT_TEXT = frozenset({"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"})
 
 
-def _short(value: Any, limit: int = 80) -> str:
-    text = repr(value)  # repr escapes controls and bidi characters: the error line stays one line
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
 def plain_name(where: str, value: Any, what: str) -> str:
     """`value` if it is a plain name usable as one file or folder name, else a one-line UserError."""
     if not (isinstance(value, str) and NAME.fullmatch(value) and ".." not in value):
         raise UserError(f"{where}: expected {what} (a plain name: letters, digits, '_', '.', '-', at most 128, "
-                        f"not starting with '.' or '-', no '..'), got {_short(value)}")
+                        f"not starting with '.' or '-', no '..'), got {short(value)}")
     return value
 
 
@@ -71,14 +67,14 @@ def plain_text(where: str, value: Any, what: str, *, max_len: int = 200, empty: 
                "empty" if not value and not empty else text_problem(value, max_len))
     if problem:
         raise UserError(f"{where}: expected {what} (one line of plain text, at most {max_len} characters, no "
-                        f"control or bidirectional characters), got {_short(value)}: {problem}")
+                        f"control or bidirectional characters), got {short(value)}: {problem}")
     return value
 
 
 def hex_digest(where: str, value: Any, what: str = "a sha256", n: int = 64) -> str:
     """`value` if it is `n` lowercase hex digits, else a one-line UserError."""
     if not (isinstance(value, str) and len(value) == n and HEX.fullmatch(value)):
-        raise UserError(f"{where}: expected {what} ({n} lowercase hex digits), got {_short(value)}")
+        raise UserError(f"{where}: expected {what} ({n} lowercase hex digits), got {short(value)}")
     return value
 
 

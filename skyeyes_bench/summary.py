@@ -12,7 +12,7 @@ import numpy as np
 
 from . import stats
 from .errors import UserError
-from .metricspec import FRAME_METRICS, metric_def
+from .metricspec import CLIP_FEATURES, FRAME_METRICS, metric_def
 from .registry import load_entry_point
 from .results import RESULTS_FORMAT, lines_digest, timed_stage, progress_bar
 
@@ -159,7 +159,7 @@ def _set_metrics(doc: dict, features: dict, protocol, rs: _Resampling, timing: d
         xs, xg = np.asarray(f["sub"], np.float64), np.asarray(f["gt"], np.float64)
         cl = rs.cl_of_seq[np.asarray(f["seq"], np.int64)]
         if len(xs) < spec.min_rows:
-            what = "clips" if spec.features == "clip" else "frames"
+            what = "clips" if spec.features == CLIP_FEATURES else "frames"
             metrics[m.name] = {"status": "unavailable", "reason": f"{len(xs)} {what} of {m.clip_length or 1} "
                                f"frames; need at least {spec.min_rows}",
                                "fix": "sequences must hold at least clip_length frames"}
@@ -177,7 +177,7 @@ def _set_metrics(doc: dict, features: dict, protocol, rs: _Resampling, timing: d
                     reps = stats.set_metric_samples(fn, cl, cl, rs.counts, progress=bar.update)
         metrics[m.name] = {"status": "ok", "kind": "set", "value": value, "level": st.interval,
                            "higher_is_better": spec.higher_is_better, "n": int(len(xs)),
-                           "extractor": m.extractor, "unit": "clip" if spec.features == "clip" else "frame",
+                           "extractor": m.extractor, "unit": "clip" if spec.features == CLIP_FEATURES else "frame",
                            **rs.summarise(value, reps, spec.lower_bound, centre)}
 
 

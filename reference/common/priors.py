@@ -38,7 +38,7 @@ def render_priors(dataset: Dataset, scenes: list[Scene], prior_method: Method, *
                   progress: bool = True, jobs: int = 1) -> tuple[dict[str, np.ndarray], float]:
     """Fit `prior_method` per scene and render every ground pose.
 
-    The prior sees a scene through `fit_scene` (aerial views and ground *poses* only) and
+    The prior sees a scene through `fit_scenes` (aerial views and ground *poses* only) and
     `render_sequence`; renders are cached by (method, config, seed, code, scene content) hash under
     `<cache>/reference/priors/`, each entry with the seconds producing it cost (the scene's fit,
     as its fit.json records it, plus the renders). Scenes not in the cache are fitted `jobs` at a

@@ -7,7 +7,7 @@ SfM/MVS cloud; `init=sfm` uses pycolmap's sparse triangulation instead. Either f
 "ground-plane rays" (with a warning) when it leaves fewer than `min_init_points` in the region the
 ground cameras see (+ margin). Then train (`reference.common.gaussians.train`, with the member's
 `regularizer`); the Gaussians are checkpointed to `<workdir>/scenes/<scene>/model.pt`
-(`Method.fit_scene`), which a later `fit_scene` on the same workdir reuses.
+(`Method.fit_scenes`), which a later fit on the same workdir reuses.
 
 What is learned on the train split (`fit_train`): the colour map from aerial to ground colours
 and the background colours above and below the horizon, fitted on the `mvs` reconstructions of

@@ -63,8 +63,9 @@ class MeanFrame(Method):
             acc += f.image()
         return (acc / len(frames)).astype(np.float32), {"frames": len(frames)}
 
-    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
+    def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[None, dict]:
         """Nothing per scene: every frame is the train mean."""
+        return None, {}
 
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
         if self.mean is None:

@@ -7,7 +7,7 @@ distant town seen by the aerial views has a place. With `init=mvs` the fused clo
 method (dense stereo from the same aerial views) marks the occupancy grid's cells and the density
 is pulled towards it for `init_steps` steps before the photometric fit; `init=none` starts from an
 empty field and Instant-NGP's warm-up of the grid. The field and grid are checkpointed to
-`<workdir>/scenes/<scene>/model.pt` (`Method.fit_scene`).
+`<workdir>/scenes/<scene>/model.pt` (`Method.fit_scenes`).
 
 Ground renders: the field over black, the colour map learned on the train split (as `mvs` and
 `gaussians3d`, `reference.common.appearance`: aerial haze -> ground colours) on what it covers, over the background above / below

@@ -77,7 +77,7 @@ def _extract(extractor_id: str, keys: list[str], load, batch_size: int, progress
     dev = current_device(device)
     # Cached features are reused only with verified weights: a deleted or altered weight file
     # makes the metric unavailable (with the fixing command) even when every feature is cached.
-    ex._require()
+    ex.require()
     last_call.update(hits=0, misses=0, corrupt=0)
     out = np.zeros((len(keys), ex.dim), np.float64)
     todo = []

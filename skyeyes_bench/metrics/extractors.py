@@ -127,7 +127,8 @@ class Extractor:
         state = "mismatch" if any(b[1] == "mismatch" for b in bad) else "missing"
         return state, "; ".join(b[2] for b in bad), "; ".join(dict.fromkeys(b[3] for b in bad))
 
-    def _require(self) -> list:
+    def require(self) -> list:
+        """The weight files, or MetricUnavailable saying which are missing or wrong and how to fetch them."""
         state, msg, fix = self.status()
         if state != "present":
             raise MetricUnavailable(self.id, f"weights {state}: {msg}", fix)
@@ -142,7 +143,7 @@ class Extractor:
         """The network loaded on `device` (None: the current one), once per device; the weight
         files are re-checked (stat + memoised sha256) on every use, and the networks reloaded
         only if their content changed."""
-        files = self._require()
+        files = self.require()
         dev = current_device(device)
         if dev.type == "cuda" and dev.index is None:  # "cuda" and "cuda:0" are one network, not two
             import torch

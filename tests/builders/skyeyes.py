@@ -61,8 +61,9 @@ class StandInPrior(Method):
     def config_dict(self) -> dict:
         return {"blur": 3, "noise": 0.1}
 
-    def fit_scene(self, scene, *, progress=None):
+    def fit_scene_model(self, scene, *, progress):
         self.fitted.append(scene.name)
+        return None, {}
 
     def render_sequence(self, scene, sequence):
         from scipy.ndimage import uniform_filter

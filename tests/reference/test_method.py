@@ -130,6 +130,43 @@ def test_a_failed_save_leaves_no_checkpoint_and_the_next_run_refits(tmp_path):
     assert m.fits == 1 and m.cached_s == 0
 
 
+def test_one_hook_parts_fit_first_on_every_scene_and_no_checkpoint_refits(tmp_path):
+    """`fit_scenes` fits the method's parts on all scenes at once, then `fit_scene_model` per
+    scene; without a `scene_checkpoint` nothing is written and a new run fits again, in turn."""
+    calls: list = []
+
+    class Part:
+        def fit_scenes(self, scenes, *, progress, jobs):
+            calls.append(("part", [s.name for s in scenes], jobs))
+            return 4.0  # seconds its caches saved
+
+    class NoCheckpoint(Toy):
+        scene_checkpoint = None
+
+        def scene_parts(self):
+            return [Part()]
+
+        def fit_scene_model(self, scene, *, progress):
+            calls.append(("scene", scene.name))
+            return super().fit_scene_model(scene, progress=progress)
+
+    scenes = [FakeScene("a"), FakeScene("bb")]
+    m = NoCheckpoint.from_preset("smoke", tmp_path, threads=1)
+    m.jobs = 2
+    assert not m.parallel_scenes  # nothing to hand back from a worker: fitted in this process
+    m.fit_scenes(scenes)
+    assert calls == [("part", ["a", "bb"], 2), ("scene", "a"), ("scene", "bb")]
+    assert m.cached_s == 4.0 and m.scene_stats["bb"] == {"note": "fitted"}
+    np.testing.assert_array_equal(m.scene_model(scenes[1]), [6, 6, 6])  # len("bb") * steps 3
+    assert not (tmp_path / "scenes").exists()
+    again = NoCheckpoint.from_preset("smoke", tmp_path)
+    again.fit_scene(scenes[0])
+    assert again.fits == 1 and calls[-2:] == [("part", ["a"], 1), ("scene", "a")]
+    # with a checkpoint and one thread a method's scenes may go to worker processes; not on more
+    assert Toy.from_preset("smoke", tmp_path, threads=1).parallel_scenes
+    assert not Toy.from_preset("smoke", tmp_path, threads=2).parallel_scenes
+
+
 def test_device_auto_resolves_and_threads_follow_the_config(monkeypatch, tmp_path):
     import torch
 

@@ -39,8 +39,9 @@ class NearestAerial(Method):
     version = "0.1"
     presets = {"smoke": ToyConfig(), "small": ToyConfig(), "paper": ToyConfig()}
 
-    def fit_scene(self, scene, *, progress=None):
+    def fit_scene_model(self, scene, *, progress):
         """Nothing to fit: the aerial views are the answer."""
+        return None, {}
 
     def render_sequence(self, scene, sequence):
         flag = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR}[self.config.interpolation]

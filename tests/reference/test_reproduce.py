@@ -225,9 +225,9 @@ def test_the_prior_fit_is_told_the_progress_setting(synthtown_smoke, tmp_path):
     from skyeyes_bench.data.layout import open_dataset
 
     class Recording(MVS):
-        def fit_scene(self, scene, *, progress=True):
+        def fit_scene_model(self, scene, *, progress):
             told.append(progress)
-            super().fit_scene(scene, progress=progress)
+            return super().fit_scene_model(scene, progress=progress)
 
     told: list[bool] = []
     ds = open_dataset(synthtown_smoke)

@@ -6,6 +6,11 @@ which the family's members differ most (`pipeline.DiffusionMethod.make_condition
   gvg's `mvs` geometry), cached by content hash (`reference.common.priors.render_priors`); that
   method sees the aerial views and the ground *poses* only.
 - `NearestAerial`: the aerial view whose camera is nearest the ground camera (controlnet, ip2p).
+
+Both are parts of the method that fit on the test scenes at once (`Method.scene_parts`): their
+`fit_scenes` keeps the scenes' conditions, which `of_scene` hands to the method's per-scene fit.
+`PriorFits` is the part that keeps the prior's fitted scenes, whose depth moves frames
+(`vcm_warp`).
 """
 
 from __future__ import annotations
@@ -22,7 +27,29 @@ if TYPE_CHECKING:
     from skyeyes_bench.data.layout import Dataset, Scene
 
 
-class NearestAerial:
+class SceneConditions:
+    """The conditions of the scenes `fit_scenes` saw, kept for `of_scene`."""
+
+    def __init__(self):
+        self.kept: dict[str, np.ndarray] = {}
+
+    def images(self, dataset: "Dataset | None", scenes: list["Scene"], *, progress: bool,
+               jobs: int) -> tuple[dict[str, np.ndarray], float]:
+        raise NotImplementedError
+
+    def fit_scenes(self, scenes: list["Scene"], *, progress: bool, jobs: int) -> float:
+        """Keep the conditions of `scenes` (test scenes: no dataset); return the seconds taken
+        from caches."""
+        conds, cached_s = self.images(None, scenes, progress=progress, jobs=jobs)
+        self.kept.update(conds)
+        return cached_s
+
+    def of_scene(self, scene: "Scene") -> dict[str, np.ndarray]:
+        """{frame key: condition} of the ground frames of `scene`, which `fit_scenes` saw."""
+        return {frame_key(scene, f): self.kept[frame_key(scene, f)] for f in scene.ground}
+
+
+class NearestAerial(SceneConditions):
     """Each ground frame's nearest aerial view (`priors.nearest_aerial`): nothing to fit."""
 
     def images(self, dataset: "Dataset | None", scenes: list["Scene"], *, progress: bool,
@@ -31,7 +58,7 @@ class NearestAerial:
         return {frame_key(s, f): nearest_aerial(s, f).image() for s in scenes for f in s.ground}, 0.0
 
 
-class PriorRenders:
+class PriorRenders(SceneConditions):
     """The renders of a prior method at every ground pose, optionally re-encoded per frame
     (`encode`: gvg's colour, depth and coverage -> its condition channels).
 
@@ -41,6 +68,7 @@ class PriorRenders:
     """
 
     def __init__(self, prior: Callable[[], "Method"], encode: Callable[[np.ndarray], np.ndarray] | None = None):
+        super().__init__()
         self.prior, self.encode = prior, encode
 
     def images(self, dataset: "Dataset | None", scenes: list["Scene"], *, progress: bool,
@@ -51,6 +79,21 @@ class PriorRenders:
         if self.encode is not None:
             conds = {k: self.encode(v) for k, v in conds.items()}
         return conds, cached_s
+
+
+class PriorFits:
+    """The prior's fitted scenes, for its depth (`vcm_warp`): fitted `jobs` at a time, those
+    `PriorRenders` left unfitted (their renders came from the cache)."""
+
+    def __init__(self, prior: Callable[[], "Method"]):
+        self.prior = prior
+
+    def fit_scenes(self, scenes: list["Scene"], *, progress: bool, jobs: int) -> float:
+        """Fit the prior on `scenes` it has not fitted; its seconds taken from caches."""
+        prior = self.prior()
+        before = prior.cached_s
+        prior.fit_scenes([s for s in scenes if s.name not in prior._scene_models])
+        return prior.cached_s - before
 
 
 def registry_prior(method_id: str, preset: str, workdir: Path, seed: int, device: str | None = None,

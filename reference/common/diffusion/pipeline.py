@@ -5,7 +5,8 @@ no-VCM ablation, controlnet, ip2p, gvg):
 
 - `fit_train`: the condition of every train ground frame, then the stages (`stages`: base UNet,
   ACM, VCM), each trained or resumed from the stage cache;
-- `fit_scenes`: the condition of every test ground frame (a prior is fitted per scene);
+- `fit_scenes`: the condition of every test ground frame (its part, `scene_parts`: a prior
+  fitted per scene), kept per scene by the one hook, `fit_scene_model`;
 - `render_sequence`: DDIM from the ACM frame by frame, or with the VCM clip by clip
   (`sample`), seeded per sequence.
 
@@ -33,7 +34,7 @@ from reference.common.priors import frame_key
 from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
-from .conditions import NearestAerial, PriorRenders, registry_prior
+from .conditions import NearestAerial, PriorFits, PriorRenders, SceneConditions, registry_prior
 from .config import DiffusionConfig
 from .guidance import Unguided
 from .presets import GPU_TRAINING
@@ -98,7 +99,6 @@ class DiffusionMethod(Method):
         self.guidance = self.make_guidance()
         self.acm = None
         self.vcm = None
-        self.conds: dict[str, np.ndarray] = {}  # frame key -> condition image [H, W, C]
         self.training: dict[str, Any] = {}  # stage -> its summary (training.json)
         self._figure_written = False
 
@@ -177,20 +177,23 @@ class DiffusionMethod(Method):
         if c.vcm and c.clip_frames > 1:
             self.vcm = stages.vcm(model, acm_id, scenes)
 
-    def fit_scene(self, scene: Scene, *, progress: bool | None = None) -> None:
-        """The scene's conditions (its prior renders); the diffusion model is fitted on the train split."""
-        self.fit_scenes([scene], progress=progress)
-
-    def fit_scenes(self, scenes: list[Scene], *, progress: bool | None = None) -> None:
-        """The scenes' conditions at once: their prior fits run `jobs` at a time (`render_priors`)."""
+    def scene_parts(self) -> list[SceneConditions | PriorFits]:
+        """Fitted on the test scenes at once, before each scene's own fit: the condition part
+        (a prior fitted per scene `jobs` at a time and rendered, `render_priors`), and with
+        `vcm_warp` the prior's fitted scenes (its depth moves frames; cached renders fit none)."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
-        self.conds.update(self._conditions(None, scenes))
-        if self.config.vcm_warp:  # the prior's depth moves frames: its scene models (cached renders fit none)
-            if self.config.prior_method not in ("sugar", "gaussians3d"):
-                raise ValueError(f"vcm_warp: the prior {self.config.prior_method!r} is not Gaussians "
-                                 "(sugar, gaussians3d), whose depth moves the frames")
-            self.prior.fit_scenes([s for s in scenes if s.name not in self.prior._scene_models])
+        if not self.config.vcm_warp:
+            return [self.condition]
+        if self.config.prior_method not in ("sugar", "gaussians3d"):
+            raise ValueError(f"vcm_warp: the prior {self.config.prior_method!r} is not Gaussians "
+                             "(sugar, gaussians3d), whose depth moves the frames")
+        return [self.condition, PriorFits(lambda: self.prior)]
+
+    def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[dict[str, np.ndarray], dict]:
+        """The scene's conditions ({frame key: image}, from the condition part); the diffusion
+        model is fitted on the train split."""
+        return self.condition.of_scene(scene), {}
 
     # ---------------------------------------------------------------- render
     def render_sequence(self, scene: Scene, sequence: Sequence) -> Iterator[np.ndarray]:
@@ -198,7 +201,8 @@ class DiffusionMethod(Method):
         from .figure import write_figure
 
         cfg = self.config.core
-        priors = [self.conds[frame_key(scene, f)] for f in sequence.frames]
+        conds = self.scene_model(scene)
+        priors = [conds[frame_key(scene, f)] for f in sequence.frames]
         self.use_threads()
         cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, self.device)
         # Seed per sequence from its id, so frames do not depend on rendering order.

@@ -201,8 +201,7 @@ def test_gvg_end_to_end_deterministic_in_the_seed(tiny, tmp_path):
     assert m.config.core.residual  # the projected texture is an estimate of the frame
     assert m.acm.unet.conv_in.in_channels == 3 + 5  # noisy frame + colour, depth, mask
     # its conditions: the stand-in's colour, inverse depth 2 / 4 and the mask, top quarter unseen
-    key = next(iter(m.conds))
-    c = m.conds[key]
+    c = next(iter(m.scene_model(open_dataset(tiny).split("test")[0]).values()))  # its fit: {frame key: condition}
     assert c.shape == (SIZE, SIZE, 5)
     assert (c[SIZE // 4:, :, 3] == 0.5).all() and (c[SIZE // 4:, :, 4] == 1).all()
     assert (c[: SIZE // 4, :, 3:] == 0).all()

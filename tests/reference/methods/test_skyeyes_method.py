@@ -297,7 +297,8 @@ def test_condition_moves_its_frame_and_vcm_carries_it_across_the_clip(tiny, tmp_
 
     plain = render(False)
     key = frame_key(scene, seq.frames[0])
-    m.conds[key] = 1.0 - m.conds[key]
+    conds = m.scene_model(scene)  # the scene's fit: {frame key: condition}
+    conds[key] = 1.0 - conds[key]
     moved, moved_plain = render(True), render(False)
     before = out[seq.id]
     assert np.abs(moved[0] - before[0]).max() > 1e-2  # the condition reaches its frame

@@ -214,6 +214,13 @@ class DiffusionConfig:
     # frame by the prior's depth and the poses, holds the pixels it reaches for this many of the
     # `sample_steps` DDIM steps. Sampling only (no stage key); needs a prior with depth (`sugar`).
     vcm_warp: int = 0
+    # Low-pass transfer (`warp.lowpass_transfer`; 0: none): after sampling, each frame's low
+    # frequencies (a Gaussian of this std, in pixels at the model's resolution), where the
+    # previous output frame, moved into it by the optical flow between the two frames'
+    # conditions (`warp.flow_coords`), reaches, move by `vcm_lowpass_mix` towards that frame's;
+    # its detail stays its own. Sampling only (no stage key).
+    vcm_lowpass: float = 0.0
+    vcm_lowpass_mix: float = 1.0
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -252,7 +259,7 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -67,6 +67,11 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
     if not 0 <= config.vcm_warp <= config.sample_steps or (config.vcm_warp and not config.vcm):
         raise ValueError(f"vcm_warp {config.vcm_warp}: expected 0 <= vcm_warp <= sample_steps "
                          f"({config.sample_steps}), and the VCM on (vcm=true) when it is not 0")
+    if config.vcm_lowpass < 0 or not 0 < config.vcm_lowpass_mix <= 1 or \
+            (config.vcm_lowpass and not (config.vcm and config.condition == "prior")):
+        raise ValueError(f"vcm_lowpass {config.vcm_lowpass}, vcm_lowpass_mix {config.vcm_lowpass_mix}: expected "
+                         "vcm_lowpass >= 0 (pixels), 0 < vcm_lowpass_mix <= 1, and when vcm_lowpass is not 0 the "
+                         "VCM on (vcm=true) and a prior's renders as the condition (their flow moves frames)")
     if config.condition == "aerial" and config.core.residual:
         # the residual from a view taken elsewhere means nothing: diffuse the frames
         config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
@@ -210,6 +215,12 @@ class DiffusionMethod(Method):
         warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
         x = core.from_diffused(self._generate(cc, seed, warp), cc, cfg)
         imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
+        if self.config.vcm_lowpass:  # the frames' coarse part carried on along the conditions' flow
+            from .warp import flow_coords, lowpass_transfer
+
+            guides = np.stack([core.resize_hw(core.images_to_tensor(p[None, ..., :3]), *imgs.shape[-2:])[0]
+                               .permute(1, 2, 0).numpy() for p in priors])
+            imgs = lowpass_transfer(imgs, flow_coords(guides), self.config.vcm_lowpass, self.config.vcm_lowpass_mix)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
@@ -229,7 +240,7 @@ class DiffusionMethod(Method):
 
         c = self.config
         acm = self.guidance.sampling_model(self.acm)
-        if c.vcm:
+        if c.vcm and (self.vcm is not None or c.vcm_warp):
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
                                           strength=c.sample_strength, warp=warp, hold=c.vcm_warp)
         return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)

@@ -343,3 +343,27 @@ def test_bf16_autocast_trains_and_samples_under_its_own_key(tiny, tmp_path):
     assert (got - f32).abs().max() > 1e-4
     for seq_id in a:
         assert np.isfinite(b[seq_id]).all() and not np.array_equal(a[seq_id], b[seq_id])
+
+
+def test_lowpass_vcm_is_the_ablations_frames_with_their_coarse_part_carried_on(tiny, tmp_path):
+    """`vcm_lowpass` with 1-frame clips: no VCM stage, the ablation's frames (the same noise and
+    ACM), then `warp.lowpass_transfer` along the optical flow between the frames' conditions:
+    the first frame of each sequence is the ablation's, the rest differ from it."""
+    import torch
+
+    from reference.common.diffusion import warp
+    from reference.common.priors import frame_key
+
+    _, _, plain = _run(SkyeyesNoVCM, tiny, tmp_path / "plain")
+    m, _, carried = _run(Skyeyes, tiny, tmp_path / "carried", clip_frames=1, vcm_lowpass=2.0)
+    assert m.vcm is None and "vcm" not in m.training
+    scene = open_dataset(tiny).split("test")[0]
+    conds = m.scene_model(scene)
+    for seq in scene.sequences.values():
+        guides = np.stack([conds[frame_key(scene, f)] for f in seq.frames])
+        want = warp.lowpass_transfer(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), warp.flow_coords(guides), 2.0)
+        np.testing.assert_allclose(carried[seq.id], want.permute(0, 2, 3, 1).numpy(), atol=1e-6)
+        np.testing.assert_array_equal(carried[seq.id][0], plain[seq.id][0])
+        assert np.abs(carried[seq.id][1:] - plain[seq.id][1:]).max() > 1e-3
+    with pytest.raises(ValueError, match="vcm_lowpass"):
+        ControlNetBaseline(dataclasses.replace(TINY, condition="aerial", vcm_lowpass=2.0), tmp_path / "x")

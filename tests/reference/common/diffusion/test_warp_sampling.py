@@ -244,3 +244,57 @@ def test_frame_by_frame_methods_keep_the_vcm_fields_at_their_defaults():
             cfg = get_method_class(name).presets[preset]
             assert not cfg.vcm, (name, preset)
             assert {k: getattr(cfg, k) for k in VCM_ONLY} == {k: defaults[k] for k in VCM_ONLY}, (name, preset)
+
+
+def _still(depths, size=24):
+    """Warp targets of a still camera over `depths` (one per frame): the transfer's inputs."""
+    cam = _cam(size=size)
+    return types.SimpleNamespace(depths=depths, cameras=[cam] * len(depths), tol=warp.DEPTH_TOL)
+
+
+def test_lowpass_transfer_carries_the_coarse_part_and_keeps_the_detail():
+    """A still camera: frame j's output is its own detail (image minus its Gaussian low-pass,
+    scipy's) on the low-pass of output j - 1, so flat frames all take frame 0's colour and a
+    checkerboard riding on them stays each frame's own; mix 1/2 goes half way."""
+    size, sigma = 24, 3.0
+    depth = np.full((size, size), 5.0)
+    colours = torch.tensor([0.2, 0.5, 0.8])[:, None, None, None]  # frame j: grey level colours[j]
+    checker = torch.as_tensor(np.indices((size, size)).sum(0) % 2 * 0.1 - 0.05, dtype=torch.float32)
+    imgs = (colours.expand(3, 3, size, size) + checker * torch.tensor([0.0, 1.0, -1.0])[:, None, None, None])
+    out = warp.lowpass_transfer(imgs, _still([depth] * 3, size), sigma)
+    torch.testing.assert_close(out[0], imgs[0])
+    low = ndimage.gaussian_filter(imgs.numpy(), (0, 0, sigma, sigma), mode="reflect")
+    for j in (1, 2):
+        want = imgs[j].numpy() - low[j] + ndimage.gaussian_filter(out[j - 1].numpy(), (0, sigma, sigma),
+                                                                   mode="reflect")
+        np.testing.assert_allclose(out[j].numpy(), want, atol=1e-5)
+    assert abs(out[2].mean().item() - 0.2) < 1e-3  # frame 0's grey, carried twice
+    np.testing.assert_allclose((out[2] - out[2].mean()).numpy(), -checker.expand(3, -1, -1).numpy(), atol=2e-2)
+    half = warp.lowpass_transfer(imgs[:2], _still([depth] * 2, size), sigma, mix=0.5)
+    assert abs(half[1].mean().item() - 0.35) < 1e-3
+
+
+def test_lowpass_transfer_leaves_what_the_warp_does_not_reach():
+    """Where the previous frame's depth disagrees (right half: 8 m against 5 m) the warp reaches
+    nothing: those pixels, a ramp's width from the edge, are the frame's own; the left half's
+    far side takes the previous colour; flat frames outside [0, 1] stay clamped."""
+    size, sigma = 24, 1.0
+    here = np.full((size, size), 5.0)
+    before = here.copy()
+    before[:, size // 2:] = 8.0
+    imgs = torch.stack([torch.full((3, size, size), 0.9), torch.full((3, size, size), 0.1)])
+    out = warp.lowpass_transfer(imgs, _still([before, here], size), sigma)
+    np.testing.assert_allclose(out[1, :, :, size // 2:].numpy(), 0.1, atol=1e-6)
+    np.testing.assert_allclose(out[1, :, :, : size // 2 - 4].numpy(), 0.9, atol=1e-3)
+    with pytest.raises(ValueError, match="mix"):
+        warp.lowpass_transfer(imgs, _still([before, here], size), sigma, mix=0.0)
+
+
+def test_skyeyes_checks_vcm_lowpass(tmp_path):
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    smoke = PRESETS["smoke"]
+    for bad in (dict(vcm_lowpass=-1.0), dict(vcm_lowpass=2.0, vcm_lowpass_mix=1.5), dict(vcm=False, vcm_lowpass=2.0)):
+        with pytest.raises(ValueError, match="vcm_lowpass"):
+            Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, vcm_lowpass=2.0, vcm_lowpass_mix=0.5), tmp_path)

@@ -1,0 +1,120 @@
+"""The low-pass transfer (`vcm_lowpass`) screened offline: applied to a frame-by-frame
+submission's frames (the ACM's, which the transfer starts from), with a Gaussian prior's fitted
+scenes for the depth, on the first scenes of a dataset with ground depth. Each setting costs
+seconds, so a sweep runs before a whole `reproduce` (docs/skyeyes.md, "The VCM").
+
+    .venv/bin/python bench/vcm_lowpass.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
+        --submission RUN/submission --prior RUN/work/KEY/method/prior --scenes 2 2:1 3:1 2:0.7
+
+A setting is SIGMA:MIX (`vcm_lowpass`, `vcm_lowpass_mix`). --prior is the folder of a `sugar`
+run's scene checkpoints (`scenes/<scene>/model.pt`, e.g. a Skyeyes run's `method/prior` with
+`vcm_warp` or `vcm_lowpass` on; its preset and seed by --prior-preset, --seed). Prints, per
+setting and for the frames untouched: the warp error (the ground truth's depth and poses,
+pooled as the protocols pool it, tolerance 0.01), PSNR, LPIPS (AlexNet) and the detail kept
+(mean absolute image gradient over the ground truth's); for each setting the untouched frames'
+warp error minus its own (> 0: it flickers less) with a 95% bootstrap interval over sequences.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from reference.common.diffusion import warp
+from reference.methods.sugar import SuGaR
+from skyeyes_bench.data.layout import open_dataset
+from skyeyes_bench.imagefiles import read_image
+from skyeyes_bench.metrics.geometry import warp_coords, warp_error
+from skyeyes_bench.metrics.image import lpips
+
+TOL = 0.01  # the protocols' depth tolerance of the warp metric
+
+
+def _detail(x: np.ndarray) -> float:
+    return float(np.abs(np.diff(x, axis=0)).mean() + np.abs(np.diff(x, axis=1)).mean())
+
+
+def _depths(frames, scene, prior, res: int, source: str) -> list[np.ndarray]:
+    """The depth the transfer warps by: the prior's (what a method has), or for comparison the
+    ground truth's (the metric's own: an upper bound) or none (+inf: a direction, so a camera
+    that only moves forward warps each pixel to itself)."""
+    if source in ("prior", "filled"):
+        depths = [warp.prior_depth(prior, scene, f, res, res) for f in frames]
+        return depths if source == "prior" else [warp.filled_depth(d) for d in depths]
+    if source == "gt":
+        return [f.depth() for f in frames]
+    return [np.full((res, res), np.inf) for _ in frames]
+
+
+def _sequence(seq, sub: Path, scene, prior, settings, source: str = "prior", fb_px: float = 1.0) -> dict:
+    """Per setting (None: untouched): (warp error sum, valid pixels, PSNR list, LPIPS list, detail, gt detail)."""
+    frames = list(seq.frames)
+    res = frames[0].height
+    raw = np.stack([read_image(sub / scene.name / f.file) for f in frames])  # [N, H, W, 3]
+    gts = np.stack([f.image() for f in frames])
+    if source.startswith("flow"):  # flow between the prior's renders (the conditions) or the frames themselves
+        guides = np.stack(list(prior.render_sequence(scene, seq))) if source == "flow-prior" else raw
+        targets = warp.flow_coords(guides, fb_px=fb_px)
+    else:
+        targets = warp.WarpTargets(torch.zeros(len(frames)), _depths(frames, scene, prior, res, source),
+                                   [warp.scaled_camera(f.camera(), res, res) for f in frames], None)
+    pairs = [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL) for a, b in zip(frames[:-1], frames[1:])]
+    out = {}
+    for s in [None, *settings]:
+        x = raw if s is None else warp.lowpass_transfer(
+            torch.from_numpy(raw).permute(0, 3, 1, 2), targets, s[0], s[1]).permute(0, 2, 3, 1).numpy()
+        e = sum(warp_error(x[k], x[k + 1], uv, valid)[0] * int(valid.sum()) for k, (uv, valid) in enumerate(pairs))
+        n = sum(int(valid.sum()) for _, valid in pairs)
+        psnr = -10 * np.log10(((x - gts) ** 2).mean(axis=(1, 2, 3)))
+        out[s] = (e, n, psnr, lpips(x, gts), sum(map(_detail, x)), sum(map(_detail, gts)))
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, type=Path, help="dataset folder (with ground depth)")
+    ap.add_argument("--submission", required=True, type=Path, help="a frame-by-frame run's submission folder")
+    ap.add_argument("--prior", required=True, type=Path, help="a sugar run's folder of scenes/<scene>/model.pt")
+    ap.add_argument("--prior-preset", default="small")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scenes", type=int, default=2, help="the first N test scenes")
+    ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX, help="flow: the forward-backward check's pixels")
+    ap.add_argument("--depth", choices=("prior", "filled", "gt", "none", "flow-prior", "flow-frames"), default="prior",
+                    help="what the transfer warps by: the prior's depth (default; what the method has), filled "
+                         "where it is +inf (`warp.filled_depth`), the "
+                         "ground truth's (an upper bound), none (+inf everywhere)")
+    ap.add_argument("settings", nargs="+", help="SIGMA:MIX, e.g. 2:1")
+    args = ap.parse_args(argv)
+    settings = [tuple(float(v) for v in s.split(":")) for s in args.settings]
+    ds = open_dataset(args.data.expanduser())
+    prior = SuGaR.from_preset(args.prior_preset, args.prior, seed=args.seed, progress=False)
+    rows = []
+    for scene in ds.split("test")[: args.scenes]:
+        prior.fit_scene(scene)  # resumed from its checkpoint
+        for q in scene.sequences.values():
+            rows.append(_sequence(q, args.submission, scene, prior, settings, args.depth, args.fb_px))
+    rng = np.random.default_rng(args.seed)
+    boot = rng.integers(0, len(rows), (2000, len(rows)))
+    n = np.array([r[None][1] for r in rows], float)
+    base = np.array([r[None][0] for r in rows]) / n
+    print(f"{len(rows)} sequences of {args.scenes} scenes")
+    for s in [None, *settings]:
+        e = np.array([r[s][0] for r in rows]) / n
+        psnr = np.concatenate([r[s][2] for r in rows]).mean()
+        lp = np.concatenate([r[s][3] for r in rows]).mean()
+        detail = sum(r[s][4] for r in rows) / sum(r[s][5] for r in rows)
+        line = (f"{'untouched' if s is None else f'sigma {s[0]:g} mix {s[1]:g}'}: warp {(e * n).sum() / n.sum():.4f} "
+                f"PSNR {psnr:.2f} LPIPS {lp:.4f} detail {detail:.3f}")
+        if s is not None:
+            d = base - e
+            reps = (d[boot] * n[boot]).sum(axis=1) / n[boot].sum(axis=1)
+            lo, hi = np.percentile(reps, [2.5, 97.5])
+            line += f"; untouched minus this {(d * n).sum() / n.sum():+.4f} [{lo:+.4f}, {hi:+.4f}]"
+        print(line, flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -72,25 +72,12 @@ class GaussianModel:
     def __len__(self) -> int:
         return self.params["means"].shape[0]
 
-    @property
-    def means(self):
-        return self.params["means"]
-
-    @property
-    def scales(self):
-        return torch.exp(self.params["log_scales"])
-
-    @property
-    def quats(self):
-        return self.params["quats"]
-
-    @property
-    def opacities(self):
-        return torch.sigmoid(self.params["logit_opacities"])
-
-    @property
-    def sh(self):
-        return torch.cat([self.params["sh0"], self.params["shN"]], 1)
+    # the activated parameters the rasterizer takes
+    means = property(lambda self: self.params["means"])
+    scales = property(lambda self: torch.exp(self.params["log_scales"]))
+    quats = property(lambda self: self.params["quats"])
+    opacities = property(lambda self: torch.sigmoid(self.params["logit_opacities"]))
+    sh = property(lambda self: torch.cat([self.params["sh0"], self.params["shN"]], 1))
 
     def to(self, device: str | torch.device) -> "GaussianModel":
         """The same model with its parameters on `device` (new leaf tensors; make the optimiser after)."""

@@ -6,6 +6,14 @@ seconds, so a sweep runs before a whole `reproduce` (docs/skyeyes.md, "The VCM")
     .venv/bin/python bench/vcm_lowpass.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
         --submission RUN/submission --prior RUN/work/KEY/method/prior --scenes 2 2:1 3:1 2:0.7
 
+With --write DIR (one setting) it writes the frames of every test scene, transferred, as a
+submission to score with `skyeyes-bench evaluate DIR` and pair against the original with
+`compare` (the frames before the transfer are the original's, so the difference is the
+transfer's alone).
+
+With --bands SIGMA it prints where the flicker is instead: the warp error of the submission's
+and the ground truth's frames low-passed with a Gaussian of SIGMA px, and of what is left.
+
 A setting is SIGMA:MIX (`vcm_lowpass`, `vcm_lowpass_mix`). --prior is the folder of a `sugar`
 run's scene checkpoints (`scenes/<scene>/model.pt`, e.g. a Skyeyes run's `method/prior` with
 `vcm_warp` or `vcm_lowpass` on; its preset and seed by --prior-preset, --seed). Prints, per
@@ -87,10 +95,21 @@ def main(argv=None) -> None:
                          "where it is +inf (`warp.filled_depth`), the "
                          "ground truth's (an upper bound), none (+inf everywhere)")
     ap.add_argument("settings", nargs="+", help="SIGMA:MIX, e.g. 2:1")
+    ap.add_argument("--bands", type=float, default=None, metavar="SIGMA",
+                    help="print instead where the flicker is: the warp error of the submission's and the ground "
+                         "truth's frames low-passed with a Gaussian of SIGMA px, and of the rest")
+    ap.add_argument("--write", type=Path, default=None, help="write the transferred frames of every test scene "
+                    "(one setting) as a submission here")
     args = ap.parse_args(argv)
     settings = [tuple(float(v) for v in s.split(":")) for s in args.settings]
     ds = open_dataset(args.data.expanduser())
     prior = SuGaR.from_preset(args.prior_preset, args.prior, seed=args.seed, progress=False)
+    if args.bands is not None:
+        return _bands(ds, args.submission, args.scenes, args.bands)
+    if args.write is not None:
+        if len(settings) != 1 or not args.depth.startswith("flow"):
+            ap.error("--write takes one setting and a flow (--depth flow-prior or flow-frames)")
+        return _write(args, ds, prior, settings[0])
     rows = []
     for scene in ds.split("test")[: args.scenes]:
         prior.fit_scene(scene)  # resumed from its checkpoint
@@ -114,6 +133,55 @@ def main(argv=None) -> None:
             lo, hi = np.percentile(reps, [2.5, 97.5])
             line += f"; untouched minus this {(d * n).sum() / n.sum():+.4f} [{lo:+.4f}, {hi:+.4f}]"
         print(line, flush=True)
+
+
+def _bands(ds, sub: Path, scenes: int, sigma: float) -> None:
+    """The warp error of whole frames, their low-pass and their high-pass, submission and ground truth."""
+    from scipy.ndimage import gaussian_filter
+
+    def parts(x):
+        low = gaussian_filter(x, (sigma, sigma, 0))
+        return x, low, x - low
+
+    sums, n = np.zeros((2, 3)), 0
+    for scene in ds.split("test")[:scenes]:
+        for q in scene.sequences.values():
+            fs = list(q.frames)
+            for a, b in zip(fs[:-1], fs[1:]):
+                uv, valid = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
+                n += int(valid.sum())
+                for r, (x, y) in enumerate([(read_image(sub / scene.name / a.file), read_image(sub / scene.name / b.file)),
+                                            (a.image(), b.image())]):
+                    for k, (u, v) in enumerate(zip(parts(x), parts(y))):
+                        e, m = warp_error(u, v, uv, valid)
+                        sums[r, k] += e * m
+    for name, row in zip(("submission", "ground truth"), sums / max(n, 1)):
+        print(f"{name}: warp {row[0]:.4f}, low-pass (sigma {sigma:g} px) {row[1]:.4f}, the rest {row[2]:.4f}")
+
+
+def _write(args, ds, prior, setting) -> None:
+    """Every test scene's frames of --submission, transferred with `setting`, as a submission in --write."""
+    import json
+
+    from skyeyes_bench.submission import SubmissionWriter
+
+    meta = json.loads((args.submission / "submission.json").read_text())
+    config = {**meta.get("config", {}), "vcm_lowpass": setting[0], "vcm_lowpass_mix": setting[1],
+              "transfer": f"bench/vcm_lowpass.py --depth {args.depth} --fb-px {args.fb_px}"}
+    with SubmissionWriter(args.write, dataset=ds, method=meta["method"] + "-lowpass",
+                          method_version=meta.get("method_version", ""), config=config, overwrite=True) as w:
+        for scene in ds.split("test"):
+            prior.fit_scene(scene)
+            for q in scene.sequences.values():
+                frames = list(q.frames)
+                raw = np.stack([read_image(args.submission / scene.name / f.file) for f in frames])
+                guides = np.stack(list(prior.render_sequence(scene, q))) if args.depth == "flow-prior" else raw
+                out = warp.lowpass_transfer(torch.from_numpy(raw).permute(0, 3, 1, 2),
+                                            warp.flow_coords(guides, fb_px=args.fb_px), *setting)
+                for f, img in zip(frames, out.permute(0, 2, 3, 1).numpy(), strict=True):
+                    w.add(scene.name, f, img)
+        w.finish(timings={})
+    print(f"wrote {args.write}")
 
 
 if __name__ == "__main__":

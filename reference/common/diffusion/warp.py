@@ -18,7 +18,7 @@ The low-pass transfer (`vcm_lowpass`, `lowpass_transfer`) carries only the coars
 frame on, after sampling: most of the frame-to-frame flicker of frames sampled one by one is
 in their low frequencies (a building's colour, a road's brightness; the paper's "buildings with
 different colors"), while holding the whole warped frame compounds the bilinear warp's blur from
-frame to frame. Measured on the filed `skyeyes-no-vcm` small frames (2 scenes, the ground
+frame to frame. Measured on `skyeyes-no-vcm` small frames made here (2 scenes, the ground
 truth's depth): the warp error of the frames low-passed with a Gaussian of 2 px is 0.0753 of
 their 0.0915, the high-passed rest 0.0362.
 """
@@ -151,7 +151,7 @@ def depth_coords(targets: WarpTargets) -> Callable[[int], tuple[np.ndarray, np.n
 
 
 #: Forward-backward consistency of `flow_coords`, pixels at the model's resolution. NOTE: on the
-#: filed `skyeyes-no-vcm` small frames (bench/vcm_lowpass.py, 1 scene, flow between the prior's
+#: `skyeyes-no-vcm` small frames made here (bench/vcm_lowpass.py, 1 scene, flow between the prior's
 #: renders, sigma 4) 1 px kept too little: warp error 0.0704, against 0.0641 at 3 px.
 FLOW_FB_PX = 3.0
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class UserError(Exception):
     """Bad input: a file, a field, a value. The message says what, where, and what was expected."""
@@ -38,3 +40,9 @@ def single_line(msg: str) -> str:
     """Any message (an OSError, OpenImageIO's errors, which span several lines) as one line: its
     non-blank lines joined by '; '. User errors are one line."""
     return "; ".join(part.strip() for part in str(msg).splitlines() if part.strip())
+
+
+def short(value: Any, limit: int = 80) -> str:
+    """repr of `value` (controls escaped: a message stays one line), cut to `limit` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import UserError
+from .errors import UserError, short  # noqa: F401  (fields.short: error values)
 
 #: A plain name: a scene, sequence, method, town or lane, and each part of a relative file path.
 #: Letters, digits, '_', '.', '-', starting with a letter or digit, so never '', '.', '..', a
@@ -90,10 +90,6 @@ def string(where: str, value: Any, what: str, *, pattern: re.Pattern | None = No
     return value
 
 
-def short(value: Any, limit: int = 80) -> str:
-    """repr of `value` (controls escaped: a message stays one line), cut to `limit` characters."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 

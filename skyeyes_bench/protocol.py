@@ -15,8 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import UserError
-from .fields import short
+from .errors import UserError, short
 from .inputfiles import read_toml
 from .metricspec import CLIP_FEATURES, METRICS
 from .paths import protocols_dir

@@ -30,8 +30,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from . import outputfiles
-from .errors import UserError
-from .fields import short
+from .errors import UserError, short
 
 #: A plain name (same alphabet as `fields.NAME`), matched whole: no separator, no NUL, no
 #: newline, never '', '.', '..', a hidden file or an option.

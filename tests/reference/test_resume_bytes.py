@@ -153,7 +153,7 @@ def test_scene_fitting_methods_resume_to_the_same_bytes(method, synthtown_smoke,
     with kill_after(monkeypatch, cls, "fit_train"):
         reproduce(method, synthtown_smoke, b, tmp_path / "cache-b", monkeypatch)
     # 2. Killed while writing the scene's checkpoint: its temporary file is left, no checkpoint.
-    with kill_after(monkeypatch, cls, "fit_scene"):
+    with kill_after(monkeypatch, cls, "fit_one_scene"):
         reproduce(method, synthtown_smoke, b, tmp_path / "cache-b", monkeypatch)
     # The test lane's checkpoint (train lanes' MVS clouds are checkpoints of the appearance too).
     (ckpt,) = [p for p in (b / "work").rglob("*") if p.name in ("model.pt", "cloud.npz") and p.parent.name.startswith("test-")]
@@ -182,7 +182,7 @@ def _diffusion_resume(method, data, tmp_path, monkeypatch):
     reproduce(method, data, a, tmp_path / "cache-a", monkeypatch)
     if cls.presets["smoke"].condition == "prior":
         # 1. Killed once the prior (mvs) has fitted the train lane, before its renders are cached.
-        with kill_after(monkeypatch, MVS, "fit_scene"):
+        with kill_after(monkeypatch, MVS, "fit_one_scene"):
             reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
     # 2. Killed in the ACM stage, after its first save (its step 2); a base stage (a ControlNet
     # branch from scratch; the smoke presets' concat UNet has none) saves at its steps 2 and 4 first.

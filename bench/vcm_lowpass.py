@@ -26,6 +26,7 @@ warp error minus its own (> 0: it flickers less) with a 95% bootstrap interval o
 from __future__ import annotations
 
 import argparse
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -45,35 +46,60 @@ def _detail(x: np.ndarray) -> float:
     return float(np.abs(np.diff(x, axis=0)).mean() + np.abs(np.diff(x, axis=1)).mean())
 
 
+def filled_depth(depth: np.ndarray) -> np.ndarray:
+    """`depth` [H, W] with every +inf pixel (nothing of the prior's there) given the depth of its
+    nearest finite pixel (`scipy.ndimage.distance_transform_edt`); all +inf stays all +inf."""
+    from scipy.ndimage import distance_transform_edt
+
+    hole = ~np.isfinite(depth)
+    if not hole.any() or hole.all():
+        return depth.copy()
+    _, (iy, ix) = distance_transform_edt(hole, return_indices=True)
+    return depth[iy, ix]
+
+
 def _depths(frames, scene, prior, res: int, source: str) -> list[np.ndarray]:
     """The depth the transfer warps by: the prior's (what a method has), or for comparison the
     ground truth's (the metric's own: an upper bound) or none (+inf: a direction, so a camera
     that only moves forward warps each pixel to itself)."""
     if source in ("prior", "filled"):
         depths = [warp.prior_depth(prior, scene, f, res, res) for f in frames]
-        return depths if source == "prior" else [warp.filled_depth(d) for d in depths]
+        return depths if source == "prior" else [filled_depth(d) for d in depths]
     if source == "gt":
         return [f.depth() for f in frames]
     return [np.full((res, res), np.inf) for _ in frames]
 
 
-def _sequence(seq, sub: Path, scene, prior, settings, source: str = "prior", fb_px: float = 1.0) -> dict:
+def _coords(seq, scene, prior, raw: np.ndarray, source: str, fb_px: float):
+    """The transfer's j -> (uv, valid) for `seq` by `source` (--depth), each pair computed once:
+    flow between the prior's renders (the conditions) or the frames themselves, or a depth."""
+    frames = list(seq.frames)
+    if source.startswith("flow"):
+        guides = np.stack(list(prior.render_sequence(scene, seq))) if source == "flow-prior" else raw
+        coords = warp.flow_coords(guides, fb_px=fb_px)
+    else:
+        res = frames[0].height
+        coords = warp.depth_coords(_depths(frames, scene, prior, res, source),
+                                   [warp.scaled_camera(f.camera(), res, res) for f in frames])
+    return functools.cache(coords)
+
+
+def _transfer(raw: np.ndarray, coords, setting) -> np.ndarray:
+    """Frames [N, H, W, 3] -> the same, transferred with `setting` (SIGMA, MIX)."""
+    out = warp.lowpass_transfer(torch.from_numpy(raw).permute(0, 3, 1, 2), coords, *setting)
+    return out.permute(0, 2, 3, 1).numpy()
+
+
+def _sequence(seq, sub: Path, scene, prior, settings, source: str, fb_px: float) -> dict:
     """Per setting (None: untouched): (warp error sum, valid pixels, PSNR list, LPIPS list, detail, gt detail)."""
     frames = list(seq.frames)
-    res = frames[0].height
     raw = np.stack([read_image(sub / scene.name / f.file) for f in frames])  # [N, H, W, 3]
     gts = np.stack([f.image() for f in frames])
-    if source.startswith("flow"):  # flow between the prior's renders (the conditions) or the frames themselves
-        guides = np.stack(list(prior.render_sequence(scene, seq))) if source == "flow-prior" else raw
-        targets = warp.flow_coords(guides, fb_px=fb_px)
-    else:
-        targets = warp.WarpTargets(torch.zeros(len(frames)), _depths(frames, scene, prior, res, source),
-                                   [warp.scaled_camera(f.camera(), res, res) for f in frames], None)
+    coords = _coords(seq, scene, prior, raw, source, fb_px)
     pairs = [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL) for a, b in zip(frames[:-1], frames[1:])]
     out = {}
     for s in [None, *settings]:
-        x = raw if s is None else warp.lowpass_transfer(
-            torch.from_numpy(raw).permute(0, 3, 1, 2), targets, s[0], s[1]).permute(0, 2, 3, 1).numpy()
+        x = raw if s is None else _transfer(raw, coords, s)
         e = sum(warp_error(x[k], x[k + 1], uv, valid)[0] * int(valid.sum()) for k, (uv, valid) in enumerate(pairs))
         n = sum(int(valid.sum()) for _, valid in pairs)
         psnr = -10 * np.log10(((x - gts) ** 2).mean(axis=(1, 2, 3)))
@@ -92,7 +118,7 @@ def main(argv=None) -> None:
     ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX, help="flow: the forward-backward check's pixels")
     ap.add_argument("--depth", choices=("prior", "filled", "gt", "none", "flow-prior", "flow-frames"), default="prior",
                     help="what the transfer warps by: the prior's depth (default; what the method has), filled "
-                         "where it is +inf (`warp.filled_depth`), the "
+                         "where it is +inf (`filled_depth`), the "
                          "ground truth's (an upper bound), none (+inf everywhere)")
     ap.add_argument("settings", nargs="+", help="SIGMA:MIX, e.g. 2:1")
     ap.add_argument("--bands", type=float, default=None, metavar="SIGMA",
@@ -175,10 +201,8 @@ def _write(args, ds, prior, setting) -> None:
             for q in scene.sequences.values():
                 frames = list(q.frames)
                 raw = np.stack([read_image(args.submission / scene.name / f.file) for f in frames])
-                guides = np.stack(list(prior.render_sequence(scene, q))) if args.depth == "flow-prior" else raw
-                out = warp.lowpass_transfer(torch.from_numpy(raw).permute(0, 3, 1, 2),
-                                            warp.flow_coords(guides, fb_px=args.fb_px), *setting)
-                for f, img in zip(frames, out.permute(0, 2, 3, 1).numpy(), strict=True):
+                out = _transfer(raw, _coords(q, scene, prior, raw, args.depth, args.fb_px), setting)
+                for f, img in zip(frames, out, strict=True):
                     w.add(scene.name, f, img)
         w.finish(timings={})
     print(f"wrote {args.write}")

@@ -218,8 +218,8 @@ class DiffusionMethod(Method):
         if self.config.vcm_lowpass:  # the frames' coarse part carried on along the conditions' flow
             from .warp import flow_coords, lowpass_transfer
 
-            guides = np.stack([core.resize_hw(core.images_to_tensor(p[None, ..., :3]), *imgs.shape[-2:])[0]
-                               .permute(1, 2, 0).numpy() for p in priors])
+            guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), *imgs.shape[-2:])
+            guides = guides.permute(0, 2, 3, 1).numpy()
             imgs = lowpass_transfer(imgs, flow_coords(guides), self.config.vcm_lowpass, self.config.vcm_lowpass_mix)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):

@@ -69,18 +69,6 @@ def prior_depth(prior, scene, frame, width: int, height: int) -> np.ndarray:
     return np.where((out["alpha"].cpu().numpy() > 0.5) & (depth > 0), depth, np.inf)
 
 
-def filled_depth(depth: np.ndarray) -> np.ndarray:
-    """`depth` [H, W] with every +inf pixel (nothing of the prior's there) given the depth of its
-    nearest finite pixel (`scipy.ndimage.distance_transform_edt`); all +inf stays all +inf."""
-    from scipy.ndimage import distance_transform_edt
-
-    hole = ~np.isfinite(depth)
-    if not hole.any() or hole.all():
-        return depth.copy()
-    _, (iy, ix) = distance_transform_edt(hole, return_indices=True)
-    return depth[iy, ix]
-
-
 def warp_image(src: torch.Tensor, uv: np.ndarray, valid: np.ndarray) -> torch.Tensor:
     """Backward warp: src [C, H, W] sampled bilinearly at uv [H, W, 2] (pixel coordinates, centres
     at +0.5, as `warp_coords` gives them) -> [C, H, W], zeros where not `valid` [H, W]."""
@@ -143,11 +131,11 @@ def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(a, (0, sigma, sigma), mode="reflect")
 
 
-def depth_coords(targets: WarpTargets) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
-    """j -> (uv, valid) of frame j - 1 seen from frame j, by the prior's depth and the poses
-    (`warp_coords` on `targets`' depths and cameras)."""
-    return lambda j: warp_coords(targets.depths[j], targets.cameras[j], targets.depths[j - 1], targets.cameras[j - 1],
-                                 targets.tol)
+def depth_coords(depths: list[np.ndarray], cameras: list[Camera],
+                 tol: float = DEPTH_TOL) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    """j -> (uv, valid) of frame j - 1 seen from frame j, by depth and the poses (`warp_coords`
+    on the frames' depths and cameras, e.g. `WarpTargets`' prior depths)."""
+    return lambda j: warp_coords(depths[j], cameras[j], depths[j - 1], cameras[j - 1], tol)
 
 
 #: Forward-backward consistency of `flow_coords`, pixels at the model's resolution. NOTE: on the
@@ -180,19 +168,19 @@ def flow_coords(guides: np.ndarray, *, fb_px: float = FLOW_FB_PX) -> Callable[[i
     return coords
 
 
-def lowpass_transfer(imgs: torch.Tensor, targets, sigma: float, mix: float = 1.0) -> torch.Tensor:
+def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]], sigma: float,
+                     mix: float = 1.0) -> torch.Tensor:
     """A sequence's decoded frames [N, 3, res, res], in order -> the same frames with their low
     frequencies carried on: frame j's Gaussian low-pass (std `sigma` px) moves by `mix` towards
     the low-pass of output frame j - 1 warped into it, where that warp reaches, with a ramp of
     about `sigma` px into the pixels it does not reach; each frame's high frequencies stay its
-    own. Frame 0 is unchanged. `targets`: a `WarpTargets` (the prior's depth and the poses), or
-    j -> (uv, valid) of frame j - 1 seen from frame j (`flow_coords`).
+    own. Frame 0 is unchanged. `coords`: j -> (uv, valid) of frame j - 1 seen from frame j
+    (`flow_coords`, `depth_coords`).
 
     The warped frame's low-pass is a normalized convolution (its blur over the blur of its
     validity), so the pixels the warp does not reach do not darken it."""
     if not 0 < mix <= 1 or sigma <= 0:
         raise ValueError(f"lowpass_transfer: sigma {sigma} (> 0), mix {mix} (0 < mix <= 1)")
-    coords = depth_coords(targets) if isinstance(targets, WarpTargets) or hasattr(targets, "depths") else targets
     x = imgs.detach().float().cpu().numpy()
     out = [x[0]]
     for j in range(1, len(x)):

@@ -247,9 +247,8 @@ def test_frame_by_frame_methods_keep_the_vcm_fields_at_their_defaults():
 
 
 def _still(depths, size=24):
-    """Warp targets of a still camera over `depths` (one per frame): the transfer's inputs."""
-    cam = _cam(size=size)
-    return types.SimpleNamespace(depths=depths, cameras=[cam] * len(depths), tol=warp.DEPTH_TOL)
+    """The transfer's coordinates for a still camera over `depths` (one per frame)."""
+    return warp.depth_coords(depths, [_cam(size=size)] * len(depths))
 
 
 def test_lowpass_transfer_carries_the_coarse_part_and_keeps_the_detail():

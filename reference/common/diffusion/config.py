@@ -221,6 +221,16 @@ class DiffusionConfig:
     # its detail stays its own. Sampling only (no stage key).
     vcm_lowpass: float = 0.0
     vcm_lowpass_mix: float = 1.0
+    # Shared noise (`sample.frame_noise`; 0: every frame its own): each frame's starting noise is
+    # sqrt(vcm_noise) of one draw its sequence shares plus sqrt(1 - vcm_noise) of its own, still a
+    # standard normal per frame. `vcm_noise_sigma` > 0: only the noise's low frequencies are
+    # shared, below a Gaussian low-pass of that std in model-space pixels. Sampling only (no stage key).
+    vcm_noise: float = 0.0
+    vcm_noise_sigma: float = 0.0
+    # The shared part travels with the picture instead (`warp.carried_noise`): frame j's noise is
+    # sqrt(vcm_noise) of frame j - 1's, carried along the optical flow between the two frames'
+    # conditions, plus sqrt(1 - vcm_noise) of its own, where that flow reaches.
+    vcm_noise_flow: bool = False
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -259,7 +269,8 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_noise",
+            "vcm_noise_sigma", "vcm_noise_flow")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import zlib
 from pathlib import Path
-from typing import Any, ClassVar, Iterator
+from typing import TYPE_CHECKING, Any, ClassVar, Iterator
 
 import numpy as np
 
@@ -38,6 +38,9 @@ from .conditions import NearestAerial, PriorFits, PriorRenders, SceneConditions,
 from .config import DiffusionConfig
 from .guidance import Unguided
 from .presets import GPU_TRAINING
+
+if TYPE_CHECKING:
+    import torch
 
 
 def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionConfig:
@@ -72,6 +75,12 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
         raise ValueError(f"vcm_lowpass {config.vcm_lowpass}, vcm_lowpass_mix {config.vcm_lowpass_mix}: expected "
                          "vcm_lowpass >= 0 (pixels), 0 < vcm_lowpass_mix <= 1, and when vcm_lowpass is not 0 the "
                          "VCM on (vcm=true) and a prior's renders as the condition (their flow moves frames)")
+    if not 0.0 <= config.vcm_noise <= 1.0 or config.vcm_noise_sigma < 0 or (config.vcm_noise and not config.vcm) or \
+            (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
+        raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
+                         f"{config.vcm_noise_flow}: expected 0 <= vcm_noise <= 1, vcm_noise_sigma >= 0, the VCM on "
+                         "(vcm=true) when vcm_noise is not 0, and with vcm_noise_flow no sigma and a prior's renders "
+                         "as the condition (their flow carries the noise)")
     if config.condition == "aerial" and config.core.residual:
         # the residual from a view taken elsewhere means nothing: diffuse the frames
         config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
@@ -213,7 +222,7 @@ class DiffusionMethod(Method):
         # Seed per sequence from its id, so frames do not depend on rendering order.
         seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
         warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
-        x = core.from_diffused(self._generate(cc, seed, warp), cc, cfg)
+        x = core.from_diffused(self._generate(cc, seed, warp, priors), cc, cfg)
         imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
         if self.config.vcm_lowpass:  # the frames' coarse part carried on along the conditions' flow
             from .warp import flow_coords, lowpass_transfer
@@ -234,16 +243,33 @@ class DiffusionMethod(Method):
                          condition=self.config.condition)
         yield from out
 
-    def _generate(self, conds, seed: int, warp):
+    def _generate(self, conds, seed: int, warp, priors: list[np.ndarray]):
         """Model-space samples [N, C, h, w] for the conditions `conds` of a sequence's frames."""
         from . import sample
 
         c = self.config
         acm = self.guidance.sampling_model(self.acm)
+        noise = self._start_noise(sample.sample_shape(tuple(conds.shape), acm.cfg), seed, priors)
         if c.vcm and (self.vcm is not None or c.vcm_warp):
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
-                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp)
-        return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength)
+                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp, noise=noise)
+        return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength,
+                                    noise=noise)
+
+    def _start_noise(self, shape: tuple[int, ...], seed: int, priors: list[np.ndarray]) -> torch.Tensor:
+        """Every frame's starting noise [N, C, h, w]: its own draw (`sample.frame_noise`, the
+        same in `skyeyes` and `skyeyes-no-vcm`), with `vcm_noise` a share across frames, on the
+        screen (the sequence's one draw, `vcm_noise_sigma`: its low frequencies) or carried along
+        the optical flow between the frames' conditions (`vcm_noise_flow`: `warp.carried_noise`)."""
+        from . import core, sample
+        from .warp import carried_noise, flow_coords
+
+        c = self.config
+        if not (c.vcm_noise and c.vcm_noise_flow):
+            return sample.frame_noise(seed, shape, share=c.vcm_noise, sigma=c.vcm_noise_sigma)
+        own = sample.frame_noise(seed, shape)
+        guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), *shape[-2:])
+        return carried_noise(own, flow_coords(guides.permute(0, 2, 3, 1).numpy()), c.vcm_noise)
 
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the

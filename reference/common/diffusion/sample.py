@@ -79,16 +79,41 @@ def _timesteps(t, n: int, dev) -> torch.Tensor:
     return torch.full((n,), int(t), dtype=torch.long, device=dev)
 
 
-def frame_noise(seed: int, shape: tuple[int, ...], batch: int = 16) -> torch.Tensor:
+def frame_noise(seed: int, shape: tuple[int, ...], batch: int = 16, share: float = 0.0,
+                sigma: float = 0.0) -> torch.Tensor:
     """The starting noise of every frame of a sequence, [N, C, h, w] for `shape`: one CPU generator
     seeded by `seed`, drawn `batch` frames at a time (as the frame-by-frame sampler always drew it).
-    Frame i's noise depends on (seed, i, batch) alone, so the ACM frame by frame and the VCM clip by
-    clip start frame i from the same noise (`skyeyes` and `skyeyes-no-vcm` are paired)."""
+    Frame i's own noise depends on (seed, i, batch) alone, so the ACM frame by frame and the VCM clip
+    by clip start frame i from the same noise (`skyeyes` and `skyeyes-no-vcm` are paired).
+
+    share (`vcm_noise`, 0 <= share <= 1): every frame's noise is sqrt(share) of one draw the
+    sequence shares (its own generator, seeded by `seed`) plus sqrt(1 - share) of its own, so each
+    frame's noise is still exactly a standard normal and only its correlation across frames changes
+    (share 0: independent frames; 1: one noise for the whole sequence). sigma > 0
+    (`vcm_noise_sigma`, model-space pixels): only the low frequencies are shared: at spatial
+    frequency f the shared part's weight is share * exp(-2 pi^2 sigma^2 |f|^2) (a Gaussian low-pass
+    of std sigma), the frame's own the rest, so the noise stays white (the low-frequency noise
+    re-initialisation of FreeInit, Wu et al. 2023, across frames instead of across iterations)."""
+    if not 0.0 <= share <= 1.0 or sigma < 0:
+        raise ValueError(f"noise share {share}, sigma {sigma}: expected 0 <= share <= 1, sigma >= 0")
     g = torch.Generator().manual_seed(int(seed))
     n, rest = shape[0], tuple(shape[1:])
     # drawn on the CPU, the generator's device, on purpose: the same frames on every device
-    return torch.cat([torch.randn((min(batch, n - i), *rest), generator=g, device=g.device)
-                      for i in range(0, n, batch)]) if n else torch.zeros((0, *rest), device=g.device)
+    own = torch.cat([torch.randn((min(batch, n - i), *rest), generator=g, device=g.device)
+                     for i in range(0, n, batch)]) if n else torch.zeros((0, *rest), device=g.device)
+    if share == 0.0:
+        return own
+    common = torch.randn((1, *rest), generator=torch.Generator().manual_seed(int(seed) + SHARED_SALT))
+    if sigma == 0.0:
+        return share ** 0.5 * common + (1.0 - share) ** 0.5 * own
+    fy, fx = (torch.fft.fftfreq(k, dtype=torch.float64) for k in rest[-2:])
+    w = share * torch.exp(-2.0 * torch.pi ** 2 * sigma ** 2 * (fy[:, None] ** 2 + fx[None, :] ** 2))
+    mixed = w.sqrt() * torch.fft.fft2(common.double()) + (1.0 - w).sqrt() * torch.fft.fft2(own.double())
+    return torch.fft.ifft2(mixed).real.float()  # w is even in f, so the imaginary part is rounding
+
+
+#: Offsets the seed of a sequence's shared noise from its frames' own (`frame_noise`).
+SHARED_SALT = 0x5EED_C0DE
 
 
 @torch.no_grad()
@@ -136,10 +161,11 @@ def _hold(sched, x: torch.Tensor, k: int, timesteps, held, hold: int, noise, cfg
 
 @torch.no_grad()
 def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, seed: int,
-                  batch: int = 16, strength: float = 1.0) -> torch.Tensor:
-    """ACM alone: every frame independently, frame i from `frame_noise(seed)[i]`.
+                  batch: int = 16, strength: float = 1.0, noise: torch.Tensor | None = None) -> torch.Tensor:
+    """ACM alone: every frame independently, frame i from `noise[i]` (default `frame_noise(seed)`).
     conds [N, C, h, w] -> [N, C, h, w]."""
-    noise = frame_noise(seed, sample_shape(tuple(conds.shape), model.cfg), batch)
+    if noise is None:
+        noise = frame_noise(seed, sample_shape(tuple(conds.shape), model.cfg), batch)
     out = [ddim(model, conds[i:i + batch], steps=steps, noise=noise[i:i + batch], strength=strength)
            for i in range(0, len(conds), batch)]
     return torch.cat(out)
@@ -148,19 +174,21 @@ def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, see
 @torch.no_grad()
 def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tensor, *, steps: int,
                     seed: int, clip: int = 12, strength: float = 1.0, progress=None,
-                    warp=None, hold: int = 0) -> torch.Tensor:
+                    warp=None, hold: int = 0, noise: torch.Tensor | None = None) -> torch.Tensor:
     """Skyeyes inference (Sec. 3.3 and supplement Sec. 2.2): frame 1 from the ACM alone, then
     clips of `clip` frames whose first frame is the last frame generated so far.
 
     conds [N, C, h, w] -> [N, C, h, w]. Each clip generates up to `clip - 1` new frames. Frame i
-    starts from `frame_noise(seed)[i]`, the noise `sample_frames` gives it: frame 1 is the ACM's
-    frame exactly, and every other frame differs from the ACM's only by what the VCM does.
+    starts from `noise[i]` (default `frame_noise(seed)[i]`), the noise `sample_frames` gives it:
+    frame 1 is the ACM's frame exactly, and every other frame differs from the ACM's only by what
+    the VCM does.
     `warp` (`warp.WarpTargets`) and `hold`: the clip's first frame, warped into each new frame,
     holds the pixels it reaches for the first `hold` steps (`ddim_clip`). `vcm` None: every frame
     from the ACM alone, one at a time, held by the previous frame's warp (`ddim`).
     """
     n = len(conds)
-    noise = frame_noise(seed, sample_shape(tuple(conds.shape), acm.cfg))
+    if noise is None:
+        noise = frame_noise(seed, sample_shape(tuple(conds.shape), acm.cfg))
     out = [ddim(acm, conds[:1], steps=steps, noise=noise[:1], strength=strength)[0]]
     i = 1
     while i < n:

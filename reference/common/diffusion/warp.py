@@ -192,3 +192,29 @@ def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarra
         weight = mix * m * np.clip(2.0 * cover - 1.0, 0.0, 1.0)  # 0 at holes, 1 a sigma or so inside
         out.append(np.clip(x[j] + weight * (low_warped - _blur(x[j], sigma)), 0.0, 1.0).astype(np.float32))
     return torch.from_numpy(np.stack(out)).to(imgs.device, imgs.dtype)
+
+
+def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                  share: float) -> torch.Tensor:
+    """Motion-aligned starting noise of a sequence (`vcm_noise_flow`): own [N, C, h, w], each
+    frame's own standard normal draw (`sample.frame_noise`), in sequence order -> [N, C, h, w].
+    Frame 0 keeps its own. Frame j, where the previous frame seen from it lands (`coords(j)`:
+    (uv, valid) on the h x w grid, `flow_coords` of the conditions at that size), is sqrt(share)
+    of frame j - 1's noise at the nearest pixel there plus sqrt(1 - share) of its own; elsewhere
+    its own. Taking whole samples (no interpolation) keeps every pixel exactly N(0, 1); the
+    noise travels with what the frames show (the motion-aligned noise of Control-A-Video; Chang
+    et al. 2024 warp noise by flow too), and the part that is not carried is fresh."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"carried_noise: share {share}, expected 0 <= share <= 1")
+    n, _, h, w = own.shape
+    out = [own[0]] if n else []
+    for j in range(1, n):
+        uv, valid = coords(j)
+        if uv.shape[:2] != (h, w):
+            raise ValueError(f"carried_noise: coordinates of shape {uv.shape[:2]} for noise of {(h, w)}")
+        ix = np.clip(np.floor(uv[..., 0]).astype(np.int64), 0, w - 1)
+        iy = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, h - 1)
+        prev = out[-1][:, torch.from_numpy(iy), torch.from_numpy(ix)]
+        mixed = share ** 0.5 * prev + (1.0 - share) ** 0.5 * own[j]
+        out.append(torch.where(torch.from_numpy(valid)[None], mixed, own[j]))
+    return torch.stack(out) if n else own.clone()

@@ -297,3 +297,49 @@ def test_skyeyes_checks_vcm_lowpass(tmp_path):
         with pytest.raises(ValueError, match="vcm_lowpass"):
             Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
     Skyeyes(dataclasses.replace(smoke, vcm_lowpass=2.0, vcm_lowpass_mix=0.5), tmp_path)
+
+
+def _shift(h: int, w: int, dx: int, valid_cols: slice = slice(None)):
+    """coords for every j: frame j - 1 seen from frame j is `dx` pixels to the right (a pan),
+    valid in `valid_cols` of frame j."""
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    valid = np.zeros((h, w), bool)
+    valid[:, valid_cols] = True
+    return lambda j: (np.stack([xs + dx, ys], -1), valid)
+
+
+def test_carried_noise_moves_with_the_picture_and_is_fresh_where_nothing_comes():
+    """A pan of 2 pixels a frame: with share 1, frame j's noise is frame j - 1's shifted by 2
+    (numpy's roll, on the columns the flow reaches) and its own draw in the last 2 columns, which
+    the flow leaves; with share s the closed form sqrt(s) prev + sqrt(1 - s) own; over many
+    draws every pixel stays N(0, 1)."""
+    n, h, w = 4, 5, 12
+    own = torch.randn(n, 3, h, w, generator=torch.Generator().manual_seed(0))
+    out = warp.carried_noise(own, _shift(h, w, 2, slice(0, w - 2)), 1.0)
+    torch.testing.assert_close(out[0], own[0])
+    for j in range(1, n):
+        np.testing.assert_array_equal(out[j, :, :, : w - 2].numpy(), np.roll(out[j - 1].numpy(), -2, axis=-1)[..., : w - 2])
+        torch.testing.assert_close(out[j, :, :, w - 2:], own[j, :, :, w - 2:])
+    s = 0.7
+    half = warp.carried_noise(own, _shift(h, w, 2, slice(0, w - 2)), s)
+    want = s ** 0.5 * np.roll(half[0].numpy(), -2, axis=-1) + (1 - s) ** 0.5 * own[1].numpy()
+    np.testing.assert_allclose(half[1, :, :, : w - 2].numpy(), want[..., : w - 2], atol=1e-6)
+    many = torch.stack([warp.carried_noise(torch.randn(n, 1, h, w, generator=torch.Generator().manual_seed(k)),
+                                           _shift(h, w, 1, slice(0, w - 1)), s) for k in range(400)])
+    assert abs(float(many[:, -1].var()) - 1.0) < 0.08 and abs(float(many[:, -1].mean())) < 0.05
+    # the carried pixel of frame 3 against frame 2's pixel it came from: correlation sqrt(s)
+    a, b = many[:, 3, 0, :, 0].flatten().numpy(), many[:, 2, 0, :, 1].flatten().numpy()
+    assert abs(np.corrcoef(a, b)[0, 1] - s ** 0.5) < 0.08
+    with pytest.raises(ValueError, match="coordinates"):
+        warp.carried_noise(own, _shift(h, w + 1, 2), 1.0)
+
+
+def test_skyeyes_checks_vcm_noise(tmp_path):
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    smoke = PRESETS["smoke"]
+    for bad in (dict(vcm_noise=1.5), dict(vcm_noise=0.5, vcm_noise_sigma=-1.0), dict(vcm=False, vcm_noise=0.5),
+                dict(vcm_noise=0.5, vcm_noise_flow=True, vcm_noise_sigma=2.0)):
+        with pytest.raises(ValueError, match="vcm_noise"):
+            Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, vcm_noise=0.5, vcm_noise_flow=True), tmp_path)

@@ -197,16 +197,21 @@ def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarra
 def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]],
                   share: float) -> torch.Tensor:
     """Motion-aligned starting noise of a sequence (`vcm_noise_flow`): own [N, C, h, w], each
-    frame's own standard normal draw (`sample.frame_noise`), in sequence order -> [N, C, h, w].
-    Frame 0 keeps its own. Frame j, where the previous frame seen from it lands (`coords(j)`:
-    (uv, valid) on the h x w grid, `flow_coords` of the conditions at that size), is sqrt(share)
-    of frame j - 1's noise at the nearest pixel there plus sqrt(1 - share) of its own; elsewhere
-    its own. Taking whole samples (no interpolation) keeps every pixel exactly N(0, 1); the
-    noise travels with what the frames show (the motion-aligned noise of Control-A-Video; Chang
-    et al. 2024 warp noise by flow too), and the part that is not carried is fresh."""
+    frame's own standard normal draw (`sample.frame_noise`), in sequence order -> [N, C, h, w],
+    white like it: every pixel N(0, 1), independent of every other pixel of its frame.
+
+    Frame 0 keeps its own. In frame j, the pixels the previous frame reaches (`coords(j)`:
+    (uv, valid) on the h x w grid, `flow_coords` of the conditions at that size) come in groups,
+    the k pixels whose nearest source is one pixel x of frame j - 1's noise. A group's mean
+    times sqrt(k) is sqrt(share) x plus sqrt(1 - share) of the same of its own draw, and what
+    the group holds beyond its mean is its own draw's (own minus the group's mean of own): the
+    carried sample is split among the pixels it spreads to as an exact conditional draw (the
+    discrete form of the noise transport of Chang et al., ICLR 2024, where nearest-neighbour
+    copies would repeat one sample over a zoomed region). k = 1 gives sqrt(share) x + sqrt(1 -
+    share) own; elsewhere the pixel is its own."""
     if not 0.0 <= share <= 1.0:
         raise ValueError(f"carried_noise: share {share}, expected 0 <= share <= 1")
-    n, _, h, w = own.shape
+    n, c, h, w = own.shape
     out = [own[0]] if n else []
     for j in range(1, n):
         uv, valid = coords(j)
@@ -214,7 +219,14 @@ def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, n
             raise ValueError(f"carried_noise: coordinates of shape {uv.shape[:2]} for noise of {(h, w)}")
         ix = np.clip(np.floor(uv[..., 0]).astype(np.int64), 0, w - 1)
         iy = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, h - 1)
-        prev = out[-1][:, torch.from_numpy(iy), torch.from_numpy(ix)]
-        mixed = share ** 0.5 * prev + (1.0 - share) ** 0.5 * own[j]
-        out.append(torch.where(torch.from_numpy(valid)[None], mixed, own[j]))
+        tgt = torch.from_numpy(np.flatnonzero(valid))
+        src = torch.from_numpy((iy * w + ix).ravel())[tgt]
+        e = own[j].reshape(c, h * w).double()
+        k = torch.bincount(src, minlength=h * w).double()[src]  # each target's group size
+        group_e = torch.zeros(c, h * w, dtype=torch.float64).index_add_(1, src, e[:, tgt])[:, src]
+        carried = out[-1].reshape(c, h * w).double()[:, src]
+        mean = share ** 0.5 * carried + (1.0 - share) ** 0.5 * group_e / k.sqrt()  # N(0, 1): the group's sum / sqrt(k)
+        z = e.clone()
+        z[:, tgt] = mean / k.sqrt() + e[:, tgt] - group_e / k
+        out.append(z.reshape(c, h, w).to(own.dtype))
     return torch.stack(out) if n else own.clone()

@@ -343,3 +343,21 @@ def test_skyeyes_checks_vcm_noise(tmp_path):
         with pytest.raises(ValueError, match="vcm_noise"):
             Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
     Skyeyes(dataclasses.replace(smoke, vcm_noise=0.5, vcm_noise_flow=True), tmp_path)
+
+
+def test_carried_noise_splits_a_sample_that_spreads_and_stays_white():
+    """A 2x zoom along x (pixels 2m and 2m + 1 of frame j both come from pixel m of frame j - 1):
+    with share 1 each pair's sum over sqrt(2) is the carried sample exactly, and over many draws
+    the two pixels of a pair are uncorrelated N(0, 1) (copying the sample to both would correlate
+    them fully)."""
+    h, w = 3, 8
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    zoom = lambda j: (np.stack([xs / 2.0, ys], -1), np.ones((h, w), bool))  # noqa: E731
+    out = warp.carried_noise(torch.randn(2, 2, h, w, generator=torch.Generator().manual_seed(1)), zoom, 1.0)
+    np.testing.assert_allclose(((out[1, :, :, 0::2] + out[1, :, :, 1::2]) / 2 ** 0.5).numpy(),
+                               out[0, :, :, : w // 2].numpy(), atol=1e-6)
+    pairs = torch.stack([warp.carried_noise(torch.randn(2, 1, h, w, generator=torch.Generator().manual_seed(k)),
+                                            zoom, 0.8)[1, 0] for k in range(600)])
+    a, b = pairs[:, :, 0::2].flatten().numpy(), pairs[:, :, 1::2].flatten().numpy()
+    assert abs(a.var() - 1.0) < 0.08 and abs(b.var() - 1.0) < 0.08
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.06

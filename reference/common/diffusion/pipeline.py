@@ -79,8 +79,8 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
             (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
         raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
                          f"{config.vcm_noise_flow}: expected 0 <= vcm_noise <= 1, vcm_noise_sigma >= 0, the VCM on "
-                         "(vcm=true) when vcm_noise is not 0, and with vcm_noise_flow no sigma and a prior's renders "
-                         "as the condition (their flow carries the noise)")
+                         "(vcm=true) when vcm_noise is not 0 (without the VCM: skyeyes-no-vcm, or vcm_noise=0), and with "
+                         "vcm_noise_flow no sigma and a prior's renders as the condition (their flow carries the noise)")
     if config.condition == "aerial" and config.core.residual:
         # the residual from a view taken elsewhere means nothing: diffuse the frames
         config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),
@@ -262,14 +262,16 @@ class DiffusionMethod(Method):
         screen (the sequence's one draw, `vcm_noise_sigma`: its low frequencies) or carried along
         the optical flow between the frames' conditions (`vcm_noise_flow`: `warp.carried_noise`)."""
         from . import core, sample
-        from .warp import carried_noise, flow_coords
+        from .warp import DIS_MIN_PX, carried_noise, flow_coords, grid_coords
 
         c = self.config
         if not (c.vcm_noise and c.vcm_noise_flow):
             return sample.frame_noise(seed, shape, share=c.vcm_noise, sigma=c.vcm_noise_sigma)
         own = sample.frame_noise(seed, shape)
-        guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), *shape[-2:])
-        return carried_noise(own, flow_coords(guides.permute(0, 2, 3, 1).numpy()), c.vcm_noise)
+        h, w = shape[-2:]
+        f = -(-DIS_MIN_PX // min(h, w))  # 1 on every preset's grid; more for grids DIS refuses
+        guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), h * f, w * f)
+        return carried_noise(own, grid_coords(flow_coords(guides.permute(0, 2, 3, 1).numpy()), f), c.vcm_noise)
 
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the

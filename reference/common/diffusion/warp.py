@@ -171,6 +171,24 @@ def flow_coords(guides: np.ndarray, *, fb_px: float = FLOW_FB_PX) -> Callable[[i
     return coords
 
 
+#: OpenCV's DIS flow refuses images under this many pixels on both sides.
+DIS_MIN_PX = 12
+
+
+def grid_coords(coords: Callable[[int], tuple[np.ndarray, np.ndarray]], f: int) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    """`coords` of an image f times the grid's size -> the same on the grid: each grid pixel
+    takes the coordinates (divided by f) and validity of the fine pixel at its centre (f = 1:
+    `coords` itself)."""
+    if f == 1:
+        return coords
+
+    def on_grid(j: int) -> tuple[np.ndarray, np.ndarray]:
+        uv, valid = coords(j)
+        return uv[f // 2::f, f // 2::f] / f, valid[f // 2::f, f // 2::f]
+
+    return on_grid
+
+
 def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]], sigma: float,
                      mix: float = 1.0) -> torch.Tensor:
     """A sequence's decoded frames [N, 3, res, res], in order -> the same frames with their low
@@ -222,11 +240,12 @@ def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, n
             raise ValueError(f"carried_noise: coordinates of shape {uv.shape[:2]} for noise of {(h, w)}")
         ix = np.clip(np.floor(uv[..., 0]).astype(np.int64), 0, w - 1)
         iy = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, h - 1)
-        tgt = torch.from_numpy(np.flatnonzero(valid))
-        src = torch.from_numpy((iy * w + ix).ravel())[tgt]
+        dev = own.device
+        tgt = torch.as_tensor(np.flatnonzero(valid), device=dev)
+        src = torch.as_tensor((iy * w + ix).ravel(), device=dev)[tgt]
         e = own[j].reshape(c, h * w).double()
         k = torch.bincount(src, minlength=h * w).double()[src]  # each target's group size
-        group_e = torch.zeros(c, h * w, dtype=torch.float64).index_add_(1, src, e[:, tgt])[:, src]
+        group_e = torch.zeros(c, h * w, dtype=torch.float64, device=dev).index_add_(1, src, e[:, tgt])[:, src]
         carried = out[-1].reshape(c, h * w).double()[:, src]
         mean = share ** 0.5 * carried + (1.0 - share) ** 0.5 * group_e / k.sqrt()  # N(0, 1): the group's sum / sqrt(k)
         z = e.clone()

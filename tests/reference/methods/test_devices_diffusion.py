@@ -21,6 +21,7 @@ import diffusers  # noqa: F401  (a hard dependency of reference: a broken instal
 
 from builders.devices import stray_device  # noqa: E402
 from builders.skyeyes import SIZE, StandInGeometryPrior, StandInPrior, make_tiny_dataset, render_all  # noqa: E402
+from reference.common.diffusion.config import frame_by_frame  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
 from reference.methods.gvg import GVG  # noqa: E402
 from reference.methods.ip2p import InstructPix2Pix  # noqa: E402
@@ -44,8 +45,9 @@ CONTROLNET_LIKE = dataclasses.replace(
     base_steps=2, base_batch=2, acm_steps=2, acm_batch=2, vcm_steps=1, clip_frames=3, sample_steps=2,
     ckpt_every=1, figure_frames=2, device="cpu", threads=1)
 #: SDEdit start from the prior, on the rectified flow
-FLOW_LIKE = dataclasses.replace(SMALL_LIKE, core=dataclasses.replace(_SMALL_CORE, prediction="flow", flow_noise=0.5),
-                                sample_strength=0.6, acm_anneal=0, vcm=False)
+FLOW_LIKE = dataclasses.replace(frame_by_frame(SMALL_LIKE),
+                                core=dataclasses.replace(_SMALL_CORE, prediction="flow", flow_noise=0.5),
+                                sample_strength=0.6, acm_anneal=0)
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +78,7 @@ def _both(cls, cfg, tiny, tmp_path, monkeypatch, prior_cls=StandInPrior):
     ("controlnet-branch", Skyeyes, CONTROLNET_LIKE),
     ("flow-sdedit", Skyeyes, FLOW_LIKE),
     ("controlnet-baseline", ControlNetBaseline,
-     dataclasses.replace(SMALL_LIKE, vcm=False, condition="aerial")),
+     dataclasses.replace(frame_by_frame(SMALL_LIKE), condition="aerial")),
 ])
 def test_diffusion_methods_make_no_stray_tensors(name, cls, cfg, tiny, tmp_path, monkeypatch):
     stray, plain = _both(cls, cfg, tiny, tmp_path, monkeypatch)
@@ -120,5 +122,5 @@ def test_the_check_can_fail(tiny, tmp_path, monkeypatch):
     monkeypatch.setenv("SKYEYES_CACHE", str(tmp_path / "cache"))
     with pytest.raises((RuntimeError, NotImplementedError), match="meta"):
         with stray_device() as mode:
-            _frames(Skyeyes, dataclasses.replace(SMALL_LIKE, vcm=False), tiny, tmp_path / "w")
+            _frames(Skyeyes, frame_by_frame(SMALL_LIKE), tiny, tmp_path / "w")
     assert any(site.startswith(sample.__file__) for site in mode.sites), mode.sites

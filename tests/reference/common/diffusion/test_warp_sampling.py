@@ -361,3 +361,19 @@ def test_carried_noise_splits_a_sample_that_spreads_and_stays_white():
     a, b = pairs[:, :, 0::2].flatten().numpy(), pairs[:, :, 1::2].flatten().numpy()
     assert abs(a.var() - 1.0) < 0.08 and abs(b.var() - 1.0) < 0.08
     assert abs(np.corrcoef(a, b)[0, 1]) < 0.06
+
+
+def test_grid_coords_takes_the_fine_pixel_at_each_grid_centre():
+    """Flow computed on an image 3 times the grid's size (grids under DIS's 12 pixels): grid pixel
+    (r, c) takes the fine pixel (3r + 1, 3c + 1)'s coordinates over 3, which for a fine pan of 6
+    pixels is a grid pan of 2, and its validity."""
+    f, h, w = 3, 4, 5
+    xs, ys = np.meshgrid(np.arange(w * f) + 0.5, np.arange(h * f) + 0.5)
+    valid = np.ones((h * f, w * f), bool)
+    valid[:, -6:] = False
+    uv, v = warp.grid_coords(lambda j: (np.stack([xs + 6, ys], -1), valid), f)(1)
+    gx, gy = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    np.testing.assert_allclose(uv, np.stack([gx + 2, gy], -1))
+    np.testing.assert_array_equal(v, np.arange(w)[None].repeat(h, 0) < w - 2)
+    same = lambda j: (xs, valid)  # noqa: E731
+    assert warp.grid_coords(same, 1) is same

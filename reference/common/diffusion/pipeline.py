@@ -227,9 +227,8 @@ class DiffusionMethod(Method):
         if self.config.vcm_lowpass:  # the frames' coarse part carried on along the conditions' flow
             from .warp import flow_coords, lowpass_transfer
 
-            guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), *imgs.shape[-2:])
-            guides = guides.permute(0, 2, 3, 1).numpy()
-            imgs = lowpass_transfer(imgs, flow_coords(guides), self.config.vcm_lowpass, self.config.vcm_lowpass_mix)
+            imgs = lowpass_transfer(imgs, flow_coords(_guides(priors, *imgs.shape[-2:])), self.config.vcm_lowpass,
+                                    self.config.vcm_lowpass_mix)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
@@ -261,7 +260,7 @@ class DiffusionMethod(Method):
         same in `skyeyes` and `skyeyes-no-vcm`), with `vcm_noise` a share across frames, on the
         screen (the sequence's one draw, `vcm_noise_sigma`: its low frequencies) or carried along
         the optical flow between the frames' conditions (`vcm_noise_flow`: `warp.carried_noise`)."""
-        from . import core, sample
+        from . import sample
         from .warp import DIS_MIN_PX, carried_noise, flow_coords, grid_coords
 
         c = self.config
@@ -270,8 +269,7 @@ class DiffusionMethod(Method):
         own = sample.frame_noise(seed, shape)
         h, w = shape[-2:]
         f = -(-DIS_MIN_PX // min(h, w))  # 1 on every preset's grid; more for grids DIS refuses
-        guides = core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), h * f, w * f)
-        return carried_noise(own, grid_coords(flow_coords(guides.permute(0, 2, 3, 1).numpy()), f), c.vcm_noise)
+        return carried_noise(own, grid_coords(flow_coords(_guides(priors, h * f, w * f)), f), c.vcm_noise)
 
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the
@@ -282,3 +280,11 @@ class DiffusionMethod(Method):
         depths = [warp.prior_depth(self.prior, scene, f, res, res) for f in sequence.frames]
         cams = [warp.scaled_camera(f.camera(), res, res) for f in sequence.frames]
         return warp.WarpTargets(cc, depths, cams, self.config.core)
+
+
+def _guides(priors: list[np.ndarray], h: int, w: int) -> np.ndarray:
+    """The prior's renders of a sequence's frames, colour only, resized to h x w: [N, h, w, 3] in
+    [0, 1], what `warp.flow_coords` computes the flow on (`vcm_lowpass`, `vcm_noise_flow`)."""
+    from . import core
+
+    return core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), h, w).permute(0, 2, 3, 1).numpy()

@@ -39,8 +39,9 @@ PRESETS: dict[str, DiffusionConfig] = {
         snr_gamma=5.0, mixed_precision="bf16", vcm_noise=1.0, vcm_noise_flow=True),
     # NOTE: the paper's VCM wiring, every frame's starting noise carried along the flow between the
     # prior's renders (`vcm_noise_flow`): measured here against no-VCM in one cache, the warp error
-    # 0.0652 against 0.0928 and FVD better, FID and LPIPS ties (docs/skyeyes.md, "The VCM"); the
-    # paper's wiring with independent noise lowered the warp error by 0.0005. `--set clip_frames=2 --set vcm_local=5 --set vcm_warp=9` (warped
+    # 0.0652 against 0.0928 and FVD 582 against 739 (both credibly better), FID a tie, LPIPS 0.004
+    # credibly worse (docs/skyeyes.md, "The VCM"); the paper's wiring with independent noise
+    # lowered the warp error by 0.0005. `--set clip_frames=2 --set vcm_local=5 --set vcm_warp=9` (warped
     # sampling) cut the warp error by 35% here (0.0605 against no-VCM's 0.0928) and bettered FVD
     # (613 against 739), but was credibly worse on FID (+16) and LPIPS (+0.012) and rendered 12x
     # slower (3902 s against 335 s): docs/skyeyes.md, "The VCM: what makes frames agree".

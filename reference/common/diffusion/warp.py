@@ -233,6 +233,7 @@ def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, n
     if not 0.0 <= share <= 1.0:
         raise ValueError(f"carried_noise: share {share}, expected 0 <= share <= 1")
     n, c, h, w = own.shape
+    dev = own.device
     out = [own[0]] if n else []
     for j in range(1, n):
         uv, valid = coords(j)
@@ -240,7 +241,6 @@ def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, n
             raise ValueError(f"carried_noise: coordinates of shape {uv.shape[:2]} for noise of {(h, w)}")
         ix = np.clip(np.floor(uv[..., 0]).astype(np.int64), 0, w - 1)
         iy = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, h - 1)
-        dev = own.device
         tgt = torch.as_tensor(np.flatnonzero(valid), device=dev)
         src = torch.as_tensor((iy * w + ix).ravel(), device=dev)[tgt]
         e = own[j].reshape(c, h * w).double()

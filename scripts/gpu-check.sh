@@ -2,104 +2,77 @@
 # The one prepared check of the reference side on a bare GPU machine (issue 34; docs/gpu.md).
 #
 # The machine has PyTorch with CUDA and no network. What else the project needs comes as wheels
-# in .whl/ beside the checkout (`bash scripts/gpu-wheels.sh`, run where there is network). From
-# the repository root:
+# in .whl/ beside the checkout (`bash scripts/gpu-wheels.sh`, run where there is network); the
+# SynthTown data may come along in .gpu-data/ (`bash scripts/gpu-check.sh pack-data`, here), which
+# spares the GPU machine the minute that generating it takes. From the repository root:
 #
-#   bash scripts/gpu-check.sh          # all: data, every method's smoke on CUDA, skyeyes small
+#   bash scripts/gpu-check.sh          # all: start, then finish, in one go (a machine without a time limit)
+#   bash scripts/gpu-check.sh start    # first device run: the jobs below, in their own session
+#   bash scripts/gpu-check.sh finish   # second device run, on the same warm machine: wait, pack, hand back
 #   bash scripts/gpu-check.sh tests    # the test suite's `gpu` tests (not slow), on their own
-#   bash scripts/gpu-check.sh more     # the submission parts a first run could not hand back
 #
-# `all`, in at most 10 minutes on one H100:
-#   1. SynthTown smoke and small generated with every core;
-#   2. `reproduce --preset smoke --device cuda` of every method, 5 at a time, each with its own
-#      cache (the README's first command is the skyeyes one);
-#   3. `reproduce --method skyeyes --preset small --device cuda`, timed end to end (data not
-#      counted), with each stage's seconds and the peak GPU memory (all processes, nvidia-smi);
-#   4. the skyeyes small submission packed (a tar in 15 MB parts) for scoring on a machine that
-#      has the metric weights: `cat skyeyes-small.tar.part-* | tar x`, then `skyeyes-bench evaluate`.
-# A dry run of the plumbing on a CPU machine: DEVICE=cpu SMALL=smoke METHODS="mean-frame sugar skyeyes".
-# Everything it prints goes to $OUT/gpu-check.log; $OUT (default ./gpu-check-out) receives at most
-# 8 files and 64 MB, the limits of what a lent machine hands back; the rest stays in .gpu-check/.
+# A lent machine runs one command for at most 10 minutes, so `start` launches the jobs with
+# setsid (they outlive the command) and watches them for MONITOR_S seconds; `finish`, called at
+# once on the same warm machine, watches them until FINISH_S and hands back what they wrote. The
+# jobs, in order:
+#   1. Skyeyes `small` end to end on CUDA (`reproduce --device cuda`), alone on the machine, timed
+#      (data not counted), with each stage's seconds and the peak GPU memory over all processes;
+#   2. when it ends, or SMOKE_AT seconds after it started, all at once: the README's first command
+#      as written (`reproduce --method skyeyes --preset smoke`, device "auto", default data and
+#      cache), `reproduce --preset smoke --device cuda` of every other method (the floor on the
+#      CPU: it has no device), each with its own cache, and the `gpu` tests;
+#   3. the small submission packed as a tar in 15 MiB parts, for scoring where the metric weights
+#      are: `cat skyeyes-small.tar.part-* | tar -x -C run/`, then `skyeyes-bench evaluate`.
+# What comes back ($OUT, default ./gpu-check-out; a lent machine hands back at most 8 files, 64 MiB):
+# gpu-check.log (this command), jobs.log (the jobs'), stages.tsv (name, seconds, rc, start offset),
+# skyeyes-small-summary.json and up to 4 tar parts.
+# A dry run of the plumbing on a CPU machine:
+#   DEVICE=cpu SMALL=smoke SMALL_ARGS="--set acm_steps=20 --set vcm_steps=4" METHODS="mean-frame" \
+#     GPU_TESTS=0 SMOKE_AT=60 bash scripts/gpu-check.sh
+# (METHODS: the smokes, default "readme" and every method but skyeyes; SMALL_ARGS: extra arguments
+# of the timed run.)
 set -uo pipefail
 cd "$(dirname "$0")/.."
 mode=${1:-all}
-DEVICE=${DEVICE:-cuda}  # cpu: a dry run of this script's plumbing where there is no GPU
-SMALL=${SMALL:-small}   # the preset timed end to end (smoke for a dry run)
+DEVICE=${DEVICE:-cuda}          # cpu: a dry run of this script's plumbing where there is no GPU
+SMALL=${SMALL:-small}           # the preset timed end to end (smoke for a dry run)
 OUT=${OUT:-$PWD/gpu-check-out}
-W=$PWD/.gpu-check  # work folder (git-ignored through .git/info/exclude where the checkout is a clone)
+W=${GPU_CHECK_WORK:-/tmp/skyeyes-gpu-check}  # outside the checkout: a second run's fresh copy of the tree leaves it be
+SMOKE_AT=${SMOKE_AT:-450}       # the smokes start when small ends, or this many seconds after it started
+MONITOR_S=${MONITOR_S:-570}     # `start` returns this many seconds after it began
+FINISH_S=${FINISH_S:-100000}    # `finish` returns after this many seconds (or when every job has ended)
+GPU_TESTS=${GPU_TESTS:-1}
 mkdir -p "$OUT" "$W"
-exec > >(tee -a "$OUT/gpu-check.log") 2>&1
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1
 
-# 0. the wheels this machine lacks, installed aside (never into the image's own environment)
-site=/tmp/skyeyes-site
-if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d "$site" ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
-    || { echo "gpu-check: installing .whl/*.whl failed"; exit 1; }
-fi
-export PYTHONPATH=$site:$PWD${PYTHONPATH:+:$PYTHONPATH}
-export SKYEYES_CACHE=$W/cache
-sb=(python3 -m skyeyes_bench.cli)  # an array, so `timeout` can run it (it cannot run a function)
-stages=$OUT/stages.tsv
-stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc"
-  local name=$1 limit=$2; shift 2
-  local t0=$SECONDS
-  timeout "$limit" "$@"; local rc=$?
-  printf '%s\t%d\t%d\n' "$name" $((SECONDS - t0)) "$rc" | tee -a "$stages"
-  return $rc
-}
-
-if [ "$mode" = more ]; then  # the parts the first run left behind (same warm machine)
-  ls "$W"/skyeyes-small.tar.part-* 2>/dev/null | tail -n +4 | head -n 7 | xargs -r cp -t "$OUT"
-  ls -la "$OUT"
+if [ "$mode" = pack-data ]; then  # here: the data the jobs use, generated once, into .gpu-data/ (carried)
+  sb=(.venv/bin/skyeyes-bench data synthtown --quiet)
+  mkdir -p .gpu-data
+  grep -qx '/.gpu-data/' .git/info/exclude 2>/dev/null || echo '/.gpu-data/' >> .git/info/exclude
+  [ -d .gpu-data/smoke ] || "${sb[@]}" --preset smoke --out .gpu-data/smoke || exit 1
+  [ -d ".gpu-data/$SMALL" ] || "${sb[@]}" --preset "$SMALL" --out ".gpu-data/$SMALL" --workers "$(nproc)" || exit 1
+  du -sh .gpu-data/*
   exit 0
 fi
 
-echo "== gpu-check $mode at $(git rev-parse --short HEAD 2>/dev/null || echo '?') on $(hostname), $(date -u +%FT%TZ)"
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
-python3 -c "import os, torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU', '| diffusers', diffusers.__version__, '| cores', os.cpu_count())"
+exec > >(tee -a "$OUT/gpu-check.log") 2>&1
+site=/tmp/skyeyes-site
+SRC=$W/src
+export PYTHONPATH=$site:$SRC SKYEYES_CACHE=$W/cache
+stages=$W/stages.tsv
+t_start() { date +%s > "$W/t0"; }
+since() { echo $(( $(date +%s) - $(cat "$W/t0" 2>/dev/null || date +%s) )); }
 
-if [ "$mode" = tests ]; then
-  stage gpu-tests 540 python3 -m pytest -q -p no:cacheprovider -m "gpu and not slow" tests
-  exit $?
-fi
-[ "$mode" = all ] || { echo "usage: bash scripts/gpu-check.sh [all|tests|more]"; exit 2; }
-
-printf 'stage\tseconds\trc\n' > "$stages"
-# peak GPU memory over all processes (the prior's lane workers hold their own)
-nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "$W/gpumem.log" 2>/dev/null &
-sampler=$!
-trap 'kill $sampler 2>/dev/null' EXIT
-
-# 1. data, every core
-cores=$(nproc)
-stage data-smoke 120 "${sb[@]}" data synthtown --preset smoke --out "$W/data/smoke" --quiet
-[ "$SMALL" = smoke ] || stage data-small 240 "${sb[@]}" data synthtown --preset "$SMALL" --out "$W/data/$SMALL" --workers "$cores" --quiet
-
-# 2. every method's smoke on CUDA, 5 at a time, each in its own cache and output
-methods=${METHODS:-$(python3 -c "from reference.methods import METHODS; print(' '.join(sorted(METHODS)))")}
-smoke_one() {
-  local m=$1 dev=(--device "$DEVICE")
-  [ "$m" = mean-frame ] && dev=()  # the floor runs on the CPU only
-  local t0=$SECONDS
-  SKYEYES_CACHE=$W/cache-$m timeout 300 python3 -m skyeyes_bench.cli reproduce --method "$m" --preset smoke \
-    "${dev[@]}" --data "$W/data/smoke" --out "$W/smoke/$m" --quiet --force > "$W/smoke-$m.log" 2>&1
-  local rc=$?
-  printf 'smoke %-15s rc=%d %4ds  %s\n' "$m" "$rc" $((SECONDS - t0)) "$(grep -m1 -E '^ *(lpips|fid|psnr)' "$W/smoke-$m.log" | tr -s ' ')"
-  [ $rc = 0 ] || tail -5 "$W/smoke-$m.log"
+stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc start"
+  local name=$1 limit=$2; shift 2
+  local t0=$SECONDS at; at=$(since)
+  timeout "$limit" "$@"; local rc=$?
+  printf '%s\t%d\t%d\t%d\n' "$name" $((SECONDS - t0)) "$rc" "$at" >> "$stages"
   return $rc
 }
-export -f smoke_one
-export W DEVICE
-t0=$SECONDS
-printf '%s\n' $methods | xargs -P 5 -I{} bash -c 'smoke_one {}'
-printf 'smokes\t%d\t%d\n' $((SECONDS - t0)) $? | tee -a "$stages"
 
-# 3. skyeyes small end to end on CUDA (data already generated: not counted)
-stage skyeyes-small 480 "${sb[@]}" reproduce --method skyeyes --preset "$SMALL" --device "$DEVICE" --data "$W/data/$SMALL" \
-  --out "$W/skyeyes-small" --quiet --force
-run=$W/skyeyes-small
-python3 - "$run" "$W/gpumem.log" <<'EOF' | tee "$OUT/skyeyes-small-summary.json"
+summary() {  # the small run's stage seconds, devices, lanes and peak memory, as JSON
+  python3 - "$W/skyeyes-small" "$W/gpumem.log" <<'EOF'
 import glob, json, sys
 run, mem = sys.argv[1], sys.argv[2]
 out = {}
@@ -113,23 +86,126 @@ try:
     out["timings"] = {k: v for k, v in sub.get("timings", {}).items() if k != "per_frame_render_s"}
     out["hardware"] = sub.get("hardware")
     out["config"] = {k: sub.get("config", {}).get(k) for k in ("acm_steps", "acm_batch", "vcm_steps", "vcm_batch",
-                                                              "mixed_precision", "device")}
+                                                              "mixed_precision", "device", "vcm_noise", "vcm_noise_flow")}
 except OSError as e:
     out["submission"] = f"missing: {e}"
+try:
+    res = json.load(open(f"{run}/results.json"))
+    out["scores"] = {k: v.get("value") if isinstance(v, dict) else v for k, v in res.get("metrics", {}).items()}
+except (OSError, ValueError, AttributeError):
+    pass
 try:
     out["peak_gpu_memory_mb"] = max(int(x) for x in open(mem).read().split() if x.strip().isdigit())
 except (OSError, ValueError):
     out["peak_gpu_memory_mb"] = None
 print(json.dumps(out, indent=1))
 EOF
+}
 
-# 4. the submission, packed for scoring elsewhere (15 MB parts; the first 3 come back with this
-# run, the rest with `bash scripts/gpu-check.sh more`)
-if [ -f "$run/submission/submission.json" ]; then
-  rm -f "$W"/skyeyes-small.tar.part-*
-  tar -C "$run" -cf - submission | split -b 15M -d - "$W/skyeyes-small.tar.part-"
-  ls "$W"/skyeyes-small.tar.part-* | head -n 3 | xargs -r cp -t "$OUT"
-  n=$(ls "$W"/skyeyes-small.tar.part-* | wc -l)
-  echo "submission: $n part(s) of 15 MB; $((n > 3 ? n - 3 : 0)) left for 'bash scripts/gpu-check.sh more'"
-fi
-echo "== stages (seconds):"; cat "$stages"
+handback() {  # copy what the jobs wrote so far into $OUT (a rename, so no half file comes back)
+  local f
+  for f in stages.tsv jobs.log; do [ -f "$W/$f" ] && cp "$W/$f" "$OUT/$f.part" && mv "$OUT/$f.part" "$OUT/$f"; done
+  summary > "$OUT/skyeyes-small-summary.json.part" 2>/dev/null && mv "$OUT/skyeyes-small-summary.json.part" "$OUT/skyeyes-small-summary.json"
+  if [ -f "$W/packed" ]; then
+    for f in $(ls "$W"/skyeyes-small.tar.part-* | head -n 4); do
+      [ -f "$OUT/$(basename "$f")" ] || { cp "$f" "$OUT/x.part" && mv "$OUT/x.part" "$OUT/$(basename "$f")"; }
+    done
+  fi
+}
+
+watch_jobs() {  # watch_jobs SECONDS: print the stage table as it grows; hand back every 15 s
+  local until=$(( $(date +%s) + $1 )) shown=0 n
+  while [ "$(date +%s)" -lt "$until" ]; do
+    n=$(wc -l < "$stages" 2>/dev/null || echo 0)
+    [ "$n" -gt "$shown" ] && { tail -n +$((shown + 1)) "$stages" | sed 's/^/stage: /'; shown=$n; }
+    handback
+    [ -f "$W/done" ] && { echo "jobs: all ended at +$(since) s"; break; }
+    sleep 15
+  done
+  [ -f "$W/done" ] || echo "jobs: still running at +$(since) s: $(ls "$W"/running-* 2>/dev/null | sed 's/.*running-//' | tr '\n' ' ')"
+  handback
+  nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader 2>/dev/null || true
+}
+
+smoke_one() {  # smoke_one METHOD: its smoke on $DEVICE, own cache and output; the README's command for skyeyes
+  local m=$1 t0=$SECONDS cmd
+  if [ "$m" = readme ]; then  # as written: no --device, --data or --out
+    cmd=(python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset smoke --quiet)
+  else
+    cmd=(python3 -m skyeyes_bench.cli reproduce --method "$m" --preset smoke --data "$W/data/smoke" --out "$W/smoke/$m" --quiet)
+    [ "$m" = mean-frame ] || cmd+=(--device "$DEVICE")  # the floor runs on the CPU only
+  fi
+  touch "$W/running-$m"
+  (cd "$SRC" && SKYEYES_CACHE=$W/cache-$m timeout 420 "${cmd[@]}") > "$W/smoke-$m.log" 2>&1
+  local rc=$?
+  printf 'smoke-%s\t%d\t%d\t%d\n' "$m" $((SECONDS - t0)) "$rc" "$(since)" >> "$stages"
+  { echo "== smoke $m rc=$rc $((SECONDS - t0)) s"; grep -E '^ *(lpips|fid|psnr|ssim|warp)|device|Error|error' "$W/smoke-$m.log" | head -8
+    [ $rc = 0 ] || tail -25 "$W/smoke-$m.log"; } >> "$W/jobs.log"
+  rm -f "$W/running-$m"
+}
+
+jobs_main() {  # runs in its own session (setsid): small, then the smokes and tests, then the pack
+  exec >> "$W/jobs.log" 2>&1
+  cd "$SRC"
+  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "$W/gpumem.log" 2>/dev/null &
+  local sampler=$!
+  touch "$W/running-small"
+  (stage skyeyes-small 1500 python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset "$SMALL" \
+     --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $SMALL_ARGS
+   run=$W/skyeyes-small
+   if [ -f "$run/submission/submission.json" ]; then
+     tar -C "$run" -cf - submission | split -b 15M -d - "$W/skyeyes-small.tar.part-"
+     echo "submission: $(ls "$W"/skyeyes-small.tar.part-* | wc -l) part(s) of 15 MiB ($(du -sh "$run/submission" | cut -f1))"
+     touch "$W/packed"
+   fi
+   rm -f "$W/running-small") &
+  local small=$!
+  while kill -0 $small 2>/dev/null && [ "$(since)" -lt "$SMOKE_AT" ]; do sleep 2; done
+  echo "smokes start at +$(since) s (small $(kill -0 $small 2>/dev/null && echo 'still running' || echo ended))"
+  local methods=${METHODS:-readme $(python3 -c "from reference.methods import METHODS; print(' '.join(sorted(set(METHODS) - {'skyeyes'})))")}
+  local pids=()
+  for m in $methods; do smoke_one "$m" & pids+=($!); done
+  if [ "$GPU_TESTS" = 1 ]; then
+    (touch "$W/running-tests"
+     stage gpu-tests 420 python3 -m pytest -q -p no:cacheprovider -m "gpu and not slow" tests > "$W/tests.log" 2>&1
+     { echo "== gpu tests"; tail -30 "$W/tests.log"; } >> "$W/jobs.log"; rm -f "$W/running-tests") & pids+=($!)
+  fi
+  wait "${pids[@]}" $small
+  kill $sampler 2>/dev/null
+  echo "jobs ended at +$(since) s"
+  touch "$W/done"
+}
+
+case $mode in
+  start|all)
+    echo "== gpu-check $mode at $(git rev-parse --short HEAD 2>/dev/null || echo '?') on $(hostname), $(date -u +%FT%TZ)"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
+    if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d "$site" ]; then  # the wheels, aside from the image's own environment
+      python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
+        || { echo "gpu-check: installing .whl/*.whl failed"; exit 1; }
+    fi
+    rm -rf "$SRC" "$W"/done "$W"/packed "$W"/running-* "$W"/skyeyes-small.tar.part-* "$stages" "$W/jobs.log"
+    mkdir -p "$SRC" "$W/data"
+    tar --exclude=./.whl --exclude=./.gpu-data --exclude=./.git --exclude=./.venv --exclude=./outputs --exclude=./gpu-check-out -cf - . | tar -C "$SRC" -xf -
+    python3 -c "import os, torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU', '| diffusers', diffusers.__version__, '| cores', os.cpu_count())"
+    printf 'stage\tseconds\trc\tstart\n' > "$stages"
+    t_start
+    for p in smoke "$SMALL"; do  # the carried data, or generated here with every core (not counted in small's time)
+      if [ -d ".gpu-data/$p" ]; then cp -a ".gpu-data/$p" "$W/data/$p"
+      else stage "data-$p" 300 python3 -m skyeyes_bench.cli data synthtown --preset "$p" --out "$W/data/$p" --workers "$(nproc)" --quiet; fi
+    done
+    t_start  # the stage offsets count from the timed run's start
+    export -f stage since smoke_one jobs_main
+    export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
+    setsid bash -c jobs_main < /dev/null > /dev/null 2>&1 &
+    if [ "$mode" = start ]; then watch_jobs $((MONITOR_S - SECONDS)); exit 0; fi
+    watch_jobs "$FINISH_S";;
+  finish)
+    echo "== gpu-check finish at +$(since) s"
+    watch_jobs "$FINISH_S";;
+  tests)
+    (cd "$SRC" 2>/dev/null || cd .; stage gpu-tests 540 python3 -m pytest -q -p no:cacheprovider -m "gpu and not slow" tests);;
+  *) echo "usage: bash scripts/gpu-check.sh [all|start|finish|tests|pack-data]"; exit 2;;
+esac
+[ -f "$W/done" ] && { echo "== stages (seconds):"; column -t "$stages" 2>/dev/null || cat "$stages"; }
+exit 0

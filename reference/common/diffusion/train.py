@@ -8,6 +8,7 @@ uninterrupted run would (the optimizer state is checkpointed with the weights).
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Callable
@@ -18,6 +19,9 @@ from skyeyes_bench import outputfiles
 
 from .core import ControlledUNet, device_of
 
+log = logging.getLogger(__name__)
+#: a log line every this fraction of a stage's steps (logs stay readable; bars are for terminals)
+LOG_EVERY = 0.1
 
 def step_generator(seed: int, step: int) -> torch.Generator:
     # NOTE: 1_000_003 is prime, so (seed, step) pairs map to distinct seeds for steps < 1e6.
@@ -260,10 +264,12 @@ def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = 
         torch.cuda.set_device(device)  # a single process on cuda:N
     if not distributed:
         # accelerate keeps one state per process and refuses another precision; a single
-        # process (tests, bench/ running several methods) may build its stages at several
+        # process (tests, bench/ running several methods) may build its stages at several.
+        # Its device lives in the PartialState under it: left alone, a CPU stage built after a
+        # CUDA one in the same process trained on CUDA (seen on an H200, 2026-11-27).
         from accelerate.state import AcceleratorState
 
-        AcceleratorState._reset_state()
+        AcceleratorState._reset_state(reset_partial_state=True)
     return Accelerator(cpu=device.type == "cpu", mixed_precision=mixed_precision)
 
 
@@ -278,13 +284,15 @@ def precision_for(device: torch.device | str, requested: str, *, cuda: bool, bf1
     return "no"
 
 
-def _ema(params: list[torch.nn.Parameter], decay: float):
-    """An exponential moving average of `params` (diffusers' `EMAModel`), or None for decay 0."""
+def _ema(params: list[torch.nn.Parameter], decay: float, device: torch.device):
+    """An exponential moving average of `params` (diffusers' `EMAModel`), or None for decay 0.
+    On CUDA its update is one fused (foreach) op over all tensors instead of a few kernel launches
+    per tensor; on the CPU the per-tensor update, whose rounding the filed rows were made with."""
     if not decay > 0:
         return None
     from diffusers.training_utils import EMAModel
 
-    return EMAModel(params, decay=decay)
+    return EMAModel(params, decay=decay, foreach=torch.device(device).type == "cuda")
 
 
 def _resume(ckpt: Path, model, opt, ema, device) -> tuple[int, list, float, float]:
@@ -364,7 +372,7 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     ckpt = Path(ckpt)
     model.to(acc.device)
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.0)
-    ema = _ema(params, ema_decay)
+    ema = _ema(params, ema_decay, acc.device)
     start, losses, seconds, cpu = _resume(ckpt, model, opt, ema, acc.device)
     net, opt = acc.prepare(model, opt)
     part = (acc.process_index, acc.num_processes)
@@ -383,6 +391,11 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     model.train()
     bar = tqdm(range(start, steps), desc=desc, disable=None if (progress and acc.is_main_process) else True,
                leave=False, initial=start, total=steps)
+    if acc.is_main_process and start < steps:
+        log.info("%s: steps %d..%d on %s (mixed precision %s, %d process(es))", desc, start, steps, acc.device,
+                 acc.mixed_precision, acc.num_processes)
+    every = max(1, round(steps * LOG_EVERY))
+    pending: list[torch.Tensor] = []  # this process's losses not yet read back (a read waits for the device)
     done_now = start
     for step in bar:
         if anneal_from is not None:
@@ -390,14 +403,25 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                 group["lr"] = lr * anneal_factor(step, anneal_from, steps)
         loss = _train_step(acc, net, opt, params, ema, loss_fn, part, seed=seed, step=step,
                            grad_clip=grad_clip, micro_batches=micro_batches)
-        losses.append(float(acc.reduce(loss.detach(), reduction="mean")))
-        bar.set_postfix(loss=f"{losses[-1]:.4f}")
+        pending.append(acc.reduce(loss.detach(), reduction="mean"))
         done_now = step + 1
+        shown = not bar.disable
+        if done_now % ckpt_every == 0 or done_now == steps or shown or done_now % every == 0:
+            losses.extend(torch.stack(pending).float().cpu().tolist())  # one wait, not one per step
+            pending.clear()
+            if shown:
+                bar.set_postfix(loss=f"{losses[-1]:.4f}")
+        if done_now % every == 0 and done_now < steps and acc.is_main_process:
+            log.info("%s: %d/%d steps, %.3f s a step, loss %.4f", desc, done_now, steps,
+                     (time.perf_counter() - t0) / (done_now - start), losses[-1])
         if done_now % ckpt_every == 0 or done_now == steps:
             save(done_now)
         if stop_after is not None and done_now - start >= stop_after:
             break
+    losses.extend(torch.stack(pending).float().cpu().tolist() if pending else [])
     wall, proc = time.perf_counter() - t0, time.process_time() - c0
+    if acc.is_main_process and done_now > start:
+        log.info("%s: %d steps in %.0f s (%.3f s a step)", desc, done_now - start, wall, wall / (done_now - start))
     model.eval()
     if ema is not None and done_now >= steps:
         ema.copy_to(params)  # the finished model is the average

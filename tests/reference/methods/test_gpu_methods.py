@@ -74,17 +74,28 @@ def test_a_resumed_stage_keeps_its_ema_on_the_gpu(tmp_path):
     assert not first["done"]
     resumed, res = _train(tmp_path / "killed", "cuda")
     assert res["done"] and res["resumed_seconds"] > 0
-    for k in whole:  # the same steps from the same state: identical up to GPU reduction order
-        torch.testing.assert_close(resumed[k], whole[k], rtol=1e-4, atol=1e-5)
+    # The same steps from the same state, apart only by the GPU's unordered reductions (cuDNN's
+    # weight gradients): on an H200 (2026-11-27) those broke an elementwise 1e-4 tolerance, since
+    # AdamW's first steps move every weight by about the rate whatever its gradient's size. So
+    # the bound of `test_training_on_the_gpu_follows_the_cpu`: far inside what training moved.
+    assert _gap(resumed, whole) < 0.05 * _moved(whole)
+
+
+def _moved(state: dict) -> float:
+    """How far training moved the weights from their initial values (max abs)."""
+    init = core.build_model(CFG, control=True, seed=0).state_dict()
+    return max(float((state[k] - init[k]).abs().max()) for k in state)
+
+
+def _gap(a: dict, b: dict) -> float:
+    return max(float((a[k] - b[k]).abs().max()) for k in a)
 
 
 def test_training_on_the_gpu_follows_the_cpu(tmp_path):
     gpu, res_gpu = _train(tmp_path / "gpu", "cuda")
     cpu, res_cpu = _train(tmp_path / "cpu", "cpu")
     np.testing.assert_allclose(res_gpu["losses"], res_cpu["losses"], rtol=1e-3)
-    moved = max(float((cpu[k] - core.build_model(CFG, control=True, seed=0).state_dict()[k]).abs().max())
-                for k in cpu)
-    assert max(float((gpu[k] - cpu[k]).abs().max()) for k in cpu) < 0.05 * moved
+    assert _gap(gpu, cpu) < 0.05 * _moved(cpu)
 
 
 def test_skyeyes_small_formulation_end_to_end_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch):

@@ -574,6 +574,21 @@ def test_device_and_precision_resolution(monkeypatch):
     assert acc.device.type == "cpu" and acc.mixed_precision == "no"
 
 
+def test_a_cpu_stage_after_another_device_stage_in_one_process_runs_on_the_cpu():
+    """accelerate keeps the device in a per-process PartialState: on an H200 (2026-11-27) a CPU
+    stage built after a CUDA one in the same process trained on CUDA. Without a GPU, a state
+    left on another device (meta stands in for cuda) must not leak into the next accelerator."""
+    from accelerate.state import PartialState
+
+    train.make_accelerator("cpu", "no")
+    PartialState._shared_state["device"] = torch.device("meta")  # what a CUDA stage leaves behind
+    try:
+        acc = train.make_accelerator("cpu", "no")
+        assert acc.device.type == "cpu"
+    finally:
+        train.make_accelerator("cpu", "no")
+
+
 def test_coordinate_channels_locate_a_crop_in_the_frame():
     """With `coords` the condition carries x, y in [-1, 1] over the whole frame (checked against
     numpy's linspace), a crop of it carries the crop's own place, the model takes them as two

@@ -38,7 +38,7 @@ DEVICE=${DEVICE:-cuda}          # cpu: a dry run of this script's plumbing where
 SMALL=${SMALL:-small}           # the preset timed end to end (smoke for a dry run)
 OUT=${OUT:-$PWD/gpu-check-out}
 W=${GPU_CHECK_WORK:-/tmp/skyeyes-gpu-check}  # outside the checkout: a second run's fresh copy of the tree leaves it be
-SMOKE_AT=${SMOKE_AT:-450}       # the smokes start when small ends, or this many seconds after it started
+SMOKE_AT=${SMOKE_AT:-300}       # the smokes start when small ends, or this many seconds after it started
 MONITOR_S=${MONITOR_S:-570}     # `start` returns this many seconds after it began
 FINISH_S=${FINISH_S:-100000}    # `finish` returns after this many seconds (or when every job has ended)
 GPU_TESTS=${GPU_TESTS:-1}
@@ -62,6 +62,9 @@ export PYTHONPATH=$site:$SRC SKYEYES_CACHE=$W/cache
 stages=$W/stages.tsv
 t_start() { date +%s > "$W/t0"; }
 since() { echo $(( $(date +%s) - $(cat "$W/t0" 2>/dev/null || date +%s) )); }
+stamp() {  # stamp TAG: each line read, prefixed with the seconds since the timed run's start and TAG
+  local l; while IFS= read -r l; do printf '+%ss %s %s\n' "$(since)" "$1" "$l"; done
+}
 
 stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc start"
   local name=$1 limit=$2; shift 2
@@ -136,10 +139,10 @@ smoke_one() {  # smoke_one METHOD: its smoke on $DEVICE, own cache and output; t
     [ "$m" = mean-frame ] || cmd+=(--device "$DEVICE")  # the floor runs on the CPU only
   fi
   touch "$W/running-$m"
-  (cd "$SRC" && SKYEYES_CACHE=$W/cache-$m timeout 420 "${cmd[@]}") > "$W/smoke-$m.log" 2>&1
-  local rc=$?
+  (cd "$SRC" && SKYEYES_CACHE=$W/cache-$m timeout 420 "${cmd[@]}") 2>&1 | stamp "$m" > "$W/smoke-$m.log"
+  local rc=${PIPESTATUS[0]}
   printf 'smoke-%s\t%d\t%d\t%d\n' "$m" $((SECONDS - t0)) "$rc" "$(since)" >> "$stages"
-  { echo "== smoke $m rc=$rc $((SECONDS - t0)) s"; grep -E '^ *(lpips|fid|psnr|ssim|warp)|device|Error|error' "$W/smoke-$m.log" | head -8
+  { echo "== smoke $m rc=$rc $((SECONDS - t0)) s"; grep -E ' (psnr|ssim|warp) |: steps |steps in|Error|error' "$W/smoke-$m.log" | grep -v unavailable | head -12
     [ $rc = 0 ] || tail -25 "$W/smoke-$m.log"; } >> "$W/jobs.log"
   rm -f "$W/running-$m"
 }
@@ -151,7 +154,7 @@ jobs_main() {  # runs in its own session (setsid): small, then the smokes and te
   local sampler=$!
   touch "$W/running-small"
   (stage skyeyes-small 1500 python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset "$SMALL" \
-     --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $SMALL_ARGS
+     --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $SMALL_ARGS 2>&1 | stamp small
    run=$W/skyeyes-small
    if [ -f "$run/submission/submission.json" ]; then
      tar -C "$run" -cf - submission | split -b 15M -d - "$W/skyeyes-small.tar.part-"
@@ -195,7 +198,7 @@ case $mode in
       else stage "data-$p" 300 python3 -m skyeyes_bench.cli data synthtown --preset "$p" --out "$W/data/$p" --workers "$(nproc)" --quiet; fi
     done
     t_start  # the stage offsets count from the timed run's start
-    export -f stage since smoke_one jobs_main
+    export -f stage since stamp smoke_one jobs_main
     export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
     setsid bash -c jobs_main < /dev/null > /dev/null 2>&1 &
     if [ "$mode" = start ]; then watch_jobs $((MONITOR_S - SECONDS)); exit 0; fi

@@ -15,6 +15,9 @@
 # setsid (they outlive the command) and watches them for MONITOR_S seconds; `finish`, called at
 # once on the same warm machine, watches them until FINISH_S and hands back what they wrote. The
 # jobs, in order:
+#   0. (BENCH=1) the ACM training step of `small` at batch 32, bf16, eager and under torch.compile
+#      (COMPILE_MODE, default reduce-overhead: CUDA graphs), 100 steps each: `small` below runs
+#      with `--set compile=MODE` where that is more than 20% faster;
 #   1. Skyeyes `small` end to end on CUDA (`reproduce --device cuda`), alone on the machine, timed
 #      (data not counted), with each stage's seconds and the peak GPU memory over all processes;
 #   2. when it ends, or SMOKE_AT seconds after it started, all at once: the README's first command
@@ -27,7 +30,7 @@
 # gpu-check.log (this command), jobs.log (the jobs'), stages.tsv (name, seconds, rc, start offset),
 # skyeyes-small-summary.json and up to 4 tar parts.
 # A dry run of the plumbing on a CPU machine:
-#   DEVICE=cpu SMALL=smoke SMALL_ARGS="--set acm_steps=20 --set vcm_steps=4" METHODS="mean-frame" \
+#   DEVICE=cpu BENCH=0 SMALL=smoke SMALL_ARGS="--set acm_steps=20 --set vcm_steps=4" METHODS="mean-frame" \
 #     GPU_TESTS=0 SMOKE_AT=60 bash scripts/gpu-check.sh
 # (METHODS: the smokes, default "readme" and every method but skyeyes; SMALL_ARGS: extra arguments
 # of the timed run.)
@@ -42,6 +45,9 @@ SMOKE_AT=${SMOKE_AT:-300}       # the smokes start when small ends, or this many
 MONITOR_S=${MONITOR_S:-570}     # `start` returns this many seconds after it began
 FINISH_S=${FINISH_S:-100000}    # `finish` returns after this many seconds (or when every job has ended)
 GPU_TESTS=${GPU_TESTS:-1}
+BENCH=${BENCH:-1}               # time the ACM step eager and compiled first; small takes the faster
+COMPILE_MODE=${COMPILE_MODE-reduce-overhead}
+BENCH_ARGS=${BENCH_ARGS:---steps 100 --warmup 20 --frames 16}
 mkdir -p "$OUT" "$W"
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1
 
@@ -152,9 +158,19 @@ jobs_main() {  # runs in its own session (setsid): small, then the smokes and te
   cd "$SRC"
   nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "$W/gpumem.log" 2>/dev/null &
   local sampler=$!
+  local small_args=$SMALL_ARGS
+  if [ "$BENCH" = 1 ]; then  # the ACM step (batch 32, bf16) eager and compiled; small takes the faster
+    stage step-bench 300 python3 bench/diffusion_step.py --device "$DEVICE" --batch 32 --precision bf16 \
+      --compile ",$COMPILE_MODE" $BENCH_ARGS --out "$W/step-bench.json" 2>&1 | stamp bench
+    local pick
+    pick=$(python3 -c "import json,sys; r=json.load(open(sys.argv[1])); b=min(r, key=lambda x: x['s_per_step']); print(b['compile'] if b['s_per_step'] < 0.8 * r[0]['s_per_step'] else '')" "$W/step-bench.json" 2>/dev/null)
+    [ -n "$pick" ] && small_args="--set compile=$pick $small_args"
+    echo "small runs with: ${small_args:-the preset as it is}"
+  fi
+  t_start  # small's seconds count from here
   touch "$W/running-small"
   (stage skyeyes-small 1500 python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset "$SMALL" \
-     --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $SMALL_ARGS 2>&1 | stamp small
+     --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $small_args 2>&1 | stamp small
    run=$W/skyeyes-small
    if [ -f "$run/submission/submission.json" ]; then
      tar -C "$run" -cf - submission | split -b 15M -d - "$W/skyeyes-small.tar.part-"
@@ -198,8 +214,8 @@ case $mode in
       else stage "data-$p" 300 python3 -m skyeyes_bench.cli data synthtown --preset "$p" --out "$W/data/$p" --workers "$(nproc)" --quiet; fi
     done
     t_start  # the stage offsets count from the timed run's start
-    export -f stage since stamp smoke_one jobs_main
-    export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
+    export -f stage since stamp t_start smoke_one jobs_main
+    export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS BENCH COMPILE_MODE BENCH_ARGS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
     setsid bash -c jobs_main < /dev/null > /dev/null 2>&1 &
     if [ "$mode" = start ]; then watch_jobs $((MONITOR_S - SECONDS)); exit 0; fi
     watch_jobs "$FINISH_S";;

@@ -255,6 +255,11 @@ class DiffusionConfig:
     # and activation checkpointing in the UNet and its ControlNet branch (recomputed in backward).
     micro_batches: int = 1
     grad_checkpointing: bool = False
+    # torch.compile of the network the training stages step ("" eager; or a torch.compile mode:
+    # "default", "reduce-overhead" (CUDA graphs on a GPU: for a model too small to fill one, whose
+    # step is launch overhead), "max-autotune-no-cudagraphs"). The same training up to float
+    # rounding, so not in the stage keys; off in every preset until measured on a GPU (docs/gpu.md).
+    compile: str = ""
     figure_frames: int = 6
     # torch threads of the diffusion stages (0: every core; OMP_NUM_THREADS wins when set).
     # NOTE: measured on SynthTown small, base stage: 2.4 s/step on 1 thread (the setting the

@@ -43,6 +43,10 @@ if TYPE_CHECKING:
     import torch
 
 
+#: `DiffusionConfig.compile`'s values: eager, or a torch.compile mode
+COMPILE_MODES = ("", "default", "reduce-overhead", "max-autotune-no-cudagraphs")
+
+
 def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionConfig:
     """`config` as it runs, after checking it: with `pretrained`, the folder's schedule and
     objective, the member's way in for the condition and the recipe's learning rate; with an
@@ -81,6 +85,9 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"{config.vcm_noise_flow}: expected 0 <= vcm_noise <= 1, vcm_noise_sigma >= 0, the VCM on "
                          "(vcm=true) when vcm_noise is not 0 (without the VCM: skyeyes-no-vcm, or vcm_noise=0), and with "
                          "vcm_noise_flow no sigma and a prior's renders as the condition (their flow carries the noise)")
+    if config.compile not in COMPILE_MODES:
+        raise ValueError(f"compile {config.compile!r}: expected one of {', '.join(map(repr, COMPILE_MODES))} "
+                         "('' is eager)")
     if config.condition == "aerial" and config.core.residual:
         # the residual from a view taken elsewhere means nothing: diffuse the frames
         config = dataclasses.replace(config, core=dataclasses.replace(config.core, residual=False),

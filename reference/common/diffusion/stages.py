@@ -90,7 +90,8 @@ class Stages:
         c = method.config
         self.sched = core.train_scheduler(c.core)
         self.gamma = c.snr_gamma or None
-        self.run_kw = dict(accelerator=accelerator, ema_decay=c.ema_decay, micro_batches=c.micro_batches)
+        self.run_kw = dict(accelerator=accelerator, ema_decay=c.ema_decay, micro_batches=c.micro_batches,
+                           compile_mode=c.compile)
 
     def run(self, stage: str, model, params, loss_fn, steps: int, lr: float, key: dict, *,
             anneal_from: int | None = None, entry: str | None = None) -> dict:
@@ -111,7 +112,7 @@ class Stages:
                    "trainable_parameters": sum(p.numel() for p in params),
                    "device": str(acc.device), "processes": acc.num_processes,
                    "mixed_precision": acc.mixed_precision, "micro_batches": m.config.micro_batches,
-                   "grad_checkpointing": m.config.grad_checkpointing}
+                   "grad_checkpointing": m.config.grad_checkpointing, "compile": m.config.compile}
         if anneal_from is not None:
             summary["anneal_steps"] = steps - anneal_from
         m.took_from_cache(res["resumed_seconds"])

@@ -340,7 +340,7 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
                ema_decay: float = 0.0, accelerator=None, anneal_from: int | None = None,
                stop_after: int | None = None, progress: bool = True, desc: str = "train",
-               micro_batches: int = 1) -> dict:
+               micro_batches: int = 1, compile_mode: str = "") -> dict:
     """Run `steps` optimisation steps of `loss_fn` over `params`, resuming from `ckpt`.
 
     Args:
@@ -360,6 +360,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         micro_batches: each process computes its share of the global batch in this many
             micro-batches, one backward each, gradients accumulated (memory for batch: the same
             gradient up to float rounding). 1: one pass, as ever.
+        compile_mode: "" steps the network eagerly; otherwise `torch.compile`'s mode for it (the
+            same steps up to float rounding; the checkpoint holds the plain module's weights).
 
     Returns:
         {"steps": steps done in total, "losses": [per step], "seconds": wall time of this call
@@ -375,6 +377,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
     ema = _ema(params, ema_decay, acc.device)
     start, losses, seconds, cpu = _resume(ckpt, model, opt, ema, acc.device)
     net, opt = acc.prepare(model, opt)
+    if compile_mode:
+        net = torch.compile(net, mode=compile_mode)
     part = (acc.process_index, acc.num_processes)
     t0, c0 = time.perf_counter(), time.process_time()
 

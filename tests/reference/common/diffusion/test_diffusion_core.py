@@ -741,3 +741,50 @@ def test_micro_batches_and_checkpointing_train_as_one_pass(tmp_path):
     # and the comparison can fail: one pass at another batch ends elsewhere
     half, _ = fit("half", batch=2)
     assert max(float((half[k] - one[k]).abs().max()) for k in one) > 0.3 * moved
+
+
+@pytest.mark.slow  # inductor compiles the UNet's forward and backward: about a minute on 2 cores
+def test_a_compiled_network_trains_as_the_eager_one(tmp_path):
+    """`compile` (issue 34, the launch overhead of a small model on a GPU): the steps of a
+    torch.compile'd network are the eager steps up to float rounding, and the checkpoint holds
+    the plain module's weights (a resumed eager run reads it)."""
+    def fit(name, mode="", steps=3):
+        model = core.build_model(TINY, control=True, seed=0)
+        s = core.train_scheduler(TINY)
+        g = torch.Generator().manual_seed(2)
+        x0 = torch.rand(8, 3, 16, 16, generator=g) * 2 - 1
+        cond = torch.rand(8, 3, 16, 16, generator=g) * 2 - 1
+
+        def loss_fn(net, gen, part):
+            idx = torch.randint(0, 8, (4,), generator=gen, device=gen.device)
+            return train.denoise_loss(net, s, x0[idx], cond[idx], gen, part=part, snr_gamma=5.0)
+
+        res = train.train_loop(model, core.trainable(model), loss_fn, steps=steps, lr=1e-2, seed=0,
+                               ckpt=tmp_path / name / "c.pt", progress=False, compile_mode=mode)
+        return model.state_dict(), res
+
+    from torch._dynamo.utils import counters
+
+    eager, r_eager = fit("eager")
+    counters.clear()
+    compiled, r_comp = fit("compiled", "default")
+    assert counters["stats"]["unique_graphs"] > 0  # it did compile (the comparison below can fail)
+    assert r_comp["losses"] == pytest.approx(r_eager["losses"], rel=1e-4)
+    init = core.build_model(TINY, control=True, seed=0).state_dict()
+    moved = max(float((eager[k] - init[k]).abs().max()) for k in eager)
+    assert max(float((compiled[k] - eager[k]).abs().max()) for k in eager) < 0.02 * moved
+    state = train.load_checkpoint(tmp_path / "compiled" / "c.pt")["model"]
+    assert state.keys() == eager.keys()  # the plain module's names, no `_orig_mod.` prefix
+    resumed, r_res = fit("compiled", "", steps=4)  # an eager run resumes the compiled one
+    assert r_res["resumed_seconds"] > 0 and len(r_res["losses"]) == 4
+
+
+def test_compile_mode_is_checked():
+    import dataclasses
+
+    from reference.common.diffusion import pipeline
+    from reference.methods.skyeyes import PRESETS
+
+    with pytest.raises(ValueError, match="compile 'fast'"):
+        pipeline.adapted(dataclasses.replace(PRESETS["smoke"], compile="fast"), "controlnet")
+    assert pipeline.adapted(dataclasses.replace(PRESETS["smoke"], compile="reduce-overhead"), "controlnet").compile

@@ -3,6 +3,8 @@ VCM attention against a slow reference, first-frame conditioning, determinism, r
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -744,6 +746,8 @@ def test_micro_batches_and_checkpointing_train_as_one_pass(tmp_path):
 
 
 @pytest.mark.slow  # inductor compiles the UNet's forward and backward: about a minute on 2 cores
+@pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++")),
+                    reason="torch.compile on the CPU (inductor) needs a C++ compiler")
 def test_a_compiled_network_trains_as_the_eager_one(tmp_path):
     """`compile` (issue 34, the launch overhead of a small model on a GPU): the steps of a
     torch.compile'd network are the eager steps up to float rounding, and the checkpoint holds

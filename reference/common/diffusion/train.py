@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 #: a log line every this fraction of a stage's steps (logs stay readable; bars are for terminals)
 LOG_EVERY = 0.1
 
+
 def step_generator(seed: int, step: int) -> torch.Generator:
     # NOTE: 1_000_003 is prime, so (seed, step) pairs map to distinct seeds for steps < 1e6.
     return torch.Generator().manual_seed(int(seed) * 1_000_003 + int(step))
@@ -410,7 +411,8 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         pending.append(acc.reduce(loss.detach(), reduction="mean"))
         done_now = step + 1
         shown = not bar.disable
-        if done_now % ckpt_every == 0 or done_now == steps or shown or done_now % every == 0:
+        ckpt_due = done_now % ckpt_every == 0 or done_now == steps
+        if ckpt_due or shown or done_now % every == 0:
             losses.extend(torch.stack(pending).float().cpu().tolist())  # one wait, not one per step
             pending.clear()
             if shown:
@@ -418,7 +420,7 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         if done_now % every == 0 and done_now < steps and acc.is_main_process:
             log.info("%s: %d/%d steps, %.3f s a step, loss %.4f", desc, done_now, steps,
                      (time.perf_counter() - t0) / (done_now - start), losses[-1])
-        if done_now % ckpt_every == 0 or done_now == steps:
+        if ckpt_due:
             save(done_now)
         if stop_after is not None and done_now - start >= stop_after:
             break

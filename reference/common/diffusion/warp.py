@@ -114,12 +114,16 @@ class WarpTargets:
             raise ValueError(f"{len(conds)} conditions, {len(depths)} depths, {len(cameras)} cameras")
         self.conds, self.depths, self.cameras, self.cfg, self.tol = conds, depths, cameras, cfg, tol
 
+    def coords(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(uv, valid) of frame i seen from frame j: by the prior's depths and the poses."""
+        return warp_coords(self.depths[j], self.cameras[j], self.depths[i], self.cameras[i], self.tol)
+
     def __call__(self, z: torch.Tensor, i: int, js: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         cfg = self.cfg
         img = decode(from_diffused(z[None].float().cpu(), self.conds[i:i + 1].cpu(), cfg), cfg)[0]  # [3, res, res]
         targets, masks = [], []
         for j in js:
-            uv, valid = warp_coords(self.depths[j], self.cameras[j], self.depths[i], self.cameras[i], self.tol)
+            uv, valid = self.coords(i, j)
             warped = warp_image(img, uv, valid)
             targets.append(to_diffused(encode(warped[None], cfg), self.conds[j:j + 1].cpu(), cfg)[0])
             masks.append(torch.as_tensor(valid)[None, None])

@@ -1,0 +1,230 @@
+"""How well each way a method can move frame j - 1 into frame j agrees with the ground truth's
+own correspondence (its depth and the poses, the warp metric's `warp_coords`), on the test lanes
+of a dataset with ground depth. The carried noise, the low-pass transfer and warped sampling
+move frames by one of these (docs/skyeyes.md, "The VCM"), and are only as good as it.
+
+    .venv/bin/python bench/flow_accuracy.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
+        --priors ~/.cache/skyeyes-bench/reference/priors --prior RUN/work/KEY/method/prior \\
+        [--submission RUN/submission] [--scenes 1] [--sequences 3] [--ways dis-medium,prior-ground] [--rigid]
+
+Ways: an optical flow (dis-medium, what `warp.flow_coords` uses; dis-fast, dis-ultrafast,
+deepflow, tvl1, farneback, pcaflow: OpenCV's) between the prior's renders (--priors: the folder of
+its cached renders, `<scene>-<key>.npz`) and, with --submission, between that submission's
+frames; `zero` (no motion); and with --prior (a `sugar` run's folder of `scenes/<scene>/model.pt`)
+the prior's own depth and the poses (`prior-depth`, `warp.prior_depth`), or that depth with the
+pixels whose ray meets the ground plane under the prior's Gaussians nearer given the plane's
+depth (`prior-ground`, `ground_filled`). --rigid adds each flow made rigid with the poses
+(`rigid_from_flow`).
+
+Prints, per way: the end-point error (pixels) on the pixels both it and the ground truth call
+valid (median, mean, share under 1 px), the share of the truth's valid pixels it covers, its
+median error in bands of the ground truth's depth (m), and the seconds it took; the machine's
+load before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reference.common.diffusion import warp
+from skyeyes_bench.data.layout import open_dataset
+from skyeyes_bench.imagefiles import read_image
+from skyeyes_bench.metrics.geometry import project, warp_coords
+
+TOL = 0.01  # the protocols' depth tolerance of the warp metric
+BANDS = [(0, 5), (5, 10), (10, 20), (20, 100), (100, np.inf)]
+FLOWS = ("dis-medium", "dis-fast", "dis-ultrafast", "deepflow", "tvl1", "farneback", "pcaflow")
+
+
+def grey(x: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.cvtColor((np.clip(x, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def flow_fn(name: str):
+    """(I_j, I_{j-1}) grey uint8 -> flow [H, W, 2] with I_j(x) ~ I_{j-1}(x + flow(x))."""
+    import cv2
+
+    if name.startswith("dis-"):
+        preset = {"dis-fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "dis-medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+                  "dis-ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST}[name]
+        f = cv2.DISOpticalFlow_create(preset)
+    elif name == "farneback":
+        return lambda a, b: cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 4, 9, 5, 5, 1.1, 0)
+    else:
+        f = {"deepflow": cv2.optflow.createOptFlow_DeepFlow, "tvl1": cv2.optflow.DualTVL1OpticalFlow_create,
+             "pcaflow": cv2.optflow.createOptFlow_PCAFlow}[name]()
+    return lambda a, b: f.calc(a, b, None)
+
+
+def flow_pair(flow, gj: np.ndarray, gi: np.ndarray, fb_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """(uv, valid) of frame i seen from frame j by a flow function, forward-backward checked to
+    `fb_px` (as `warp.flow_coords` does with DIS)."""
+    import cv2
+
+    h, w = gj.shape
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    back, fwd = flow(gj, gi), flow(gi, gj)
+    uv = np.stack([xs + back[..., 0], ys + back[..., 1]], -1)
+    again = cv2.remap(fwd, (uv[..., 0] - 0.5).astype(np.float32), (uv[..., 1] - 0.5).astype(np.float32),
+                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
+    return uv, inside & (np.hypot(*(back + again).transpose(2, 0, 1)) <= fb_px)
+
+
+def moved_by_depth(depth: np.ndarray, cam, src) -> np.ndarray:
+    """Where each pixel of `cam` lands in `src` by its planar depth [H, W] (+inf: a direction),
+    with no visibility test: uv [H, W, 2]."""
+    o, dirs = cam.rays(normalize=False)  # camera z = 1: the ray's t is planar depth
+    fin = np.isfinite(depth).ravel()
+    p = np.where(fin[:, None], o + dirs * np.where(fin, depth.ravel(), 0.0)[:, None], dirs)
+    q, _ = project(p, fin.astype(np.float64), src.c2w[None], src.K[None])
+    return q[0].reshape(depth.shape + (2,))
+
+
+def rigid_from_flow(uv: np.ndarray, ok: np.ndarray, cam_j, cam_i, *, median_px: int = 5,
+                    depths: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A flow's target uv [H, W, 2] (frame i seen from frame j) -> the rigid motion nearest it:
+    each pixel's depth along its ray is the one (of log-spaced candidates and +inf) whose
+    projection into camera i lands nearest the flow's target, the log-depth is median-filtered
+    over `median_px` (the pixels the flow failed take their nearest valid neighbour's first), and
+    the pixel moves as that depth and the poses say. -> (uv, depth)."""
+    from scipy.ndimage import distance_transform_edt, median_filter
+
+    h, w = ok.shape
+    cand = np.geomspace(0.5, 2000.0, 160) if depths is None else depths
+    o, dirs = cam_j.rays(normalize=False)
+    best, err = np.full(h * w, np.inf), np.full(h * w, np.inf)
+    tgt = uv.reshape(-1, 2)
+    for d in [*cand, np.inf]:
+        p, wt = (o + dirs * d, np.ones(h * w)) if np.isfinite(d) else (dirs, np.zeros(h * w))
+        q, _ = project(p, wt, cam_i.c2w[None], cam_i.K[None])
+        e = np.hypot(*(q[0] - tgt).T)
+        closer = e < err  # NaN (behind the camera) never is
+        err[closer], best[closer] = e[closer], d
+    far = np.log(cand[-1]) + 1.0  # +inf's place on the log scale
+    logd = np.where(np.isfinite(best), np.log(best), far).reshape(h, w)
+    hole = ~ok | ~np.isfinite(err.reshape(h, w))
+    if hole.all():
+        return uv, np.full((h, w), np.inf)
+    if hole.any():
+        _, (iy, ix) = distance_transform_edt(hole, return_indices=True)
+        logd = logd[iy, ix]
+    if median_px > 1:
+        logd = median_filter(logd, size=median_px, mode="nearest")
+    depth = np.where(logd < far - 0.5, np.exp(logd), np.inf)
+    return moved_by_depth(depth, cam_j, cam_i), depth
+
+
+def ground_height(prior, scene) -> float:
+    """The ground's height (world z, up) under a Gaussian prior's fitted scene: the most common
+    height (0.1 m bins) among its lowest quarter of Gaussians (the road seen from above)."""
+    mu = prior.scene_model(scene)[0].means.detach().cpu().numpy()
+    z = np.sort(mu[:, 2])[: max(len(mu) // 4, 1)]
+    hist, edges = np.histogram(z, bins=np.arange(z.min(), z.max() + 0.2, 0.1))
+    return float(edges[hist.argmax()] + 0.05)
+
+
+def ground_filled(depth: np.ndarray, cam, zg: float) -> np.ndarray:
+    """`depth` [H, W] with each pixel whose ray meets the ground plane z = zg nearer than its
+    depth (or where it is +inf: nothing of the prior's) given the plane's depth."""
+    o, dirs = cam.rays(normalize=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (zg - o[:, 2]) / dirs[:, 2]
+    t = np.where((dirs[:, 2] < 0) & (t > 0), t, np.inf).reshape(depth.shape)
+    return np.minimum(depth, t)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, type=Path)
+    ap.add_argument("--priors", required=True, type=Path, help="folder of the prior's cached renders (<scene>-<key>.npz)")
+    ap.add_argument("--prior", type=Path, default=None, help="a sugar run's folder of scenes/<scene>/model.pt "
+                    "(the prior-depth and prior-ground ways)")
+    ap.add_argument("--submission", type=Path, default=None, help="also the flows between this submission's frames")
+    ap.add_argument("--scenes", type=int, default=1)
+    ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
+    ap.add_argument("--ways", default="zero,dis-medium,prior-depth,prior-ground")
+    ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX)
+    ap.add_argument("--rigid", action="store_true", help="also each flow made rigid (`rigid_from_flow`)")
+    ap.add_argument("--median-px", type=int, default=5)
+    args = ap.parse_args(argv)
+    ways = args.ways.split(",")
+    if any(w.startswith("prior-") for w in ways) and args.prior is None:
+        ap.error("the prior-depth and prior-ground ways need --prior")
+    ds = open_dataset(args.data.expanduser())
+    prior = None
+    if args.prior is not None:
+        from reference.methods.sugar import SuGaR
+
+        prior = SuGaR.from_preset("small", args.prior.expanduser(), progress=False)
+    stats: dict[str, dict] = {}
+
+    def add(key: str, uv, ok, gt_uv, gt_ok, depth, seconds: float) -> None:
+        both = ok & gt_ok
+        s = stats.setdefault(key, {"epe": [], "depth": [], "cover": [0, 0], "s": 0.0})
+        s["epe"].append(np.hypot(*(uv[both] - gt_uv[both]).T))
+        s["depth"].append(depth[both])
+        s["cover"][0] += int(both.sum())
+        s["cover"][1] += int(gt_ok.sum())
+        s["s"] += seconds
+
+    print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
+    for scene in ds.split("test")[: args.scenes]:
+        npz = np.load(next(args.priors.expanduser().glob(f"{scene.name}-*.npz")))
+        if prior is not None:
+            prior.fit_scene(scene)  # resumed from its checkpoint
+            zg = ground_height(prior, scene)
+        seqs = list(scene.sequences.values())[: args.sequences or None]
+        for q in seqs:
+            fs = list(q.frames)
+            guides = {"prior": [grey(npz[f.file].astype(np.float32) / 255) for f in fs]}
+            if args.submission:
+                guides["frames"] = [grey(read_image(args.submission / scene.name / f.file)) for f in fs]
+            depths = {}
+            if prior is not None:
+                h, w = fs[0].height, fs[0].width
+                depths["prior-depth"] = [warp.prior_depth(prior, scene, f, w, h) for f in fs]
+                depths["prior-ground"] = [ground_filled(d, f.camera(), zg) for d, f in zip(depths["prior-depth"], fs)]
+            for k in range(1, len(fs)):
+                a, b = fs[k - 1], fs[k]
+                gt_uv, gt_ok = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
+                depth = b.depth()
+                xs, ys = np.meshgrid(np.arange(b.width) + 0.5, np.arange(b.height) + 0.5)
+                for way in ways:
+                    if way in depths:
+                        t0 = time.perf_counter()
+                        uv = moved_by_depth(depths[way][k], b.camera(), a.camera())
+                        add(way, uv, np.isfinite(uv).all(-1), gt_uv, gt_ok, depth, time.perf_counter() - t0)
+                        continue
+                    for g, imgs in guides.items():
+                        t0 = time.perf_counter()
+                        if way == "zero":
+                            uv, ok = np.stack([xs, ys], -1), np.ones_like(gt_ok)
+                        else:
+                            uv, ok = flow_pair(flow_fn(way), imgs[k], imgs[k - 1], args.fb_px)
+                        add(f"{way} on {g}", uv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
+                        if args.rigid and way != "zero":
+                            t0 = time.perf_counter()
+                            ruv, _ = rigid_from_flow(uv, ok, b.camera(), a.camera(), median_px=args.median_px)
+                            add(f"{way} on {g}, rigid", ruv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
+        print(f"{scene.name}: {len(seqs)} sequences", flush=True)
+    for key, s in stats.items():
+        e, d = np.concatenate(s["epe"]), np.concatenate(s["depth"])
+        bands = [f"{lo}-{hi if np.isfinite(hi) else ''} m {np.median(e[(d >= lo) & (d < hi)]):.2f}"
+                 if ((d >= lo) & (d < hi)).any() else f"{lo}- m n/a" for lo, hi in BANDS]
+        sky = np.isposinf(d)
+        bands.append(f"sky {np.median(e[sky]):.2f}" if sky.any() else "sky n/a")
+        print(f"{key:28s} EPE median {np.median(e):.2f} mean {e.mean():.2f} <1px {np.mean(e < 1):.3f} covers "
+              f"{s['cover'][0] / s['cover'][1]:.3f}; median by depth: {', '.join(bands)}; {s['s']:.1f} s")
+    print(f"load average after {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

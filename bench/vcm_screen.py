@@ -1,0 +1,201 @@
+"""Screen sampling settings of `skyeyes` on a few test sequences before a whole `reproduce`:
+the stages come from the stage cache (the ACM, VCM and prior renders a `reproduce` of the preset
+left there), and each setting's frames are scored on the warp error, PSNR, LPIPS and the FID of
+those frames against the same sequences' ground truth (an Inception FID over a few hundred
+frames: comparable between settings here, not with the protocol's), the warp error and LPIPS
+paired per sequence against the first setting's (docs/skyeyes.md, "The VCM").
+
+    .venv/bin/python bench/vcm_screen.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
+        --scenes 1 "clip_frames=1 vcm_noise=0" "clip_frames=1" "clip_frames=1 vcm_lowpass=3 vcm_lowpass_mix=0.7"
+
+A setting is `--set` overrides separated by spaces, on --preset (default small). --moves says
+what the carried noise and the low-pass transfer move frames by:
+
+* flow (default): the method's own, the optical flow between the prior's renders;
+* rigid: that flow made rigid with the poses (bench/flow_accuracy.py `rigid_from_flow`);
+* ground: the prior's depth with the ground plane under its Gaussians filling it
+  (`flow_accuracy.ground_filled`), moved by the poses, visible to --tol;
+* oracle: the ground truth's own correspondence (its depth and the poses, what the warp metric
+  uses): an upper bound of what a better flow could give, never a method.
+
+With --hold-flow, warped sampling (`vcm_warp`) holds by the flow between the prior's renders
+instead of the prior's depth (clip_frames=1). The prior's fitted scenes are read from
+--workdir's `work/prior/scenes` (link a `reproduce` run's `method/prior/scenes` there) for
+`vcm_warp` and --moves ground.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from reference.common.diffusion import warp
+from reference.common.diffusion.pipeline import _guides
+from reference.common.priors import frame_key
+from reference.methods.skyeyes import Skyeyes
+from skyeyes_bench.data.layout import open_dataset
+from skyeyes_bench.metrics.geometry import warp_coords, warp_error
+from skyeyes_bench.metrics.image import lpips
+
+sys.path.insert(0, str(Path(__file__).parent))
+from flow_accuracy import ground_filled, ground_height, rigid_from_flow  # noqa: E402
+
+TOL = 0.01  # the protocols' depth tolerance of the warp metric
+
+
+def features(net, images: np.ndarray) -> np.ndarray:
+    """Inception pool3 features [N, 2048] of frames [N, H, W, 3] in [0, 1] (FID's)."""
+    from skyeyes_bench.metrics.inception import preprocess
+
+    with torch.no_grad():
+        return np.concatenate([net(preprocess(images[i:i + 32])).double().numpy() for i in range(0, len(images), 32)])
+
+
+def fid(a: np.ndarray, b: np.ndarray) -> float:
+    from skyeyes_bench.metrics.sets import frechet_distance
+
+    return frechet_distance(a.mean(0), np.cov(a, rowvar=False), b.mean(0), np.cov(b, rowvar=False))
+
+
+def oracle_coords(frames, h: int, w: int):
+    """j -> (uv, valid) of frame j - 1 seen from frame j at h x w, by the ground truth's depth
+    (at a grid f times coarser, the fine pixel at each grid pixel's centre, as `grid_coords`)."""
+    def coords(j: int):
+        a, b = frames[j - 1], frames[j]
+        uv, ok = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
+        f = b.height // h
+        if f > 1:
+            uv, ok = uv[f // 2::f, f // 2::f] / f, ok[f // 2::f, f // 2::f]
+        return np.nan_to_num(uv), ok
+
+    return coords
+
+
+class FlowTargets(warp.WarpTargets):
+    """`warp.WarpTargets` moving the previous frame by `flow` (j -> frame j - 1 seen from j)
+    instead of the prior's depth: frame by frame only (clip_frames=1)."""
+
+    def __init__(self, conds: torch.Tensor, flow, cfg):
+        self.conds, self.flow, self.cfg = conds, flow, cfg
+
+    def coords(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        if j != i + 1:
+            raise ValueError("--hold-flow holds frame by frame (clip_frames=1)")
+        uv, valid = self.flow(j)
+        return np.nan_to_num(uv), valid
+
+
+def moves(kind: str, m: Skyeyes, current: dict, tol: float):
+    """A stand-in for `warp.flow_coords(guides)` that moves the current sequence by `kind`."""
+    real = warp.flow_coords
+
+    def coords(guides, *, fb_px=warp.FLOW_FB_PX):
+        h, w = guides.shape[1:3]
+        frames, scene = current["frames"], current["scene"]
+        cams = [warp.scaled_camera(f.camera(), w, h) for f in frames]
+        if kind == "oracle":
+            return oracle_coords(frames, h, w)
+        if kind == "ground":
+            zg = ground_height(m.prior, scene)
+            depths = [ground_filled(warp.prior_depth(m.prior, scene, f, w, h), c, zg) for f, c in zip(frames, cams)]
+            by_depth = warp.depth_coords(depths, cams, tol=tol)
+            return lambda j: (lambda uv, ok: (np.nan_to_num(uv), ok))(*by_depth(j))
+        flow = real(guides, fb_px=fb_px)
+
+        def rigid(j: int):
+            uv, ok = flow(j)
+            ruv, _ = rigid_from_flow(uv, ok, cams[j], cams[j - 1], median_px=max(3, w // 16 | 1))
+            inside = (ruv[..., 0] >= 0) & (ruv[..., 0] <= w) & (ruv[..., 1] >= 0) & (ruv[..., 1] <= h)
+            return np.nan_to_num(ruv), ok & inside
+
+        return rigid
+
+    return coords
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, type=Path)
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--scenes", type=int, default=1)
+    ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
+    ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
+    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "oracle"), default="flow")
+    ap.add_argument("--tol", type=float, default=warp.DEPTH_TOL, help="--moves ground: the depth test's tolerance")
+    ap.add_argument("--hold-flow", action="store_true", help="`vcm_warp` holds by the prior's renders' flow")
+    ap.add_argument("settings", nargs="+")
+    args = ap.parse_args(argv)
+    from skyeyes_bench import paths
+    from skyeyes_bench.metrics.inception import load_inception
+
+    ds = open_dataset(args.data.expanduser())
+    scenes = ds.split("test")[args.skip: args.skip + args.scenes]
+    seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
+    print(f"{len(seqs)} sequences; load average {os.getloadavg()[0]:.1f}", flush=True)
+    pairs = {q.id: [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
+                    for a, b in zip(list(q.frames)[:-1], list(q.frames)[1:])] for _, q in seqs}
+    net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")
+    gt_feats = features(net, np.concatenate([np.stack([f.image() for f in q.frames]) for _, q in seqs]))
+    rows = {}
+    for setting in args.settings:
+        config, _ = Skyeyes.configure(args.preset, setting.split())
+        m = Skyeyes(config, args.workdir / "work", progress=False)
+        m.fit_train(ds)
+        m.fit_scenes(scenes, progress=False)
+        current: dict = {}
+        if args.moves == "ground" or config.vcm_warp:
+            for s in scenes:
+                m.prior.fit_scene(s)  # resumed from its checkpoint
+        if args.hold_flow:
+            def targets(scene, sequence, cc, m=m):
+                res = m.config.core.resolution
+                priors = [m.scene_model(scene)[frame_key(scene, f)] for f in sequence.frames]
+                guides = _guides(priors, res, res)
+                return FlowTargets(cc, functools.cache(warp.flow_coords(guides)), m.config.core)
+
+            m._warp_targets = targets
+        real = warp.flow_coords
+        if args.moves != "flow":
+            warp.flow_coords = moves(args.moves, m, current, args.tol)
+        t0 = time.perf_counter()
+        per, frames_out = [], []
+        try:
+            for s, q in seqs:
+                frames = list(q.frames)
+                current.update(frames=frames, scene=s)
+                x = np.stack(list(m.render_sequence(s, q)))
+                gts = np.stack([f.image() for f in frames])
+                e = sum(warp_error(x[k], x[k + 1], uv, ok)[0] * int(ok.sum()) for k, (uv, ok) in enumerate(pairs[q.id]))
+                n = sum(int(ok.sum()) for _, ok in pairs[q.id])
+                psnr = float(np.mean(-10 * np.log10(((x - gts) ** 2).mean(axis=(1, 2, 3)))))
+                per.append((e / n, n, psnr, float(lpips(x, gts).mean())))
+                frames_out.append(x)
+        finally:
+            warp.flow_coords = real
+        dt = time.perf_counter() - t0
+        rows[setting] = r = np.array(per)
+        w = r[:, 1] / r[:, 1].sum()
+        line = (f"[{setting}] moves {args.moves}{', hold by flow' if args.hold_flow else ''}: warp "
+                f"{(r[:, 0] * w).sum():.4f} PSNR {r[:, 2].mean():.2f} LPIPS {r[:, 3].mean():.4f} FID (these frames) "
+                f"{fid(features(net, np.concatenate(frames_out)), gt_feats):.1f}; render {dt:.0f} s")
+        if len(rows) > 1:
+            b = rows[args.settings[0]]
+            d = b[:, 0] - r[:, 0]
+            boot = np.random.default_rng(0).integers(0, len(d), (2000, len(d)))
+            lo, hi = np.percentile((d[boot] * w[boot]).sum(1) / w[boot].sum(1), [2.5, 97.5])
+            line += (f"; warp first minus this {(d * w).sum():+.4f} [{lo:+.4f}, {hi:+.4f}], LPIPS this minus first "
+                     f"{(r[:, 3] - b[:, 3]).mean():+.4f}")
+        print(line, flush=True)
+    print(f"load average after {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -142,7 +142,7 @@ def ground_filled(depth: np.ndarray, cam, zg: float) -> np.ndarray:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--priors", required=True, type=Path, help="folder of the prior's cached renders (<scene>-<key>.npz)")
     ap.add_argument("--prior", type=Path, default=None, help="a sugar run's folder of scenes/<scene>/model.pt "
@@ -150,7 +150,8 @@ def main(argv=None) -> None:
     ap.add_argument("--submission", type=Path, default=None, help="also the flows between this submission's frames")
     ap.add_argument("--scenes", type=int, default=1)
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
-    ap.add_argument("--ways", default="zero,dis-medium,prior-depth,prior-ground")
+    ap.add_argument("--ways", default="zero,dis-medium,prior-depth,prior-ground",
+                    help=f"comma-separated: zero, {', '.join(FLOWS)}, prior-depth, prior-ground")
     ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX)
     ap.add_argument("--rigid", action="store_true", help="also each flow made rigid (`rigid_from_flow`)")
     ap.add_argument("--median-px", type=int, default=5)
@@ -177,7 +178,11 @@ def main(argv=None) -> None:
 
     print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
     for scene in ds.split("test")[: args.scenes]:
-        npz = np.load(next(args.priors.expanduser().glob(f"{scene.name}-*.npz")))
+        found = sorted(args.priors.expanduser().glob(f"{scene.name}-*.npz"))
+        if not found:
+            raise SystemExit(f"--priors {args.priors}: no {scene.name}-*.npz (the prior's cached renders of that "
+                             "scene; run `reproduce` of the preset first)")
+        npz = np.load(found[0])
         if prior is not None:
             prior.fit_scene(scene)  # resumed from its checkpoint
             zg = ground_height(prior, scene)

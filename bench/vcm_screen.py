@@ -1,6 +1,7 @@
 """Screen sampling settings of `skyeyes` on a few test sequences before a whole `reproduce`:
 the stages come from the stage cache (the ACM, VCM and prior renders a `reproduce` of the preset
-left there), and each setting's frames are scored on the warp error, PSNR, LPIPS and the FID of
+left there; where they are missing they are trained first, as `reproduce` would, which at
+`small` takes hours here), and each setting's frames are scored on the warp error, PSNR, LPIPS and the FID of
 those frames against the same sequences' ground truth (an Inception FID over a few hundred
 frames: comparable between settings here, not with the protocol's), the warp error and LPIPS
 paired per sequence against the first setting's (docs/skyeyes.md, "The VCM").
@@ -121,17 +122,21 @@ def moves(kind: str, m: Skyeyes, current: dict, tol: float):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--preset", default="small")
     ap.add_argument("--scenes", type=int, default=1)
     ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
-    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "oracle"), default="flow")
+    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "oracle"), default="flow",
+                    help="what carried noise and the low-pass transfer move frames by (above)")
     ap.add_argument("--tol", type=float, default=warp.DEPTH_TOL, help="--moves ground: the depth test's tolerance")
+    ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX,
+                    help="--moves flow: the flow's forward-backward check (`warp.FLOW_FB_PX`)")
     ap.add_argument("--hold-flow", action="store_true", help="`vcm_warp` holds by the prior's renders' flow")
-    ap.add_argument("settings", nargs="+")
+    ap.add_argument("settings", nargs="+", help='each a setting: `--set` overrides separated by spaces, e.g. '
+                    '"clip_frames=1 vcm_noise=0"; the first is the one the others are paired against')
     args = ap.parse_args(argv)
     from skyeyes_bench import paths
     from skyeyes_bench.metrics.inception import load_inception
@@ -165,6 +170,8 @@ def main(argv=None) -> None:
         real = warp.flow_coords
         if args.moves != "flow":
             warp.flow_coords = moves(args.moves, m, current, args.tol)
+        elif args.fb_px != warp.FLOW_FB_PX:
+            warp.flow_coords = functools.partial(real, fb_px=args.fb_px)
         t0 = time.perf_counter()
         per, frames_out = [], []
         try:

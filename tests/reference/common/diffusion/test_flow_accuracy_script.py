@@ -3,26 +3,20 @@ against closed forms: a flow made rigid with the poses, and the ground plane's d
 
 from __future__ import annotations
 
-import importlib.util
 import types
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from builders.bench_scripts import load_bench
 
 from skyeyes_bench.cameras import Camera, intrinsics
 from skyeyes_bench.metrics.geometry import warp_coords
 
-ROOT = Path(__file__).resolve().parents[4]
-
 
 @pytest.fixture(scope="module")
 def fa():
-    spec = importlib.util.spec_from_file_location("bench_flow_accuracy", ROOT / "bench" / "flow_accuracy.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("flow_accuracy")
 
 
 def _level(x: float = 0.0, z: float = 2.0, size: int = 32) -> Camera:

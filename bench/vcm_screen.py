@@ -16,6 +16,8 @@ what the carried noise and the low-pass transfer move frames by:
 * rigid: that flow made rigid with the poses (bench/flow_accuracy.py `rigid_from_flow`);
 * ground: the prior's depth with the ground plane under its Gaussians filling it
   (`flow_accuracy.ground_filled`), moved by the poses, visible to --tol;
+* fused: that depth where it puts the pixel nearer than `FUSED_NEAR_M` (the near road) or at
+  +inf (the sky), the flow elsewhere;
 * oracle: the ground truth's own correspondence (its depth and the poses, what the warp metric
   uses): an upper bound of what a better flow could give, never a method.
 
@@ -49,6 +51,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from flow_accuracy import ground_filled, ground_height, rigid_from_flow  # noqa: E402
 
 TOL = 0.01  # the protocols' depth tolerance of the warp metric
+#: --moves fused: the prior's depth (with the ground plane) moves what it puts nearer than this
+#: (the near road, where the renders' flow fails: bench/flow_accuracy.py) and the sky.
+FUSED_NEAR_M = 5.0
 
 
 def features(net, images: np.ndarray) -> np.ndarray:
@@ -103,12 +108,21 @@ def moves(kind: str, m: Skyeyes, current: dict, tol: float):
         cams = [warp.scaled_camera(f.camera(), w, h) for f in frames]
         if kind == "oracle":
             return oracle_coords(frames, h, w)
-        if kind == "ground":
+        flow = real(guides, fb_px=fb_px)
+        if kind in ("ground", "fused"):
             zg = ground_height(m.prior, scene)
             depths = [ground_filled(warp.prior_depth(m.prior, scene, f, w, h), c, zg) for f, c in zip(frames, cams)]
             by_depth = warp.depth_coords(depths, cams, tol=tol)
-            return lambda j: (lambda uv, ok: (np.nan_to_num(uv), ok))(*by_depth(j))
-        flow = real(guides, fb_px=fb_px)
+
+            def depth_or_flow(j: int):
+                uv, ok = by_depth(j)
+                if kind == "fused":  # the depth where it is the ground plane near by or the sky, else the flow
+                    by_flow, flow_ok = flow(j)
+                    mine = (depths[j] < FUSED_NEAR_M) | np.isposinf(depths[j])
+                    uv, ok = np.where(mine[..., None], uv, by_flow), np.where(mine, ok, flow_ok)
+                return np.nan_to_num(uv), ok
+
+            return depth_or_flow
 
         def rigid(j: int):
             uv, ok = flow(j)
@@ -129,7 +143,7 @@ def main(argv=None) -> None:
     ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
-    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "oracle"), default="flow",
+    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "fused", "oracle"), default="flow",
                     help="what carried noise and the low-pass transfer move frames by (above)")
     ap.add_argument("--tol", type=float, default=warp.DEPTH_TOL, help="--moves ground: the depth test's tolerance")
     ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX,
@@ -156,7 +170,7 @@ def main(argv=None) -> None:
         m.fit_train(ds)
         m.fit_scenes(scenes, progress=False)
         current: dict = {}
-        if args.moves == "ground" or config.vcm_warp:
+        if args.moves in ("ground", "fused") or config.vcm_warp:
             for s in scenes:
                 m.prior.fit_scene(s)  # resumed from its checkpoint
         if args.hold_flow:

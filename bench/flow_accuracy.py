@@ -13,7 +13,8 @@ its cached renders, `<scene>-<key>.npz`) and, with --submission, between that su
 frames; `zero` (no motion); and with --prior (a `sugar` run's folder of `scenes/<scene>/model.pt`)
 the prior's own depth and the poses (`prior-depth`, `warp.prior_depth`), or that depth with the
 pixels whose ray meets the ground plane under the prior's Gaussians nearer given the plane's
-depth (`prior-ground`, `ground_filled`). --rigid adds each flow made rigid with the poses
+depth (`prior-ground`, `ground_filled`); `aerial-sweep`, a depth from the aerial views alone
+(`aerial_sweep_depth`, ~5 s a frame; a depth way's seconds count its warps only). --rigid adds each flow made rigid with the poses
 (`rigid_from_flow`).
 
 Prints, per way: the end-point error (pixels) on the pixels both it and the ground truth call
@@ -141,6 +142,37 @@ def ground_filled(depth: np.ndarray, cam, zg: float) -> np.ndarray:
     return np.minimum(depth, t)
 
 
+def aerial_sweep_depth(scene, cam, *, depths: np.ndarray = np.geomspace(2.0, 150.0, 48), best: int = 6,
+                       median_px: int = 5) -> np.ndarray:
+    """A depth for a ground camera from the aerial views alone (a naive virtual-view plane
+    sweep): per pixel and candidate depth, the point is projected into every aerial view, and
+    the cost is the mean of the `best` smallest absolute deviations (over the views that see it
+    in frame) from the views' median colour; the cheapest depth wins, and its log is
+    median-filtered over `median_px`. No visibility reasoning: [H, W] planar depth."""
+    import torch
+    import torch.nn.functional as F
+    from scipy.ndimage import median_filter
+
+    views = scene.aerial
+    img = torch.tensor(np.stack([a.image() for a in views]), dtype=torch.float32).permute(0, 3, 1, 2)
+    c2ws, ks = np.stack([a.camera().c2w for a in views]), np.stack([a.camera().K for a in views])
+    aw, ah = views[0].width, views[0].height
+    o, dirs = cam.rays(normalize=False)
+    costs = []
+    for d in depths:
+        uv, _ = project(o + dirs * d, np.ones(len(o)), c2ws, ks)  # [V, N, 2]
+        seen = np.isfinite(uv).all(-1) & (uv[..., 0] >= 0) & (uv[..., 0] <= aw) & (uv[..., 1] >= 0) & (uv[..., 1] <= ah)
+        grid = torch.tensor(np.nan_to_num(uv) / np.array([aw, ah]) * 2 - 1, dtype=torch.float32)[:, None]
+        col = F.grid_sample(img, grid, align_corners=False)[:, :, 0]  # [V, 3, N]
+        seen_t = torch.as_tensor(seen)
+        col = torch.where(seen_t[:, None], col, torch.nan)
+        dev = (col - torch.nanmedian(col, 0).values[None]).abs().mean(1)  # [V, N]
+        dev = torch.where(seen_t, dev, torch.inf)
+        costs.append(torch.topk(dev, min(best, len(views)), dim=0, largest=False).values.mean(0))
+    win = depths[torch.stack(costs).argmin(0).numpy()].reshape(cam.height, cam.width)
+    return np.exp(median_filter(np.log(win), size=median_px, mode="nearest"))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, type=Path)
@@ -151,7 +183,7 @@ def main(argv=None) -> None:
     ap.add_argument("--scenes", type=int, default=1)
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--ways", default="zero,dis-medium,prior-depth,prior-ground",
-                    help=f"comma-separated: zero, {', '.join(FLOWS)}, prior-depth, prior-ground")
+                    help=f"comma-separated: zero, {', '.join(FLOWS)}, prior-depth, prior-ground, aerial-sweep")
     ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX)
     ap.add_argument("--rigid", action="store_true", help="also each flow made rigid (`rigid_from_flow`)")
     ap.add_argument("--median-px", type=int, default=5)
@@ -193,6 +225,8 @@ def main(argv=None) -> None:
             if args.submission:
                 guides["frames"] = [grey(read_image(args.submission / scene.name / f.file)) for f in fs]
             depths = {}
+            if "aerial-sweep" in ways:
+                depths["aerial-sweep"] = [aerial_sweep_depth(scene, f.camera()) for f in fs]
             if prior is not None:
                 h, w = fs[0].height, fs[0].width
                 depths["prior-depth"] = [warp.prior_depth(prior, scene, f, w, h) for f in fs]

@@ -42,14 +42,9 @@ BANDS = [(0, 5), (5, 10), (10, 20), (20, 100), (100, np.inf)]
 FLOWS = ("dis-medium", "dis-fast", "dis-ultrafast", "deepflow", "tvl1", "farneback", "pcaflow")
 
 
-def grey(x: np.ndarray) -> np.ndarray:
-    import cv2
-
-    return cv2.cvtColor((np.clip(x, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
-
-
 def flow_fn(name: str):
-    """(I_j, I_{j-1}) grey uint8 -> flow [H, W, 2] with I_j(x) ~ I_{j-1}(x + flow(x))."""
+    """(I_j, I_{j-1}) grey uint8 -> flow [H, W, 2] with I_j(x) ~ I_{j-1}(x + flow(x)): the `flow`
+    of `warp.flow_coords`, which checks it forward and backward."""
     import cv2
 
     if name.startswith("dis-"):
@@ -62,21 +57,6 @@ def flow_fn(name: str):
         f = {"deepflow": cv2.optflow.createOptFlow_DeepFlow, "tvl1": cv2.optflow.DualTVL1OpticalFlow_create,
              "pcaflow": cv2.optflow.createOptFlow_PCAFlow}[name]()
     return lambda a, b: f.calc(a, b, None)
-
-
-def flow_pair(flow, gj: np.ndarray, gi: np.ndarray, fb_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """(uv, valid) of frame i seen from frame j by a flow function, forward-backward checked to
-    `fb_px` (as `warp.flow_coords` does with DIS)."""
-    import cv2
-
-    h, w = gj.shape
-    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    back, fwd = flow(gj, gi), flow(gi, gj)
-    uv = np.stack([xs + back[..., 0], ys + back[..., 1]], -1)
-    again = cv2.remap(fwd, (uv[..., 0] - 0.5).astype(np.float32), (uv[..., 1] - 0.5).astype(np.float32),
-                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
-    return uv, inside & (np.hypot(*(back + again).transpose(2, 0, 1)) <= fb_px)
 
 
 def moved_by_depth(depth: np.ndarray, cam, src) -> np.ndarray:
@@ -221,9 +201,11 @@ def main(argv=None) -> None:
         seqs = list(scene.sequences.values())[: args.sequences or None]
         for q in seqs:
             fs = list(q.frames)
-            guides = {"prior": [grey(npz[f.file].astype(np.float32) / 255) for f in fs]}
+            guides = {"prior": np.stack([npz[f.file].astype(np.float32) / 255 for f in fs])}
             if args.submission:
-                guides["frames"] = [grey(read_image(args.submission / scene.name / f.file)) for f in fs]
+                guides["frames"] = np.stack([read_image(args.submission / scene.name / f.file) for f in fs])
+            flows = {(way, g): warp.flow_coords(imgs, fb_px=args.fb_px, flow=flow_fn(way))
+                     for way in ways if way in FLOWS for g, imgs in guides.items()}
             depths = {}
             if "aerial-sweep" in ways:
                 depths["aerial-sweep"] = [aerial_sweep_depth(scene, f.camera()) for f in fs]
@@ -242,12 +224,12 @@ def main(argv=None) -> None:
                         uv = moved_by_depth(depths[way][k], b.camera(), a.camera())
                         add(way, uv, np.isfinite(uv).all(-1), gt_uv, gt_ok, depth, time.perf_counter() - t0)
                         continue
-                    for g, imgs in guides.items():
+                    for g in guides:
                         t0 = time.perf_counter()
                         if way == "zero":
                             uv, ok = np.stack([xs, ys], -1), np.ones_like(gt_ok)
                         else:
-                            uv, ok = flow_pair(flow_fn(way), imgs[k], imgs[k - 1], args.fb_px)
+                            uv, ok = flows[way, g](k)
                         add(f"{way} on {g}", uv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
                         if args.rigid and way != "zero":
                             t0 = time.perf_counter()

@@ -72,16 +72,13 @@ def fid(a: np.ndarray, b: np.ndarray) -> float:
 
 def oracle_coords(frames, h: int, w: int):
     """j -> (uv, valid) of frame j - 1 seen from frame j at h x w, by the ground truth's depth
-    (at a grid f times coarser, the fine pixel at each grid pixel's centre, as `grid_coords`)."""
+    (on a grid coarser than the frames, `warp.grid_coords` of it)."""
     def coords(j: int):
         a, b = frames[j - 1], frames[j]
         uv, ok = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
-        f = b.height // h
-        if f > 1:
-            uv, ok = uv[f // 2::f, f // 2::f] / f, ok[f // 2::f, f // 2::f]
         return np.nan_to_num(uv), ok
 
-    return coords
+    return warp.grid_coords(coords, frames[0].height // h)
 
 
 class FlowTargets(warp.WarpTargets):

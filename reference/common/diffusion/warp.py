@@ -151,21 +151,27 @@ def depth_coords(depths: list[np.ndarray], cameras: list[Camera],
 FLOW_FB_PX = 3.0
 
 
-def flow_coords(guides: np.ndarray, *, fb_px: float = FLOW_FB_PX) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+def flow_coords(guides: np.ndarray, *, fb_px: float = FLOW_FB_PX,
+                flow: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+                ) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
     """j -> (uv, valid) of frame j - 1 seen from frame j, by optical flow between guide images
     [N, H, W, 3] in [0, 1] (OpenCV's DIS flow, Kroeger et al. 2016, on their grey levels): uv the
     pixel centre plus the flow from j to j - 1, valid where it lands inside frame j - 1 and the
-    flow back returns within `fb_px` pixels (forward-backward consistency)."""
+    flow back returns within `fb_px` pixels (forward-backward consistency). `flow`: another
+    flow, (grey a, grey b) uint8 -> [H, W, 2] with a(x) ~ b(x + flow(x)) (bench/flow_accuracy.py
+    compares them)."""
     import cv2
 
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    if flow is None:
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        flow = lambda a, b: dis.calc(a, b, None)  # noqa: E731
     grey = [cv2.cvtColor((np.clip(g, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY) for g in guides]
     h, w = grey[0].shape
     xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
 
     def coords(j: int) -> tuple[np.ndarray, np.ndarray]:
-        back = dis.calc(grey[j], grey[j - 1], None)  # I_j(x) ~ I_{j-1}(x + back(x))
-        fwd = dis.calc(grey[j - 1], grey[j], None)
+        back = flow(grey[j], grey[j - 1])  # I_j(x) ~ I_{j-1}(x + back(x))
+        fwd = flow(grey[j - 1], grey[j])
         uv = np.stack([xs + back[..., 0], ys + back[..., 1]], -1)
         again = cv2.remap(fwd, (uv[..., 0] - 0.5).astype(np.float32), (uv[..., 1] - 0.5).astype(np.float32),
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -19,7 +19,11 @@ what the carried noise and the low-pass transfer move frames by:
 * fused: that depth where it puts the pixel nearer than `FUSED_NEAR_M` (the near road) or at
   +inf (the sky), the flow elsewhere;
 * oracle: the ground truth's own correspondence (its depth and the poses, what the warp metric
-  uses): an upper bound of what a better flow could give, never a method.
+  uses): an upper bound of what a better flow could give, never a method;
+* oracle-where-flow: the truth's motion on the pixels the flow keeps (its forward-backward
+  check), the rest of each frame its own: the flow's accuracy made perfect, its reach not;
+* flow-where-oracle: the flow where it keeps a pixel, the truth's motion on the others it
+  reaches: the flow's reach made the truth's, its accuracy not.
 
 With --hold-flow, warped sampling (`vcm_warp`) holds by the flow between the prior's renders
 instead of the prior's depth (clip_frames=1). The prior's fitted scenes are read from
@@ -70,6 +74,38 @@ def fid(a: np.ndarray, b: np.ndarray) -> float:
     return frechet_distance(a.mean(0), np.cov(a, rowvar=False), b.mean(0), np.cov(b, rowvar=False))
 
 
+def metric_pairs(frames) -> list:
+    """The warp metric's (uv, valid) of each consecutive pair of a sequence's frames (the truth's
+    depth and poses, the protocols' tolerance)."""
+    return [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL) for a, b in zip(frames[:-1], frames[1:])]
+
+
+def scored(x: np.ndarray, frames, pairs) -> tuple[float, int, float, float]:
+    """A sequence's frames x [N, H, W, 3] in [0, 1] against its truth (`frames`, `pairs` their
+    `metric_pairs`): (warp error pooled over its pairs, the pixels it pools, mean PSNR, mean LPIPS)."""
+    gts = np.stack([f.image() for f in frames])
+    e = sum(warp_error(x[k], x[k + 1], uv, ok)[0] * int(ok.sum()) for k, (uv, ok) in enumerate(pairs))
+    n = sum(int(ok.sum()) for _, ok in pairs)
+    psnr = float(np.mean(-10 * np.log10(((x - gts) ** 2).mean(axis=(1, 2, 3)))))
+    return e / n, n, psnr, float(lpips(x, gts).mean())
+
+
+def report(label: str, r: np.ndarray, base: np.ndarray | None, feats: np.ndarray, gt_feats: np.ndarray) -> str:
+    """One line for a setting's `scored` rows r [sequences, 4]: the pooled warp error, PSNR, LPIPS and
+    the FID of its frames' features; with `base` (the first setting's rows) the warp error's
+    paired difference, base minus r, with a 95% bootstrap over sequences, and LPIPS r minus base."""
+    w = r[:, 1] / r[:, 1].sum()
+    line = (f"{label}: warp {(r[:, 0] * w).sum():.4f} PSNR {r[:, 2].mean():.2f} LPIPS {r[:, 3].mean():.4f} "
+            f"FID (these frames) {fid(feats, gt_feats):.1f}")
+    if base is not None:
+        d = base[:, 0] - r[:, 0]
+        boot = np.random.default_rng(0).integers(0, len(d), (2000, len(d)))
+        lo, hi = np.percentile((d[boot] * w[boot]).sum(1) / w[boot].sum(1), [2.5, 97.5])
+        line += (f"; warp first minus this {(d * w).sum():+.4f} [{lo:+.4f}, {hi:+.4f}], LPIPS this minus first "
+                 f"{(r[:, 3] - base[:, 3]).mean():+.4f}")
+    return line
+
+
 def oracle_coords(frames, h: int, w: int):
     """j -> (uv, valid) of frame j - 1 seen from frame j at h x w, by the ground truth's depth
     (on a grid coarser than the frames, `warp.grid_coords` of it)."""
@@ -106,6 +142,16 @@ def moves(kind: str, m: Skyeyes, current: dict, tol: float):
         if kind == "oracle":
             return oracle_coords(frames, h, w)
         flow = real(guides, fb_px=fb_px)
+        if kind in ("oracle-where-flow", "flow-where-oracle"):  # the truth's where... : where the error comes from
+            truth = oracle_coords(frames, h, w)
+
+            def split(j: int):
+                (tuv, tok), (fuv, fok) = truth(j), flow(j)
+                if kind == "oracle-where-flow":  # the truth's motion, on the pixels the flow keeps
+                    return tuv, tok & fok
+                return np.where(fok[..., None], np.nan_to_num(fuv), tuv), tok  # the flow's, the truth's reach
+
+            return split
         if kind in ("ground", "fused"):
             zg = ground_height(m.prior, scene)
             depths = [ground_filled(warp.prior_depth(m.prior, scene, f, w, h), c, zg) for f, c in zip(frames, cams)]
@@ -140,7 +186,8 @@ def main(argv=None) -> None:
     ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
-    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "fused", "oracle"), default="flow",
+    ap.add_argument("--moves", choices=("flow", "rigid", "ground", "fused", "oracle", "oracle-where-flow",
+                                                    "flow-where-oracle"), default="flow",
                     help="what carried noise and the low-pass transfer move frames by (above)")
     ap.add_argument("--tol", type=float, default=warp.DEPTH_TOL, help="--moves ground: the depth test's tolerance")
     ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX,
@@ -156,8 +203,7 @@ def main(argv=None) -> None:
     scenes = ds.split("test")[args.skip: args.skip + args.scenes]
     seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
     print(f"{len(seqs)} sequences; load average {os.getloadavg()[0]:.1f}", flush=True)
-    pairs = {q.id: [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
-                    for a, b in zip(list(q.frames)[:-1], list(q.frames)[1:])] for _, q in seqs}
+    pairs = {q.id: metric_pairs(list(q.frames)) for _, q in seqs}
     net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")
     gt_feats = features(net, np.concatenate([np.stack([f.image() for f in q.frames]) for _, q in seqs]))
     rows = {}
@@ -190,28 +236,15 @@ def main(argv=None) -> None:
                 frames = list(q.frames)
                 current.update(frames=frames, scene=s)
                 x = np.stack(list(m.render_sequence(s, q)))
-                gts = np.stack([f.image() for f in frames])
-                e = sum(warp_error(x[k], x[k + 1], uv, ok)[0] * int(ok.sum()) for k, (uv, ok) in enumerate(pairs[q.id]))
-                n = sum(int(ok.sum()) for _, ok in pairs[q.id])
-                psnr = float(np.mean(-10 * np.log10(((x - gts) ** 2).mean(axis=(1, 2, 3)))))
-                per.append((e / n, n, psnr, float(lpips(x, gts).mean())))
+                per.append(scored(x, frames, pairs[q.id]))
                 frames_out.append(x)
         finally:
             warp.flow_coords = real
         dt = time.perf_counter() - t0
-        rows[setting] = r = np.array(per)
-        w = r[:, 1] / r[:, 1].sum()
-        line = (f"[{setting}] moves {args.moves}{', hold by flow' if args.hold_flow else ''}: warp "
-                f"{(r[:, 0] * w).sum():.4f} PSNR {r[:, 2].mean():.2f} LPIPS {r[:, 3].mean():.4f} FID (these frames) "
-                f"{fid(features(net, np.concatenate(frames_out)), gt_feats):.1f}; render {dt:.0f} s")
-        if len(rows) > 1:
-            b = rows[args.settings[0]]
-            d = b[:, 0] - r[:, 0]
-            boot = np.random.default_rng(0).integers(0, len(d), (2000, len(d)))
-            lo, hi = np.percentile((d[boot] * w[boot]).sum(1) / w[boot].sum(1), [2.5, 97.5])
-            line += (f"; warp first minus this {(d * w).sum():+.4f} [{lo:+.4f}, {hi:+.4f}], LPIPS this minus first "
-                     f"{(r[:, 3] - b[:, 3]).mean():+.4f}")
-        print(line, flush=True)
+        rows[setting] = np.array(per)
+        label = f"[{setting}] moves {args.moves}{', hold by flow' if args.hold_flow else ''}"
+        print(report(label, rows[setting], rows[args.settings[0]] if len(rows) > 1 else None,
+                     features(net, np.concatenate(frames_out)), gt_feats) + f"; render {dt:.0f} s", flush=True)
     print(f"load average after {os.getloadavg()[0]:.1f}")
 
 

@@ -221,6 +221,14 @@ class DiffusionConfig:
     # its detail stays its own. Sampling only (no stage key).
     vcm_lowpass: float = 0.0
     vcm_lowpass_mix: float = 1.0
+    # Prior anchor (`warp.prior_anchor`; 0: none): after sampling (and the low-pass transfer),
+    # each frame's low frequencies (a Gaussian of this std, in pixels at the model's resolution)
+    # move by `vcm_anchor_mix` towards those of its own condition, the prior's render, its colours
+    # mapped to the sequence's frames by affine fits on a `vcm_anchor_tiles` square grid of the
+    # screen (`warp.affine_colours`). Sampling only (no stage key).
+    vcm_anchor: float = 0.0
+    vcm_anchor_mix: float = 1.0
+    vcm_anchor_tiles: int = 4
     # Shared noise (`sample.frame_noise`; 0: every frame its own): each frame's starting noise is
     # sqrt(vcm_noise) of one draw its sequence shares plus sqrt(1 - vcm_noise) of its own, still a
     # standard normal per frame. `vcm_noise_sigma` > 0: only the noise's low frequencies are
@@ -274,8 +282,8 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_noise",
-            "vcm_noise_sigma", "vcm_noise_flow")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_anchor",
+            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -79,6 +79,12 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
         raise ValueError(f"vcm_lowpass {config.vcm_lowpass}, vcm_lowpass_mix {config.vcm_lowpass_mix}: expected "
                          "vcm_lowpass >= 0 (pixels), 0 < vcm_lowpass_mix <= 1, and when vcm_lowpass is not 0 the "
                          "VCM on (vcm=true) and a prior's renders as the condition (their flow moves frames)")
+    if config.vcm_anchor < 0 or not 0 < config.vcm_anchor_mix <= 1 or config.vcm_anchor_tiles < 1 or \
+            (config.vcm_anchor and not (config.vcm and config.condition == "prior")):
+        raise ValueError(f"vcm_anchor {config.vcm_anchor}, vcm_anchor_mix {config.vcm_anchor_mix}, vcm_anchor_tiles "
+                         f"{config.vcm_anchor_tiles}: expected vcm_anchor >= 0 (pixels), 0 < vcm_anchor_mix <= 1, "
+                         "vcm_anchor_tiles >= 1, and when vcm_anchor is not 0 the "
+                         "VCM on (vcm=true) and a prior's renders as the condition (the frames' anchor)")
     if not 0.0 <= config.vcm_noise <= 1.0 or config.vcm_noise_sigma < 0 or (config.vcm_noise and not config.vcm) or \
             (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
         raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
@@ -236,6 +242,14 @@ class DiffusionMethod(Method):
 
             imgs = lowpass_transfer(imgs, flow_coords(_guides(priors, *imgs.shape[-2:])), self.config.vcm_lowpass,
                                     self.config.vcm_lowpass_mix)
+        if self.config.vcm_anchor:  # the frames' coarse part moved towards their own renders of the prior
+            import torch
+
+            from .warp import prior_anchor
+
+            renders = torch.from_numpy(_guides(priors, *imgs.shape[-2:])).permute(0, 3, 1, 2)
+            imgs = prior_anchor(imgs, renders, self.config.vcm_anchor, self.config.vcm_anchor_mix,
+                                self.config.vcm_anchor_tiles)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \

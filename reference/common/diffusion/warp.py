@@ -24,6 +24,11 @@ their 0.0915, the high-passed rest 0.0362.
 
 Carried noise (`vcm_noise_flow`, `carried_noise`) moves the frames' starting noise instead, along
 the same flow, so frames agree before any step is taken and nothing is blurred or held.
+
+The prior anchor (`vcm_anchor`, `prior_anchor`) moves nothing between frames: each frame's coarse
+part moves towards its own render of the 3D prior, which is steady from frame to frame by
+construction, with the render's colours first mapped to the frames' (`affine_colours`), so the
+ACM's correction of the prior's colours stays.
 """
 
 from __future__ import annotations
@@ -223,6 +228,58 @@ def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarra
         weight = mix * m * np.clip(2.0 * cover - 1.0, 0.0, 1.0)  # 0 at holes, 1 a sigma or so inside
         out.append(np.clip(x[j] + weight * (low_warped - _blur(x[j], sigma)), 0.0, 1.0).astype(np.float32))
     return torch.from_numpy(np.stack(out)).to(imgs.device, imgs.dtype)
+
+
+def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1) -> torch.Tensor:
+    """src [N, 3, H, W] with its colours mapped by the affine map (a 3x3 matrix and an offset)
+    that fits dst [N, 3, H, W] best in least squares over all N frames. tiles > 1: one map for each
+    cell of a tiles x tiles grid of the screen, fitted on the pixels of all N frames within a cell
+    of it either way around the cell's centre, and the maps blended bilinearly between the cells'
+    centres (constant beyond the outer ones), so the map varies smoothly over the screen and not
+    at all in time."""
+    n, _, h, w = src.shape
+    a = torch.cat([src.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64)], -1)
+    b = dst.permute(0, 2, 3, 1).double().cpu()
+    if tiles == 1:
+        m = torch.linalg.lstsq(a.reshape(-1, 4), b.reshape(-1, 3)).solution
+        return (a @ m).to(src.dtype).permute(0, 3, 1, 2)
+    cy, cx = (torch.arange(tiles, dtype=torch.float64) + 0.5) * h / tiles, (torch.arange(tiles, dtype=torch.float64) + 0.5) * w / tiles
+    out = torch.zeros(n, h, w, 3, dtype=torch.float64)
+    ys, xs = torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5
+    wy = (1 - (ys[:, None] - cy[None]).abs() / (h / tiles)).clamp(min=0)  # [h, tiles] bilinear weights
+    wx = (1 - (xs[:, None] - cx[None]).abs() / (w / tiles)).clamp(min=0)
+    wy[ys < cy[0], 0], wy[ys > cy[-1], -1] = 1.0, 1.0  # constant beyond the outer centres
+    wx[xs < cx[0], 0], wx[xs > cx[-1], -1] = 1.0, 1.0
+    for i in range(tiles):
+        rows = (ys - cy[i]).abs() < h / tiles
+        for j in range(tiles):
+            cols = (xs - cx[j]).abs() < w / tiles
+            m = torch.linalg.lstsq(a[:, rows][:, :, cols].reshape(-1, 4), b[:, rows][:, :, cols].reshape(-1, 3)).solution
+            out += (wy[:, i, None] * wx[None, :, j])[None, :, :, None] * (a @ m)
+    return out.to(src.dtype).permute(0, 3, 1, 2)
+
+
+def anchored(x: torch.Tensor, target: torch.Tensor, sigma: float, mix: float = 1.0) -> torch.Tensor:
+    """x [N, C, H, W] with its Gaussian low-pass (std `sigma` px, reflected at the border) moved
+    `mix` of the way to `target`'s; the rest of x (its detail) stays its own."""
+    def low(a: torch.Tensor) -> np.ndarray:
+        return np.stack([_blur(f, sigma) for f in a.detach().double().cpu().numpy()])
+
+    return (x.detach().cpu().double() + mix * torch.from_numpy(low(target) - low(x))).to(x.dtype)
+
+
+def prior_anchor(imgs: torch.Tensor, renders: torch.Tensor, sigma: float, mix: float = 1.0,
+                 tiles: int = 1) -> torch.Tensor:
+    """A sequence's decoded frames [N, 3, H, W] in [0, 1] -> the same anchored to the 3D prior:
+    each frame's low-pass moves by `mix` towards its render's (`renders`, the same shape: what
+    the ACM was conditioned on), whose colours are first mapped to the frames' by one affine fit
+    over the sequence (`affine_colours`, on a `tiles` x `tiles` grid); clamped to [0, 1]. The renders hardly flicker, so the
+    frames' coarse part flickers as little as `mix` makes it, with no correspondence between
+    frames to get wrong (bench/vcm_anchor.py, docs/skyeyes.md "The VCM")."""
+    if not 0 < mix <= 1 or sigma <= 0:
+        raise ValueError(f"prior_anchor: sigma {sigma} (> 0), mix {mix} (0 < mix <= 1)")
+    target = affine_colours(renders.float().cpu(), imgs.float().cpu(), tiles)
+    return anchored(imgs.float().cpu(), target, sigma, mix).clamp(0.0, 1.0).to(imgs.device, imgs.dtype)
 
 
 def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]],

@@ -367,3 +367,25 @@ def test_lowpass_vcm_is_the_ablations_frames_with_their_coarse_part_carried_on(t
         assert np.abs(carried[seq.id][1:] - plain[seq.id][1:]).max() > 1e-3
     with pytest.raises(ValueError, match="vcm_lowpass"):
         ControlNetBaseline(dataclasses.replace(TINY, condition="aerial", vcm_lowpass=2.0), tmp_path / "x")
+
+
+def test_prior_anchor_vcm_is_the_ablations_frames_anchored_to_their_renders(tiny, tmp_path):
+    """`vcm_anchor` with 1-frame clips: the ablation's frames (the same noise and ACM), then
+    `warp.prior_anchor` to the frames' own conditions (the prior's renders): every frame differs
+    from the ablation's, and by what the anchor computes from the ablation's frames alone."""
+    import torch
+
+    from reference.common.diffusion import warp
+    from reference.common.priors import frame_key
+
+    _, _, plain = _run(SkyeyesNoVCM, tiny, tmp_path / "plain")
+    m, _, anchored = _run(Skyeyes, tiny, tmp_path / "anchored", clip_frames=1, vcm_anchor=2.0, vcm_anchor_mix=0.8,
+                            vcm_anchor_tiles=2)
+    assert m.vcm is None and "vcm" not in m.training
+    scene = open_dataset(tiny).split("test")[0]
+    conds = m.scene_model(scene)
+    for seq in scene.sequences.values():
+        renders = torch.from_numpy(np.stack([conds[frame_key(scene, f)][..., :3] for f in seq.frames])).permute(0, 3, 1, 2)
+        want = warp.prior_anchor(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), renders, 2.0, 0.8, 2)
+        np.testing.assert_allclose(anchored[seq.id], want.permute(0, 2, 3, 1).numpy(), atol=1e-6)
+        assert (np.abs(anchored[seq.id] - plain[seq.id]).max(axis=(1, 2, 3)) > 1e-3).all()

@@ -377,3 +377,69 @@ def test_grid_coords_takes_the_fine_pixel_at_each_grid_centre():
     np.testing.assert_array_equal(v, np.arange(w)[None].repeat(h, 0) < w - 2)
     same = lambda j: (xs, valid)  # noqa: E731
     assert warp.grid_coords(same, 1) is same
+
+
+def test_affine_colours_recovers_an_exact_affine_map():
+    """dst = M src + b on every pixel: the fitted map gives dst back (to rounding)."""
+    g = torch.Generator().manual_seed(1)
+    src = torch.rand(3, 3, 8, 8, generator=g)
+    m = torch.tensor([[0.8, 0.1, 0.0], [-0.2, 0.9, 0.1], [0.05, 0.0, 1.2]])
+    b = torch.tensor([0.1, -0.05, 0.02])
+    dst = torch.einsum("ij,njhw->nihw", m, src) + b[None, :, None, None]
+    for tiles in (1, 2, 4):  # the cells' maps are all the one map, and their blend weights sum to 1
+        np.testing.assert_allclose(warp.affine_colours(src, dst, tiles).numpy(), dst.numpy(), atol=1e-5)
+
+
+def test_affine_colours_on_a_grid_follows_a_map_that_varies_over_the_screen():
+    """A contrast that ramps from 0.5 to 1.5 across the screen: one map misses it by far more than
+    a map a cell of a 4 x 4 grid, blended between the cells."""
+    g = torch.Generator().manual_seed(2)
+    src = torch.rand(2, 3, 32, 32, generator=g)
+    gain = 0.5 + (torch.arange(32) + 0.5) / 32
+    dst = src * gain
+    one, grid = ((warp.affine_colours(src, dst, t) - dst).abs().mean().item() for t in (1, 4))
+    assert grid < one / 4, (one, grid)
+
+
+def test_anchored_takes_the_targets_low_pass_and_keeps_the_detail():
+    """A checkerboard (no energy below a Gaussian of 3 px: its low-pass is 0 to 1e-19 away from
+    the border, where the reflection breaks it) on 0.5, anchored with mix 1 to a flat 0.3, is the
+    same checkerboard on 0.3; with mix 0.5, on 0.4."""
+    size, inner = 48, slice(14, -14)
+    checker = torch.from_numpy(((np.indices((size, size)).sum(0) % 2) * 2 - 1).astype(np.float32)) * 0.2
+    x = (0.5 + checker).expand(1, 3, size, size)
+    flat = torch.full((1, 3, size, size), 0.3)
+    for mix, level in ((1.0, 0.3), (0.5, 0.4)):
+        got = warp.anchored(x, flat, 3.0, mix)[..., inner, inner]
+        np.testing.assert_allclose(got.numpy(), (level + checker[inner, inner]).expand_as(got).numpy(), atol=1e-6)
+
+
+def test_prior_anchor_removes_a_flicker_the_renders_do_not_have():
+    """Frames that are an affine map of their renders plus a per-frame offset summing to 0 over
+    the sequence (the renders are one image rolled, so every frame has the same colour sums and
+    the offsets do not bias the fit): the anchor with mix 1 gives the mapped renders exactly, with
+    mix 0.5 half the offsets; the renders' own motion (the roll) is kept."""
+    from scipy.ndimage import gaussian_filter
+
+    size, n = 32, 4
+    base = gaussian_filter(np.random.default_rng(0).random((3, size, size)), (0, 2, 2), mode="wrap")
+    renders = torch.from_numpy(np.stack([np.roll(base, 3 * k, axis=2) for k in range(n)]).astype(np.float32))
+    mapped = 0.2 + 0.6 * renders.flip(1)  # a channel swap and a contrast change
+    offsets = torch.tensor([0.05, -0.03, 0.02, -0.04])[:, None, None, None]
+    frames = mapped + offsets
+    np.testing.assert_allclose(warp.prior_anchor(frames, renders, 3.0).numpy(), mapped.numpy(), atol=1e-5)
+    np.testing.assert_allclose(warp.prior_anchor(frames, renders, 3.0, 0.5).numpy(),
+                               (mapped + offsets / 2).numpy(), atol=1e-5)
+    with pytest.raises(ValueError, match="mix"):
+        warp.prior_anchor(frames, renders, 3.0, 0.0)
+
+
+def test_skyeyes_checks_vcm_anchor(tmp_path):
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    smoke = PRESETS["smoke"]
+    for bad in (dict(vcm_anchor=-1.0), dict(vcm_anchor=2.0, vcm_anchor_mix=0.0), dict(vcm_anchor=2.0, vcm_anchor_tiles=0),
+                dict(vcm=False, vcm_anchor=2.0), dict(vcm_anchor=2.0, condition="aerial")):
+        with pytest.raises(ValueError, match="vcm_anchor"):
+            Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, vcm_anchor=2.0, vcm_anchor_mix=0.5), tmp_path)

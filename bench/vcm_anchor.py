@@ -1,0 +1,176 @@
+"""The prior's render as the anchor of each frame's coarse part (issue 36), screened on a few test
+sequences from the stage cache, as bench/vcm_screen.py screens settings of the sampler.
+
+The 3D prior's renders hardly flicker (warp error 0.018 on SynthTown's first test scene, where
+the ground truth's is 0.013 and `skyeyes`' 0.061), so a frame's low frequencies taken from its
+render are as steady as the prior; what that costs in realism is what this measures. Every
+setting starts from the same frames: the `small` preset's ACM frame by frame (`clip_frames=1`),
+from its starting noise (carried along the renders' flow, `vcm_noise_flow`).
+
+    PYTHONPATH= .venv/bin/python bench/vcm_anchor.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
+        --workdir /tmp/vcm-screen after:3:0.7 after:3:0.7:map sampler:3:1:render:0:9
+
+A setting is WHERE:SIGMA:MIX[:TARGET[:FROM:TO]]:
+
+* after:SIGMA:MIX[:render|map|carried]: after sampling, each frame's Gaussian low-pass (std SIGMA
+  px) moves MIX of the way towards a target's: `render`, the prior's render's (default); `map`,
+  the same with the render's colours first mapped to the frames' by one affine fit a sequence
+  (`warp.prior_anchor`, what `vcm_anchor` does: the ACM's colour correction of the
+  prior kept); `carried`, the frame's residual
+  over its render carried on along the renders' optical flow (`warp.lowpass_transfer` of the
+  residual: the render's part of the low-pass stays the frame's own render's).
+* sampler:SIGMA:MIX:render|map:FROM:TO: inside the sampler, for DDIM steps FROM..TO-1, the low-pass
+  of the x0 estimate moves MIX of the way to the target's and the step goes on from it (Iterative
+  Latent Variable Refinement, Choi et al. 2021, on the x0 estimate); `map` fits the render's colours
+  to the x0 estimate of step FROM, pooled over the sequence's frames.
+
+Scored as bench/vcm_screen.py scores (`report`): the warp error against the frames as sampled with
+a 95% bootstrap over sequences, PSNR, LPIPS and the FID of these frames against their truth.
+--workdir's `work/` holds (or gets) the preset's stage cache, as vcm_screen's does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from reference.common.diffusion import core, warp
+from reference.common.diffusion import sample as S
+from reference.common.diffusion.pipeline import _guides, to_model
+from reference.common.priors import frame_key
+from reference.methods.skyeyes import Skyeyes
+from skyeyes_bench.data.layout import open_dataset
+
+sys.path.insert(0, str(Path(__file__).parent))
+from vcm_screen import features, metric_pairs, report, scored  # noqa: E402
+
+
+def sample_anchored(acm, cc: torch.Tensor, noise: torch.Tensor, steps: int, setting) -> torch.Tensor:
+    """The frames' model-space samples [N, C, h, w] by deterministic DDIM (`sample.ddim`'s steps),
+    the low-pass of the x0 estimate held to the render's (`setting`: sampler) for steps FROM..TO-1."""
+    _, sigma, mix, target, k0, k1 = setting
+    cfg = acm.cfg
+    sched = S._scheduler(cfg, steps)
+    ac = sched.alphas_cumprod
+    x = noise * sched.init_noise_sigma
+    render = F.pixel_shuffle(core._prior(cc, cfg), cfg.patch)  # the residual's prior, an image in [-1, 1]
+    goal = None
+    for k, t in enumerate(sched.timesteps):
+        with torch.no_grad():
+            v = acm(x, S._timesteps(t, x.shape[0], x.device), cc).float()
+        a = ac[t]
+        x0 = (a.sqrt() * x - (1 - a).sqrt() * v).clamp(-sched.config.clip_sample_range, sched.config.clip_sample_range)
+        eps = (x - a.sqrt() * x0) / (1 - a).sqrt()  # diffusers' DDIM recomputes it from the clipped x0
+        if k0 <= k < k1:
+            r = F.pixel_shuffle(x0, cfg.patch) / cfg.residual_scale  # the image's residual over the render
+            if goal is None:  # the residual the target asks for
+                goal = (warp.affine_colours(render, render + r) if target == "map" else render) - render
+            x0 = F.pixel_unshuffle(warp.anchored(r, goal, sigma, mix) * cfg.residual_scale, cfg.patch)
+        tp = int(t) - cfg.train_timesteps // steps
+        ap = ac[tp] if tp >= 0 else sched.final_alpha_cumprod
+        x = ap.sqrt() * x0 + (1 - ap).sqrt() * eps
+    return x
+
+
+def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
+    """Frames [N, 3, H, W] in [0, 1] anchored after sampling (`setting`: after)."""
+    _, sigma, mix, target = setting[:4]
+    if target == "carried":
+        coords = warp.flow_coords(renders.permute(0, 2, 3, 1).numpy())
+        moved = warp.lowpass_transfer((imgs - renders) / 2 + 0.5, coords, sigma, mix)
+        return (renders + 2 * (moved - 0.5)).clamp(0, 1)
+    if target.startswith("map"):  # what `vcm_anchor` does
+        return warp.prior_anchor(imgs, renders, sigma, mix, int(target[3:] or 1))
+    return warp.anchored(imgs, renders, sigma, mix).clamp(0, 1)
+
+
+def parse(text: str):
+    """WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (module doc) -> a tuple."""
+    parts = text.split(":")
+    if parts[0] == "none" and len(parts) == 1:
+        return ("none",)
+    try:
+        if parts[0] == "after" and len(parts) in (3, 4):
+            target = parts[3] if len(parts) == 4 else "render"
+            if target in ("render", "carried") or target.startswith("map") and target[3:] in ("", *"2345678"):
+                return "after", float(parts[1]), float(parts[2]), target
+        if parts[0] == "sampler" and len(parts) == 6 and parts[3] in ("render", "map"):
+            return "sampler", float(parts[1]), float(parts[2]), parts[3], int(parts[4]), int(parts[5])
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"setting {text!r}: expected after:SIGMA:MIX[:render|map|carried], "
+                                     "sampler:SIGMA:MIX:render|map:FROM:TO or none")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, type=Path)
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--scenes", type=int, default=1)
+    ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
+    ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a field of the preset for the frames every setting starts from, e.g. vcm_noise=0 "
+                         "(independent noise: `skyeyes-no-vcm`'s frames); clip_frames=1 always")
+    ap.add_argument("settings", nargs="+", type=parse, help="WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (above)")
+    args = ap.parse_args(argv)
+    from skyeyes_bench import paths
+    from skyeyes_bench.metrics.inception import load_inception
+
+    ds = open_dataset(args.data.expanduser())
+    scenes = ds.split("test")[args.skip: args.skip + args.scenes]
+    seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
+    print(f"{len(seqs)} sequences; --set {' '.join(args.set) or '(none)'}; load average {os.getloadavg()[0]:.1f}",
+          flush=True)
+    config, _ = Skyeyes.configure(args.preset, [*args.set, "clip_frames=1"])
+    m = Skyeyes(config, args.workdir / "work", progress=False)
+    m.fit_train(ds)
+    m.fit_scenes(scenes, progress=False)
+    cfg, acm = m.config.core, m.guidance.sampling_model(m.acm)
+    net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")
+    gt_feats = features(net, np.concatenate([np.stack([f.image() for f in q.frames]) for _, q in seqs]))
+    settings = [("none",), *[s for s in args.settings if s != ("none",)]]
+    rows, frames_out, seconds = ({s: [] for s in settings} for _ in range(3))
+    for s_, q in seqs:
+        frames = list(q.frames)
+        if frames[0].height != cfg.resolution or frames[0].width != cfg.resolution:
+            raise SystemExit(f"{q.id}: frames of {frames[0].width}x{frames[0].height}, expected the model's "
+                             f"{cfg.resolution}x{cfg.resolution}")
+        priors = [m.scene_model(s_)[frame_key(s_, f)] for f in frames]
+        cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, m.device)
+        seed = m.seed * 1_000_003 + zlib.crc32(q.id.encode())  # the pipeline's (render_sequence)
+        noise = m._start_noise(S.sample_shape(tuple(cc.shape), acm.cfg), seed, priors)
+        renders = torch.from_numpy(_guides(priors, cfg.resolution, cfg.resolution)).permute(0, 3, 1, 2)
+        pairs = metric_pairs(frames)
+        t0 = time.perf_counter()
+        sampled = core.decode(core.from_diffused(m._generate(cc, seed, None, priors), cc, cfg), cfg)
+        base_s = time.perf_counter() - t0
+        for s in settings:
+            t0 = time.perf_counter()
+            if s[0] == "sampler":
+                z = sample_anchored(acm, cc, noise, config.sample_steps, s)
+                x = core.decode(core.from_diffused(z, cc, cfg), cfg)
+            else:
+                x = sampled if s[0] == "none" else after(sampled, renders, s)
+            seconds[s].append(time.perf_counter() - t0 + (base_s if s[0] != "sampler" else 0.0))
+            x = x.permute(0, 2, 3, 1).numpy()
+            rows[s].append(scored(x, frames, pairs))
+            frames_out[s].append(x)
+    for s in settings:
+        label = ":".join(str(v) for v in s)
+        print(report(label, np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
+                     features(net, np.concatenate(frames_out[s])), gt_feats) + f"; {sum(seconds[s]):.0f} s", flush=True)
+    print(f"load average after {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

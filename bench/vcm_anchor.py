@@ -47,10 +47,9 @@ from reference.common.diffusion import sample as S
 from reference.common.diffusion.pipeline import _guides, to_model
 from reference.common.priors import frame_key
 from reference.methods.skyeyes import Skyeyes
-from skyeyes_bench.data.layout import open_dataset
 
 sys.path.insert(0, str(Path(__file__).parent))
-from vcm_screen import features, metric_pairs, report, scored  # noqa: E402
+from vcm_screen import features, metric_pairs, report, scored, screen_parser, screened  # noqa: E402
 
 
 def sample_anchored(acm, cc: torch.Tensor, noise: torch.Tensor, steps: int, setting) -> torch.Tensor:
@@ -111,13 +110,7 @@ def parse(text: str):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, type=Path)
-    ap.add_argument("--preset", default="small")
-    ap.add_argument("--scenes", type=int, default=1)
-    ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
-    ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
+    ap = screen_parser(__doc__)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a field of the preset for the frames every setting starts from, e.g. vcm_noise=0 "
                          "(independent noise: `skyeyes-no-vcm`'s frames); clip_frames=1 always")
@@ -126,9 +119,7 @@ def main(argv=None) -> None:
     from skyeyes_bench import paths
     from skyeyes_bench.metrics.inception import load_inception
 
-    ds = open_dataset(args.data.expanduser())
-    scenes = ds.split("test")[args.skip: args.skip + args.scenes]
-    seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
+    ds, scenes, seqs = screened(args)
     print(f"{len(seqs)} sequences; --set {' '.join(args.set) or '(none)'}; load average {os.getloadavg()[0]:.1f}",
           flush=True)
     config, _ = Skyeyes.configure(args.preset, [*args.set, "clip_frames=1"])

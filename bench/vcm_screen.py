@@ -178,14 +178,29 @@ def moves(kind: str, m: Skyeyes, current: dict, tol: float):
     return coords
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def screen_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every screen of the stage cache takes: the dataset, the preset, which test
+    scenes and sequences, the work folder (`screened`)."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--preset", default="small")
     ap.add_argument("--scenes", type=int, default=1)
     ap.add_argument("--skip", type=int, default=0, help="start at this test scene")
     ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/vcm-screen"))
+    return ap
+
+
+def screened(args):
+    """(dataset, test scenes, [(scene, sequence)]) that `screen_parser`'s options choose."""
+    ds = open_dataset(args.data.expanduser())
+    scenes = ds.split("test")[args.skip: args.skip + args.scenes]
+    seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
+    return ds, scenes, seqs
+
+
+def main(argv=None) -> None:
+    ap = screen_parser(__doc__)
     ap.add_argument("--moves", choices=("flow", "rigid", "ground", "fused", "oracle", "oracle-where-flow",
                                                     "flow-where-oracle"), default="flow",
                     help="what carried noise and the low-pass transfer move frames by (above)")
@@ -199,9 +214,7 @@ def main(argv=None) -> None:
     from skyeyes_bench import paths
     from skyeyes_bench.metrics.inception import load_inception
 
-    ds = open_dataset(args.data.expanduser())
-    scenes = ds.split("test")[args.skip: args.skip + args.scenes]
-    seqs = [(s, q) for s in scenes for q in list(s.sequences.values())[: args.sequences or None]]
+    ds, scenes, seqs = screened(args)
     print(f"{len(seqs)} sequences; load average {os.getloadavg()[0]:.1f}", flush=True)
     pairs = {q.id: metric_pairs(list(q.frames)) for _, q in seqs}
     net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")

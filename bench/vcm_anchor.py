@@ -91,6 +91,26 @@ def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
     return warp.anchored(imgs, renders, sigma, mix).clamp(0, 1)
 
 
+def _write(args, ds, setting) -> None:
+    """--submission's frames of every test scene anchored by `setting` to the stage cache's
+    conditions (the prior's renders the submission's frames were generated from), into --write."""
+    from vcm_lowpass import write_transformed
+
+    config, _ = Skyeyes.configure(args.preset, args.set)
+    m = Skyeyes(config, args.workdir / "work", progress=False)
+    m.fit_train(ds)
+    m.fit_scenes(ds.split("test"), progress=False)
+
+    def anchor(scene, q, raw):
+        priors = [m.scene_model(scene)[frame_key(scene, f)] for f in q.frames]
+        renders = torch.from_numpy(_guides(priors, *raw.shape[1:3])).permute(0, 3, 1, 2)
+        return after(torch.from_numpy(raw).permute(0, 3, 1, 2), renders, setting).permute(0, 2, 3, 1).numpy()
+
+    label = ":".join(str(v) for v in setting)
+    write_transformed(args.submission, args.write, ds, "-anchor", {"vcm_anchor_bench": label,
+                      "transfer": f"bench/vcm_anchor.py --write {label}"}, anchor)
+
+
 def parse(text: str):
     """WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (module doc) -> a tuple."""
     parts = text.split(":")
@@ -114,12 +134,20 @@ def main(argv=None) -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a field of the preset for the frames every setting starts from, e.g. vcm_noise=0 "
                          "(independent noise: `skyeyes-no-vcm`'s frames); clip_frames=1 always")
+    ap.add_argument("--write", type=Path, default=None, metavar="DIR",
+                    help="with --submission and one `after` setting: that submission's frames of every test scene, "
+                         "anchored, as a submission here (score it with `skyeyes-bench evaluate DIR`)")
+    ap.add_argument("--submission", type=Path, default=None, help="--write: the frames to anchor (a `small` run's)")
     ap.add_argument("settings", nargs="+", type=parse, help="WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (above)")
     args = ap.parse_args(argv)
     from skyeyes_bench import paths
     from skyeyes_bench.metrics.inception import load_inception
 
     ds, scenes, seqs = screened(args)
+    if args.write is not None:
+        if args.submission is None or len(args.settings) != 1 or args.settings[0][0] != "after":
+            ap.error("--write takes --submission and one `after` setting")
+        return _write(args, ds, args.settings[0])
     print(f"{len(seqs)} sequences; --set {' '.join(args.set) or '(none)'}; load average {os.getloadavg()[0]:.1f}",
           flush=True)
     config, _ = Skyeyes.configure(args.preset, [*args.set, "clip_frames=1"])

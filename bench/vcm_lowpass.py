@@ -185,27 +185,36 @@ def _bands(ds, sub: Path, scenes: int, sigma: float) -> None:
         print(f"{name}: warp {row[0]:.4f}, low-pass (sigma {sigma:g} px) {row[1]:.4f}, the rest {row[2]:.4f}")
 
 
-def _write(args, ds, prior, setting) -> None:
-    """Every test scene's frames of --submission, transferred with `setting`, as a submission in --write."""
+def write_transformed(submission: Path, out: Path, ds, suffix: str, extra: dict, transform) -> None:
+    """Every test scene's frames of `submission`, each sequence's [N, H, W, 3] in [0, 1] through
+    `transform(scene, sequence, frames)` (the same shape), as a submission in `out`: its method
+    named with `suffix`, its config with `extra` (the setting and the command that made it)."""
     import json
 
     from skyeyes_bench.submission import SubmissionWriter
 
-    meta = json.loads((args.submission / "submission.json").read_text())
-    config = {**meta.get("config", {}), "vcm_lowpass": setting[0], "vcm_lowpass_mix": setting[1],
-              "transfer": f"bench/vcm_lowpass.py --depth {args.depth} --fb-px {args.fb_px}"}
-    with SubmissionWriter(args.write, dataset=ds, method=meta["method"] + "-lowpass",
-                          method_version=meta.get("method_version", ""), config=config, overwrite=True) as w:
+    meta = json.loads((submission / "submission.json").read_text())
+    with SubmissionWriter(out, dataset=ds, method=meta["method"] + suffix, method_version=meta.get("method_version", ""),
+                          config={**meta.get("config", {}), **extra}, overwrite=True) as w:
         for scene in ds.split("test"):
-            prior.fit_scene(scene)
             for q in scene.sequences.values():
                 frames = list(q.frames)
-                raw = np.stack([read_image(args.submission / scene.name / f.file) for f in frames])
-                out = _transfer(raw, _coords(q, scene, prior, raw, args.depth, args.fb_px), setting)
-                for f, img in zip(frames, out, strict=True):
+                raw = np.stack([read_image(submission / scene.name / f.file) for f in frames])
+                for f, img in zip(frames, transform(scene, q, raw), strict=True):
                     w.add(scene.name, f, img)
         w.finish(timings={})
-    print(f"wrote {args.write}")
+    print(f"wrote {out}")
+
+
+def _write(args, ds, prior, setting) -> None:
+    """Every test scene's frames of --submission, transferred with `setting`, as a submission in --write."""
+    def transfer(scene, q, raw):
+        prior.fit_scene(scene)  # resumed from its checkpoint
+        return _transfer(raw, _coords(q, scene, prior, raw, args.depth, args.fb_px), setting)
+
+    extra = {"vcm_lowpass": setting[0], "vcm_lowpass_mix": setting[1],
+             "transfer": f"bench/vcm_lowpass.py --depth {args.depth} --fb-px {args.fb_px}"}
+    write_transformed(args.submission, args.write, ds, "-lowpass", extra, transfer)
 
 
 if __name__ == "__main__":

@@ -247,7 +247,7 @@ class DiffusionMethod(Method):
 
             from .warp import prior_anchor
 
-            renders = torch.from_numpy(_guides(priors, *imgs.shape[-2:])).permute(0, 3, 1, 2)
+            renders = torch.as_tensor(_guides(priors, *imgs.shape[-2:]), device=imgs.device).permute(0, 3, 1, 2)
             imgs = prior_anchor(imgs, renders, self.config.vcm_anchor, self.config.vcm_anchor_mix,
                                 self.config.vcm_anchor_tiles)
         out = []

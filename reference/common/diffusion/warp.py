@@ -238,14 +238,16 @@ def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1) -> torc
     centres (constant beyond the outer ones), so the map varies smoothly over the screen and not
     at all in time."""
     n, _, h, w = src.shape
-    a = torch.cat([src.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64)], -1)
+    cpu = torch.device("cpu")
+    a = torch.cat([src.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64, device=cpu)], -1)
     b = dst.permute(0, 2, 3, 1).double().cpu()
     if tiles == 1:
         m = torch.linalg.lstsq(a.reshape(-1, 4), b.reshape(-1, 3)).solution
         return (a @ m).to(src.dtype).permute(0, 3, 1, 2)
-    cy, cx = (torch.arange(tiles, dtype=torch.float64) + 0.5) * h / tiles, (torch.arange(tiles, dtype=torch.float64) + 0.5) * w / tiles
-    out = torch.zeros(n, h, w, 3, dtype=torch.float64)
-    ys, xs = torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5
+    cells = torch.arange(tiles, dtype=torch.float64, device=cpu) + 0.5
+    cy, cx = cells * h / tiles, cells * w / tiles
+    out = torch.zeros(n, h, w, 3, dtype=torch.float64, device=cpu)
+    ys, xs = (torch.arange(k, dtype=torch.float64, device=cpu) + 0.5 for k in (h, w))
     wy = (1 - (ys[:, None] - cy[None]).abs() / (h / tiles)).clamp(min=0)  # [h, tiles] bilinear weights
     wx = (1 - (xs[:, None] - cx[None]).abs() / (w / tiles)).clamp(min=0)
     wy[ys < cy[0], 0], wy[ys > cy[-1], -1] = 1.0, 1.0  # constant beyond the outer centres
@@ -265,7 +267,8 @@ def anchored(x: torch.Tensor, target: torch.Tensor, sigma: float, mix: float = 1
     def low(a: torch.Tensor) -> np.ndarray:
         return np.stack([_blur(f, sigma) for f in a.detach().double().cpu().numpy()])
 
-    return (x.detach().cpu().double() + mix * torch.from_numpy(low(target) - low(x))).to(x.dtype)
+    x64 = x.detach().cpu().double()
+    return (x64 + mix * torch.as_tensor(low(target) - low(x), device=x64.device)).to(x.dtype)
 
 
 def prior_anchor(imgs: torch.Tensor, renders: torch.Tensor, sigma: float, mix: float = 1.0,

@@ -75,6 +75,7 @@ def _both(cls, cfg, tiny, tmp_path, monkeypatch, prior_cls=StandInPrior):
 
 @pytest.mark.parametrize("name,cls,cfg", [
     ("small-like", Skyeyes, SMALL_LIKE),
+    ("small-like-anchored", Skyeyes, dataclasses.replace(SMALL_LIKE, vcm_anchor=2.0, vcm_anchor_mix=0.5, vcm_anchor_tiles=2)),
     ("controlnet-branch", Skyeyes, CONTROLNET_LIKE),
     ("flow-sdedit", Skyeyes, FLOW_LIKE),
     ("controlnet-baseline", ControlNetBaseline,

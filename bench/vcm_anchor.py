@@ -35,7 +35,6 @@ import argparse
 import os
 import sys
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -166,7 +165,7 @@ def main(argv=None) -> None:
                              f"{cfg.resolution}x{cfg.resolution}")
         priors = [m.scene_model(s_)[frame_key(s_, f)] for f in frames]
         cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, m.device)
-        seed = m.seed * 1_000_003 + zlib.crc32(q.id.encode())  # the pipeline's (render_sequence)
+        seed = m.sequence_seed(q)  # render_sequence's
         noise = m._start_noise(S.sample_shape(tuple(cc.shape), acm.cfg), seed, priors)
         renders = torch.from_numpy(_guides(priors, cfg.resolution, cfg.resolution)).permute(0, 3, 1, 2)
         pairs = metric_pairs(frames)

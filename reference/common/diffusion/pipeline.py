@@ -232,8 +232,7 @@ class DiffusionMethod(Method):
         priors = [conds[frame_key(scene, f)] for f in sequence.frames]
         self.use_threads()
         cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, self.device)
-        # Seed per sequence from its id, so frames do not depend on rendering order.
-        seed = self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
+        seed = self.sequence_seed(sequence)
         warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
         x = core.from_diffused(self._generate(cc, seed, warp, priors), cc, cfg)
         imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
@@ -262,6 +261,11 @@ class DiffusionMethod(Method):
             write_figure(self.workdir / "figure.png", scene, sequence, priors, out, self.config.figure_frames,
                          condition=self.config.condition)
         yield from out
+
+    def sequence_seed(self, sequence: Sequence) -> int:
+        """The seed of a sequence's starting noise: from its id, so frames do not depend on
+        rendering order."""
+        return self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
 
     def _generate(self, conds, seed: int, warp, priors: list[np.ndarray]):
         """Model-space samples [N, C, h, w] for the conditions `conds` of a sequence's frames."""

@@ -241,9 +241,6 @@ def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1) -> torc
     cpu = torch.device("cpu")
     a = torch.cat([src.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64, device=cpu)], -1)
     b = dst.permute(0, 2, 3, 1).double().cpu()
-    if tiles == 1:
-        m = torch.linalg.lstsq(a.reshape(-1, 4), b.reshape(-1, 3)).solution
-        return (a @ m).to(src.dtype).permute(0, 3, 1, 2)
     cells = torch.arange(tiles, dtype=torch.float64, device=cpu) + 0.5
     cy, cx = cells * h / tiles, cells * w / tiles
     out = torch.zeros(n, h, w, 3, dtype=torch.float64, device=cpu)

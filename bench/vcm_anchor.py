@@ -19,14 +19,26 @@ A setting is WHERE:SIGMA:MIX[:TARGET[:FROM:TO]]:
   prior kept); `carried`, the frame's residual
   over its render carried on along the renders' optical flow (`warp.lowpass_transfer` of the
   residual: the render's part of the low-pass stays the frame's own render's).
-* sampler:SIGMA:MIX:render|map:FROM:TO: inside the sampler, for DDIM steps FROM..TO-1, the low-pass
+  `mapN`: the maps on an N x N grid of the screen (`vcm_anchor_tiles`); `mapNwK`: fitted for each
+  frame over the K frames either side of it only, so the map follows the street as it changes.
+  after:SIGMA:MIX:mapN:CHROMA moves the low-pass's luma (Rec. 601) by MIX and the rest, its
+  chroma, by CHROMA.
+* Settings joined by `+` are applied one after the other (e.g. after:3:0.5:map4+after:6:0.8:map4).
+* sampler:SIGMA:MIX:render|map[N]:FROM:TO: inside the sampler, for DDIM steps FROM..TO-1, the low-pass
   of the x0 estimate moves MIX of the way to the target's and the step goes on from it (Iterative
   Latent Variable Refinement, Choi et al. 2021, on the x0 estimate); `map` fits the render's colours
-  to the x0 estimate of step FROM, pooled over the sequence's frames.
+  to the x0 estimate of step FROM, pooled over the sequence's frames (`mapN`: on an N x N grid).
 
 Scored as bench/vcm_screen.py scores (`report`): the warp error against the frames as sampled with
 a 95% bootstrap over sequences, PSNR, LPIPS and the FID of these frames against their truth.
 --workdir's `work/` holds (or gets) the preset's stage cache, as vcm_screen's does.
+
+With --submission SUB (and no --write), the `after` settings are screened on SUB's frames (a
+`small` run's, read as 8-bit PNGs, and each setting's frames rounded to 8 bits as a submission
+holds them) instead of frames sampled here: on all 8 test scenes (--scenes 8) the point values
+are `evaluate`'s (the warp error, PSNR, LPIPS, FID over the 2048 frames), in about 4 minutes a
+setting on this machine where `--write` and `evaluate` take 15; `compare`'s intervals still
+need `evaluate`.
 """
 
 from __future__ import annotations
@@ -70,7 +82,8 @@ def sample_anchored(acm, cc: torch.Tensor, noise: torch.Tensor, steps: int, sett
         if k0 <= k < k1:
             r = F.pixel_shuffle(x0, cfg.patch) / cfg.residual_scale  # the image's residual over the render
             if goal is None:  # the residual the target asks for
-                goal = (warp.affine_colours(render, render + r) if target == "map" else render) - render
+                goal = (warp.affine_colours(render, render + r, int(target[3:] or 1)) if target.startswith("map")
+                        else render) - render
             x0 = F.pixel_unshuffle(warp.anchored(r, goal, sigma, mix) * cfg.residual_scale, cfg.patch)
         tp = int(t) - cfg.train_timesteps // steps
         ap = ac[tp] if tp >= 0 else sched.final_alpha_cumprod
@@ -78,16 +91,57 @@ def sample_anchored(acm, cc: torch.Tensor, noise: torch.Tensor, steps: int, sett
     return x
 
 
+#: Rec. 601 luma weights: `after:...:CHROMA` moves the low-pass's luma and chroma apart.
+LUMA = torch.tensor([0.299, 0.587, 0.114])
+
+
+def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str) -> torch.Tensor:
+    """`target` mapN[wK]: the renders' colours mapped to the frames' (`warp.affine_colours` on an
+    N x N grid), over the whole sequence or, with wK, for each frame over the K frames either side."""
+    tiles, _, k = target[3:].partition("w")
+    tiles = int(tiles or 1)
+    if not k:
+        return warp.affine_colours(renders, imgs, tiles)
+    k = int(k)
+    return torch.stack([warp.affine_colours(renders[max(0, t - k): t + k + 1], imgs[max(0, t - k): t + k + 1],
+                                            tiles)[min(t, k)] for t in range(len(imgs))])
+
+
 def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
-    """Frames [N, 3, H, W] in [0, 1] anchored after sampling (`setting`: after)."""
+    """Frames [N, 3, H, W] in [0, 1] anchored after sampling (`setting`: after, or a chain of them)."""
+    if setting[0] == "chain":
+        for s in setting[1:]:
+            imgs = after(imgs, renders, s)
+        return imgs
     _, sigma, mix, target = setting[:4]
+    chroma = setting[4] if len(setting) > 4 else mix
     if target == "carried":
         coords = warp.flow_coords(renders.permute(0, 2, 3, 1).numpy())
         moved = warp.lowpass_transfer((imgs - renders) / 2 + 0.5, coords, sigma, mix)
         return (renders + 2 * (moved - 0.5)).clamp(0, 1)
-    if target.startswith("map"):  # what `vcm_anchor` does
+    if target.startswith("map") and "w" not in target and chroma == mix:  # what `vcm_anchor` does
         return warp.prior_anchor(imgs, renders, sigma, mix, int(target[3:] or 1))
-    return warp.anchored(imgs, renders, sigma, mix).clamp(0, 1)
+    goal = mapped(imgs, renders, target) if target.startswith("map") else renders
+    if chroma == mix:
+        return warp.anchored(imgs, goal, sigma, mix).clamp(0, 1)
+    move = warp.anchored(imgs, goal, sigma, 1.0) - imgs  # the whole way, low-pass only
+    luma = (move * LUMA.to(move)[None, :, None, None]).sum(1, keepdim=True)  # a grey shift of that luma
+    return (imgs + mix * luma + chroma * (move - luma)).clamp(0, 1)
+
+
+def _renders(args, ds, scenes):
+    """(scene, sequence, h, w) -> the stage cache's conditions of the sequence's frames (the
+    prior's renders a `small` run's frames were generated from), [N, 3, h, w] in [0, 1]."""
+    config, _ = Skyeyes.configure(args.preset, args.set)
+    m = Skyeyes(config, args.workdir / "work", progress=False)
+    m.fit_train(ds)
+    m.fit_scenes(scenes, progress=False)
+
+    def of(scene, q, h: int, w: int) -> torch.Tensor:
+        priors = [m.scene_model(scene)[frame_key(scene, f)] for f in q.frames]
+        return torch.from_numpy(_guides(priors, h, w)).permute(0, 3, 1, 2)
+
+    return of
 
 
 def _write(args, ds, setting) -> None:
@@ -95,37 +149,77 @@ def _write(args, ds, setting) -> None:
     conditions (the prior's renders the submission's frames were generated from), into --write."""
     from vcm_lowpass import write_transformed
 
-    config, _ = Skyeyes.configure(args.preset, args.set)
-    m = Skyeyes(config, args.workdir / "work", progress=False)
-    m.fit_train(ds)
-    m.fit_scenes(ds.split("test"), progress=False)
+    renders_of = _renders(args, ds, ds.split("test"))
 
     def anchor(scene, q, raw):
-        priors = [m.scene_model(scene)[frame_key(scene, f)] for f in q.frames]
-        renders = torch.from_numpy(_guides(priors, *raw.shape[1:3])).permute(0, 3, 1, 2)
+        renders = renders_of(scene, q, *raw.shape[1:3])
         return after(torch.from_numpy(raw).permute(0, 3, 1, 2), renders, setting).permute(0, 2, 3, 1).numpy()
 
-    label = ":".join(str(v) for v in setting)
+    label = _label(setting)
     write_transformed(args.submission, args.write, ds, "-anchor", {"vcm_anchor_bench": label,
                       "transfer": f"bench/vcm_anchor.py --write {label}"}, anchor)
 
 
+def _screen_submission(args, ds, scenes, seqs, settings, net, gt_feats) -> None:
+    """The `after` settings on --submission's frames (module doc): one `report` line each."""
+    from skyeyes_bench.imagefiles import read_image
+
+    renders_of = _renders(args, ds, scenes)
+    rows, feats, seconds = ({s: [] for s in settings} for _ in range(3))
+    for s_, q in seqs:
+        frames = list(q.frames)
+        raw = torch.from_numpy(np.stack([read_image(args.submission / s_.name / f.file) for f in frames]))
+        raw = raw.permute(0, 3, 1, 2).float()
+        renders = renders_of(s_, q, *raw.shape[2:])
+        pairs = metric_pairs(frames)
+        for s in settings:
+            t0 = time.perf_counter()
+            x = raw if s[0] == "none" else after(raw, renders, s)
+            seconds[s].append(time.perf_counter() - t0)
+            x = ((x.permute(0, 2, 3, 1).numpy() * 255).round() / 255).astype(np.float32)  # as a submission holds it
+            rows[s].append(scored(x, frames, pairs))
+            feats[s].append(features(net, x))
+    for s in settings:
+        print(report(_label(s), np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
+                     np.concatenate(feats[s]), gt_feats) + f"; {sum(seconds[s]):.0f} s", flush=True)
+
+
+def _label(setting) -> str:
+    """A parsed setting written back as its text."""
+    if setting[0] == "chain":
+        return "+".join(_label(s) for s in setting[1:])
+    return ":".join(str(v) for v in setting)
+
+
+def _is_map(target: str) -> bool:
+    """map, mapN (N 2-8), mapNwK (K >= 1)."""
+    tiles, w, k = target[3:].partition("w")
+    return target[:3] == "map" and tiles in ("", *"2345678") and (not w or k.isdigit() and int(k) >= 1)
+
+
 def parse(text: str):
-    """WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (module doc) -> a tuple."""
+    """WHERE:SIGMA:MIX[:TARGET[:FROM:TO]], or `after` settings joined by + (module doc) -> a tuple."""
+    if "+" in text:
+        chain = [parse(t) for t in text.split("+")]
+        if all(c[0] == "after" for c in chain):
+            return ("chain", *chain)
     parts = text.split(":")
     if parts[0] == "none" and len(parts) == 1:
         return ("none",)
     try:
         if parts[0] == "after" and len(parts) in (3, 4):
             target = parts[3] if len(parts) == 4 else "render"
-            if target in ("render", "carried") or target.startswith("map") and target[3:] in ("", *"2345678"):
+            if target in ("render", "carried") or _is_map(target):
                 return "after", float(parts[1]), float(parts[2]), target
-        if parts[0] == "sampler" and len(parts) == 6 and parts[3] in ("render", "map"):
+        if parts[0] == "after" and len(parts) == 5 and _is_map(parts[3]):
+            return "after", float(parts[1]), float(parts[2]), parts[3], float(parts[4])
+        if parts[0] == "sampler" and len(parts) == 6 and (parts[3] == "render" or parts[3][:3] == "map" and
+                                                          parts[3][3:] in ("", *"2345678")):
             return "sampler", float(parts[1]), float(parts[2]), parts[3], int(parts[4]), int(parts[5])
     except ValueError:
         pass
-    raise argparse.ArgumentTypeError(f"setting {text!r}: expected after:SIGMA:MIX[:render|map|carried], "
-                                     "sampler:SIGMA:MIX:render|map:FROM:TO or none")
+    raise argparse.ArgumentTypeError(f"setting {text!r}: expected after:SIGMA:MIX[:render|mapN[wK][:CHROMA]|carried] "
+                                     "(joined by + for a chain), sampler:SIGMA:MIX:render|map[N]:FROM:TO or none")
 
 
 def main(argv=None) -> None:
@@ -136,7 +230,9 @@ def main(argv=None) -> None:
     ap.add_argument("--write", type=Path, default=None, metavar="DIR",
                     help="with --submission and one `after` setting: that submission's frames of every test scene, "
                          "anchored, as a submission here (score it with `skyeyes-bench evaluate DIR`)")
-    ap.add_argument("--submission", type=Path, default=None, help="--write: the frames to anchor (a `small` run's)")
+    ap.add_argument("--submission", type=Path, default=None,
+                    help="the frames to anchor (a `small` run's): with --write, written anchored; without, the `after` "
+                         "settings screened on them (above)")
     ap.add_argument("settings", nargs="+", type=parse, help="WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (above)")
     args = ap.parse_args(argv)
     from skyeyes_bench import paths
@@ -144,19 +240,23 @@ def main(argv=None) -> None:
 
     ds, scenes, seqs = screened(args)
     if args.write is not None:
-        if args.submission is None or len(args.settings) != 1 or args.settings[0][0] != "after":
-            ap.error("--write takes --submission and one `after` setting")
+        if args.submission is None or len(args.settings) != 1 or args.settings[0][0] not in ("after", "chain"):
+            ap.error("--write takes --submission and one `after` setting (or a chain of them)")
         return _write(args, ds, args.settings[0])
+    if args.submission is not None and any(s[0] == "sampler" for s in args.settings):
+        ap.error("--submission screens `after` settings: a `sampler` setting samples frames of its own")
     print(f"{len(seqs)} sequences; --set {' '.join(args.set) or '(none)'}; load average {os.getloadavg()[0]:.1f}",
           flush=True)
+    net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")
+    gt_feats = features(net, np.concatenate([np.stack([f.image() for f in q.frames]) for _, q in seqs]))
+    settings = [("none",), *[s for s in args.settings if s != ("none",)]]
+    if args.submission is not None:
+        return _screen_submission(args, ds, scenes, seqs, settings, net, gt_feats)
     config, _ = Skyeyes.configure(args.preset, [*args.set, "clip_frames=1"])
     m = Skyeyes(config, args.workdir / "work", progress=False)
     m.fit_train(ds)
     m.fit_scenes(scenes, progress=False)
     cfg, acm = m.config.core, m.guidance.sampling_model(m.acm)
-    net = load_inception(paths.cache_dir() / "weights" / "inception-2015-12-05-fid-helper-default_1.pt")
-    gt_feats = features(net, np.concatenate([np.stack([f.image() for f in q.frames]) for _, q in seqs]))
-    settings = [("none",), *[s for s in args.settings if s != ("none",)]]
     rows, frames_out, seconds = ({s: [] for s in settings} for _ in range(3))
     for s_, q in seqs:
         frames = list(q.frames)
@@ -184,8 +284,7 @@ def main(argv=None) -> None:
             rows[s].append(scored(x, frames, pairs))
             frames_out[s].append(x)
     for s in settings:
-        label = ":".join(str(v) for v in s)
-        print(report(label, np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
+        print(report(_label(s), np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
                      features(net, np.concatenate(frames_out[s])), gt_feats) + f"; {sum(seconds[s]):.0f} s", flush=True)
     print(f"load average after {os.getloadavg()[0]:.1f}")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import pytest
 import torch
 from builders.bench_scripts import load_bench
@@ -36,3 +37,54 @@ def test_after_map_is_the_pipelines_anchor(va):
                                warp.prior_anchor(imgs, renders, 2.0, 0.7, 2))
     assert not torch.equal(va.after(imgs, renders, va.parse("after:2:0.7:map2")),
                            va.after(imgs, renders, va.parse("after:2:0.7:map")))
+
+
+def test_luma_chroma_chain_and_window_settings_parse(va):
+    assert va.parse("after:3:0.5:map4:0") == ("after", 3.0, 0.5, "map4", 0.0)
+    assert va.parse("after:3:0.7:map4w4") == ("after", 3.0, 0.7, "map4w4")
+    assert va.parse("after:3:0.5:map4+after:6:0.8:map4") == ("chain", ("after", 3.0, 0.5, "map4"),
+                                                             ("after", 6.0, 0.8, "map4"))
+    for bad in ("after:3:0.5:render:0", "after:3:0.5:carried:0", "after:3:0.5:map4w0", "after:3:0.5:map4wx",
+                "after:3:0.5:map4:0:1", "after:3:0.5:map4+sampler:3:1:map:2:9", "after:3:0.5:map9"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected"):
+            va.parse(bad)
+
+
+def _pair(n: int = 3):
+    g = torch.Generator().manual_seed(1)
+    imgs = 0.3 + 0.4 * torch.rand(n, 3, 24, 24, generator=g)  # inside [0, 1] with room: no clamping below
+    return imgs, torch.rand(n, 3, 24, 24, generator=g)
+
+
+def test_luma_only_moves_each_pixel_by_a_grey_of_mix_times_the_lowpass_luma(va):
+    """CHROMA 0: what is added to a pixel is grey (its chroma stays), and that grey is MIX times
+    the luma (Rec. 601) of the low-pass's whole move to the target (scipy's Gaussian, reflected)."""
+    from scipy.ndimage import gaussian_filter
+
+    imgs, renders = _pair()
+    out = va.after(imgs, renders, va.parse("after:2:0.6:map2:0"))
+    add = (out - imgs).double()
+    torch.testing.assert_close(add[:, 0], add[:, 1], atol=1e-6, rtol=0)
+    torch.testing.assert_close(add[:, 0], add[:, 2], atol=1e-6, rtol=0)
+    move = gaussian_filter((warp.affine_colours(renders, imgs, 2) - imgs).double().numpy(), (0, 0, 2, 2), mode="reflect")
+    luma = np.tensordot([0.299, 0.587, 0.114], move, axes=([0], [1]))  # [N, H, W]
+    np.testing.assert_allclose(add[:, 0].numpy(), 0.6 * luma, atol=1e-6)
+    assert np.abs(luma).max() > 0.01  # the target is far enough for the check to mean something
+
+
+def test_chroma_only_leaves_the_luma(va):
+    imgs, renders = _pair()
+    out = va.after(imgs, renders, va.parse("after:2:0:map2:0.8"))
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)[None, :, None, None]
+    added = (out - imgs).double()
+    assert float(((added * w).sum(1)).abs().max()) < 1e-6
+    assert float(added.abs().max()) > 0.01
+
+
+def test_a_window_wider_than_the_sequence_is_the_sequence_map_and_a_chain_is_its_steps_in_turn(va):
+    imgs, renders = _pair(4)
+    torch.testing.assert_close(va.mapped(imgs, renders, "map2w9"), warp.affine_colours(renders, imgs, 2))
+    assert not torch.allclose(va.mapped(imgs, renders, "map2w1"), warp.affine_colours(renders, imgs, 2))
+    one = va.after(imgs, renders, va.parse("after:2:0.5:map2"))
+    torch.testing.assert_close(va.after(imgs, renders, va.parse("after:2:0.5:map2+after:4:0.8:map")),
+                               va.after(one, renders, va.parse("after:4:0.8:map")))

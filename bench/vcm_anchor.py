@@ -23,6 +23,11 @@ A setting is WHERE:SIGMA:MIX[:TARGET[:FROM:TO]]:
   frame over the K frames either side of it only, so the map follows the street as it changes.
   after:SIGMA:MIX:mapN:CHROMA moves the low-pass's luma (Rec. 601) by MIX and the rest, its
   chroma, by CHROMA.
+* time:SIGMA:TAU: after sampling, the low-pass's residual over the render (colours mapped on a
+  4x4 grid) smoothed over time on the screen (a Gaussian of std TAU frames), with no target.
+* flow:SIGMA:W:mean|median: after sampling, each frame's detail (what its Gaussian low-pass leaves)
+  averaged with its two neighbours' (weight W each) or replaced by the median of the three, the
+  neighbours' moved along the renders' optical flow where its forward-backward check holds.
 * Settings joined by `+` are applied one after the other (e.g. after:3:0.5:map4+after:6:0.8:map4).
 * sampler:SIGMA:MIX:render|map[N]:FROM:TO: inside the sampler, for DDIM steps FROM..TO-1, the low-pass
   of the x0 estimate moves MIX of the way to the target's and the step goes on from it (Iterative
@@ -107,12 +112,53 @@ def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str) -> torch.Tens
                                             tiles)[min(t, k)] for t in range(len(imgs))])
 
 
+def _low(a: torch.Tensor, sigma: float) -> np.ndarray:
+    """[N, C, H, W] -> its Gaussian low-pass over H and W (reflected at the border), float64."""
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(a.double().numpy(), (0, 0, sigma, sigma), mode="reflect")
+
+
+def in_time(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
+    """Frames [N, 3, H, W] in [0, 1] smoothed over time after sampling (`setting`: time, flow)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    x = imgs.double().numpy()
+    if setting[0] == "time":
+        _, sigma, tau = setting
+        d = _low(imgs, sigma) - _low(mapped(imgs, renders, "map4"), sigma)
+        return torch.from_numpy(x + gaussian_filter1d(d, tau, axis=0, mode="nearest") - d).clamp(0, 1).to(imgs.dtype)
+    _, sigma, w, how = setting
+    g = renders.permute(0, 2, 3, 1).numpy()
+    back, ahead = warp.flow_coords(g), warp.flow_coords(g[::-1].copy())  # frame j - 1 (j + 1) seen from j
+    detail, n = x - _low(imgs, sigma), len(x)
+    out = x.copy()
+    for j in range(n):
+        near = []
+        for k, coords, i in ((j - 1, back, j), (j + 1, ahead, n - 1 - j)):
+            if 0 <= k < n:
+                uv, ok = coords(i)
+                near.append((warp.warp_image(torch.from_numpy(detail[k]), uv, ok).numpy(), ok))
+        if how == "median":
+            if len(near) == 2:
+                out[j] += np.median([detail[j], *[np.where(ok[None], d, detail[j]) for d, ok in near]], 0) - detail[j]
+        else:
+            total, weight = detail[j].copy(), np.ones(x.shape[2:])
+            for d, ok in near:
+                total, weight = total + w * d, weight + w * ok
+            out[j] += total / weight - detail[j]
+    return torch.from_numpy(out).clamp(0, 1).to(imgs.dtype)
+
+
 def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
-    """Frames [N, 3, H, W] in [0, 1] anchored after sampling (`setting`: after, or a chain of them)."""
+    """Frames [N, 3, H, W] in [0, 1] anchored after sampling (`setting`: after, time, flow, or a
+    chain of them)."""
     if setting[0] == "chain":
         for s in setting[1:]:
             imgs = after(imgs, renders, s)
         return imgs
+    if setting[0] in ("time", "flow"):
+        return in_time(imgs, renders, setting)
     _, sigma, mix, target = setting[:4]
     chroma = setting[4] if len(setting) > 4 else mix
     if target == "carried":
@@ -191,6 +237,10 @@ def _label(setting) -> str:
     return ":".join(str(v) for v in setting)
 
 
+#: The settings applied to finished frames, which --write and --submission take.
+AFTER = ("after", "time", "flow", "chain")
+
+
 def _is_map(target: str) -> bool:
     """map, mapN (N 2-8), mapNwK (K >= 1)."""
     tiles, w, k = target[3:].partition("w")
@@ -201,7 +251,7 @@ def parse(text: str):
     """WHERE:SIGMA:MIX[:TARGET[:FROM:TO]], or `after` settings joined by + (module doc) -> a tuple."""
     if "+" in text:
         chain = [parse(t) for t in text.split("+")]
-        if all(c[0] == "after" for c in chain):
+        if all(c[0] in AFTER for c in chain):
             return ("chain", *chain)
     parts = text.split(":")
     if parts[0] == "none" and len(parts) == 1:
@@ -213,13 +263,18 @@ def parse(text: str):
                 return "after", float(parts[1]), float(parts[2]), target
         if parts[0] == "after" and len(parts) == 5 and _is_map(parts[3]):
             return "after", float(parts[1]), float(parts[2]), parts[3], float(parts[4])
+        if parts[0] == "time" and len(parts) == 3:
+            return "time", float(parts[1]), float(parts[2])
+        if parts[0] == "flow" and len(parts) == 4 and parts[3] in ("mean", "median"):
+            return "flow", float(parts[1]), float(parts[2]), parts[3]
         if parts[0] == "sampler" and len(parts) == 6 and (parts[3] == "render" or parts[3][:3] == "map" and
                                                           parts[3][3:] in ("", *"2345678")):
             return "sampler", float(parts[1]), float(parts[2]), parts[3], int(parts[4]), int(parts[5])
     except ValueError:
         pass
     raise argparse.ArgumentTypeError(f"setting {text!r}: expected after:SIGMA:MIX[:render|mapN[wK][:CHROMA]|carried] "
-                                     "(joined by + for a chain), sampler:SIGMA:MIX:render|map[N]:FROM:TO or none")
+                                     "time:SIGMA:TAU, flow:SIGMA:W:mean|median (joined by + for a chain), sampler:SIGMA:MIX:render|map[N]:FROM:TO "
+                                     "or none")
 
 
 def main(argv=None) -> None:
@@ -240,7 +295,7 @@ def main(argv=None) -> None:
 
     ds, scenes, seqs = screened(args)
     if args.write is not None:
-        if args.submission is None or len(args.settings) != 1 or args.settings[0][0] not in ("after", "chain"):
+        if args.submission is None or len(args.settings) != 1 or args.settings[0][0] not in AFTER:
             ap.error("--write takes --submission and one `after` setting (or a chain of them)")
         return _write(args, ds, args.settings[0])
     if args.submission is not None and any(s[0] == "sampler" for s in args.settings):

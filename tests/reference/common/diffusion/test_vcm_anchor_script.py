@@ -88,3 +88,48 @@ def test_a_window_wider_than_the_sequence_is_the_sequence_map_and_a_chain_is_its
     one = va.after(imgs, renders, va.parse("after:2:0.5:map2"))
     torch.testing.assert_close(va.after(imgs, renders, va.parse("after:2:0.5:map2+after:4:0.8:map")),
                                va.after(one, renders, va.parse("after:4:0.8:map")))
+
+
+def _static_scene(n: int, size: int = 48):
+    """A still camera: every render the same texture; frames its grey-scaled copy plus a detail
+    pattern D that flips sign each frame, and a uniform offset that does the same."""
+    g = torch.Generator().manual_seed(2)
+    render = torch.rand(1, 3, size, size, generator=g).repeat(n, 1, 1, 1)
+    flip = torch.tensor([(-1.0) ** t for t in range(n)])[:, None, None, None]
+    detail = 0.05 * torch.sign(torch.randn(1, 3, size, size, generator=g))
+    return render, flip, detail
+
+
+def test_time_smooths_a_flickering_residual_as_a_gaussian_in_time_does(va):
+    """The residual over the (static) render alternates by +-c each frame: `time` leaves each
+    frame's offset the Gaussian in time of that alternation (scipy, the ends held)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    n = 8
+    render, flip, _ = _static_scene(n)
+    imgs = (0.2 + 0.5 * render + 0.05 * flip).float()
+    out = va.after(imgs, render, va.parse("time:3:1.5"))
+    want = gaussian_filter1d(0.05 * flip.flatten().numpy(), 1.5, mode="nearest")  # [n]
+    got = (out - (0.2 + 0.5 * render)).mean(dim=(1, 2, 3)).numpy()
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    assert np.abs(want).max() < 0.6 * 0.05  # the check is a real reduction
+
+
+def test_flow_mean_and_median_of_a_detail_that_flips_sign(va):
+    """A still camera (zero flow): frames = a still base B plus a detail that flips sign, +-D. With
+    h = D minus its 1-px low-pass, an interior frame's detail h_B + h, whose neighbours hold
+    h_B - h, becomes h_B + (h - 2 h) / 3 under `flow:1:1:mean`, so the frame moves by -4 h / 3, and
+    h_B - h (the median) under `median`, a move of -2 h; the first and last frames average with
+    their one neighbour to h_B (a move of -h), or keep theirs (none)."""
+    n = 5
+    render, flip, detail = _static_scene(n)
+    imgs = (0.3 + 0.4 * render).float() + flip * detail
+    d = flip * detail
+    h = d.double() - torch.from_numpy(va._low(d, 1.0))
+    mean = va.after(imgs, render, va.parse("flow:1:1:mean")).double() - imgs.double()
+    med = va.after(imgs, render, va.parse("flow:1:1:median")).double() - imgs.double()
+    torch.testing.assert_close(mean[1:-1], -4 * h[1:-1] / 3, atol=1e-4, rtol=0)
+    torch.testing.assert_close(mean[[0, -1]], -h[[0, -1]], atol=1e-4, rtol=0)
+    torch.testing.assert_close(med[1:-1], -2 * h[1:-1], atol=1e-4, rtol=0)
+    torch.testing.assert_close(med[[0, -1]], torch.zeros_like(med[[0, -1]]), atol=1e-4, rtol=0)
+    assert float(h.abs().max()) > 0.03

@@ -113,10 +113,8 @@ def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str) -> torch.Tens
 
 
 def _low(a: torch.Tensor, sigma: float) -> np.ndarray:
-    """[N, C, H, W] -> its Gaussian low-pass over H and W (reflected at the border), float64."""
-    from scipy.ndimage import gaussian_filter
-
-    return gaussian_filter(a.double().numpy(), (0, 0, sigma, sigma), mode="reflect")
+    """[N, C, H, W] -> its Gaussian low-pass over H and W (`warp`'s, reflected at the border), float64."""
+    return np.stack([warp._blur(f, sigma) for f in a.double().numpy()])
 
 
 def in_time(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
@@ -208,14 +206,13 @@ def _write(args, ds, setting) -> None:
 
 def _screen_submission(args, ds, scenes, seqs, settings, net, gt_feats) -> None:
     """The `after` settings on --submission's frames (module doc): one `report` line each."""
-    from skyeyes_bench.imagefiles import read_image
+    from vcm_lowpass import submission_frames
 
     renders_of = _renders(args, ds, scenes)
     rows, feats, seconds = ({s: [] for s in settings} for _ in range(3))
     for s_, q in seqs:
         frames = list(q.frames)
-        raw = torch.from_numpy(np.stack([read_image(args.submission / s_.name / f.file) for f in frames]))
-        raw = raw.permute(0, 3, 1, 2).float()
+        raw = torch.from_numpy(submission_frames(args.submission, s_, frames)).permute(0, 3, 1, 2).float()
         renders = renders_of(s_, q, *raw.shape[2:])
         pairs = metric_pairs(frames)
         for s in settings:
@@ -225,6 +222,11 @@ def _screen_submission(args, ds, scenes, seqs, settings, net, gt_feats) -> None:
             x = ((x.permute(0, 2, 3, 1).numpy() * 255).round() / 255).astype(np.float32)  # as a submission holds it
             rows[s].append(scored(x, frames, pairs))
             feats[s].append(features(net, x))
+    _reports(settings, rows, feats, seconds, gt_feats)
+
+
+def _reports(settings, rows: dict, feats: dict, seconds: dict, gt_feats: np.ndarray) -> None:
+    """One `report` line a setting, paired against the first ("none"), with its seconds."""
     for s in settings:
         print(report(_label(s), np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
                      np.concatenate(feats[s]), gt_feats) + f"; {sum(seconds[s]):.0f} s", flush=True)
@@ -267,8 +269,8 @@ def parse(text: str):
             return "time", float(parts[1]), float(parts[2])
         if parts[0] == "flow" and len(parts) == 4 and parts[3] in ("mean", "median"):
             return "flow", float(parts[1]), float(parts[2]), parts[3]
-        if parts[0] == "sampler" and len(parts) == 6 and (parts[3] == "render" or parts[3][:3] == "map" and
-                                                          parts[3][3:] in ("", *"2345678")):
+        if parts[0] == "sampler" and len(parts) == 6 and (parts[3] == "render" or _is_map(parts[3]) and
+                                                          "w" not in parts[3]):
             return "sampler", float(parts[1]), float(parts[2]), parts[3], int(parts[4]), int(parts[5])
     except ValueError:
         pass
@@ -312,7 +314,7 @@ def main(argv=None) -> None:
     m.fit_train(ds)
     m.fit_scenes(scenes, progress=False)
     cfg, acm = m.config.core, m.guidance.sampling_model(m.acm)
-    rows, frames_out, seconds = ({s: [] for s in settings} for _ in range(3))
+    rows, feats, seconds = ({s: [] for s in settings} for _ in range(3))
     for s_, q in seqs:
         frames = list(q.frames)
         if frames[0].height != cfg.resolution or frames[0].width != cfg.resolution:
@@ -337,10 +339,8 @@ def main(argv=None) -> None:
             seconds[s].append(time.perf_counter() - t0 + (base_s if s[0] != "sampler" else 0.0))
             x = x.permute(0, 2, 3, 1).numpy()
             rows[s].append(scored(x, frames, pairs))
-            frames_out[s].append(x)
-    for s in settings:
-        print(report(_label(s), np.array(rows[s]), None if s == ("none",) else np.array(rows[("none",)]),
-                     features(net, np.concatenate(frames_out[s])), gt_feats) + f"; {sum(seconds[s]):.0f} s", flush=True)
+            feats[s].append(features(net, x))
+    _reports(settings, rows, feats, seconds, gt_feats)
     print(f"load average after {os.getloadavg()[0]:.1f}")
 
 

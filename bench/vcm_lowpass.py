@@ -90,10 +90,15 @@ def _transfer(raw: np.ndarray, coords, setting) -> np.ndarray:
     return out.permute(0, 2, 3, 1).numpy()
 
 
+def submission_frames(sub: Path, scene, frames) -> np.ndarray:
+    """A submission's frames of `scene` [N, H, W, 3] in [0, 1], in the order of `frames`."""
+    return np.stack([read_image(sub / scene.name / f.file) for f in frames])
+
+
 def _sequence(seq, sub: Path, scene, prior, settings, source: str, fb_px: float) -> dict:
     """Per setting (None: untouched): (warp error sum, valid pixels, PSNR list, LPIPS list, detail, gt detail)."""
     frames = list(seq.frames)
-    raw = np.stack([read_image(sub / scene.name / f.file) for f in frames])  # [N, H, W, 3]
+    raw = submission_frames(sub, scene, frames)
     gts = np.stack([f.image() for f in frames])
     coords = _coords(seq, scene, prior, raw, source, fb_px)
     pairs = [warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL) for a, b in zip(frames[:-1], frames[1:])]
@@ -199,7 +204,7 @@ def write_transformed(submission: Path, out: Path, ds, suffix: str, extra: dict,
         for scene in ds.split("test"):
             for q in scene.sequences.values():
                 frames = list(q.frames)
-                raw = np.stack([read_image(submission / scene.name / f.file) for f in frames])
+                raw = submission_frames(submission, scene, frames)
                 for f, img in zip(frames, transform(scene, q, raw), strict=True):
                     w.add(scene.name, f, img)
         w.finish(timings={})

@@ -21,6 +21,10 @@ A setting is WHERE:SIGMA:MIX[:TARGET[:FROM:TO]]:
   residual: the render's part of the low-pass stays the frame's own render's).
   `mapN`: the maps on an N x N grid of the screen (`vcm_anchor_tiles`); `mapNwK`: fitted for each
   frame over the K frames either side of it only, so the map follows the street as it changes.
+  `lmap...`: the map fitted on the low-passes (std SIGMA) of render and frames, not on their
+  pixels; `omap...`: on the low-passes too, matching the colour distributions (means and
+  covariances) instead of predicting the frames' colours (`warp.affine_colours`' fit="monge"),
+  so the target keeps the frames' contrast where a regression shrinks it.
   after:SIGMA:MIX:mapN:CHROMA moves the low-pass's luma (Rec. 601) by MIX and the rest, its
   chroma, by CHROMA.
 * time:SIGMA:TAU: after sampling, the low-pass's residual over the render (colours mapped on a
@@ -100,16 +104,25 @@ def sample_anchored(acm, cc: torch.Tensor, noise: torch.Tensor, steps: int, sett
 LUMA = torch.tensor([0.299, 0.587, 0.114])
 
 
-def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str) -> torch.Tensor:
-    """`target` mapN[wK]: the renders' colours mapped to the frames' (`warp.affine_colours` on an
-    N x N grid), over the whole sequence or, with wK, for each frame over the K frames either side."""
-    tiles, _, k = target[3:].partition("w")
+#: A map target's prefix -> how `warp.affine_colours` fits it: on the pixels (the preset's), or on
+#: the setting's low-passes, by least squares (l) or by matching the colour distributions (o).
+FITS = {"": ("lstsq", False), "l": ("lstsq", True), "o": ("monge", True)}
+
+
+def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str, sigma: float = 0.0) -> torch.Tensor:
+    """`target` [l|o]mapN[wK]: the renders' colours mapped to the frames' (`warp.affine_colours` on
+    an N x N grid, fitted as `FITS` says, on low-passes of std `sigma`), over the whole sequence
+    or, with wK, for each frame over the K frames either side."""
+    prefix, _, rest = target.partition("map")
+    fit, low = FITS[prefix]
+    how = {"fit": fit, "sigma": sigma if low else 0.0}
+    tiles, _, k = rest.partition("w")
     tiles = int(tiles or 1)
     if not k:
-        return warp.affine_colours(renders, imgs, tiles)
+        return warp.affine_colours(renders, imgs, tiles, **how)
     k = int(k)
     return torch.stack([warp.affine_colours(renders[max(0, t - k): t + k + 1], imgs[max(0, t - k): t + k + 1],
-                                            tiles)[min(t, k)] for t in range(len(imgs))])
+                                            tiles, **how)[min(t, k)] for t in range(len(imgs))])
 
 
 def _low(a: torch.Tensor, sigma: float) -> np.ndarray:
@@ -165,7 +178,7 @@ def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
         return (renders + 2 * (moved - 0.5)).clamp(0, 1)
     if target.startswith("map") and "w" not in target and chroma == mix:  # what `vcm_anchor` does
         return warp.prior_anchor(imgs, renders, sigma, mix, int(target[3:] or 1))
-    goal = mapped(imgs, renders, target) if target.startswith("map") else renders
+    goal = mapped(imgs, renders, target, sigma) if _is_map(target) else renders
     if chroma == mix:
         return warp.anchored(imgs, goal, sigma, mix).clamp(0, 1)
     move = warp.anchored(imgs, goal, sigma, 1.0) - imgs  # the whole way, low-pass only
@@ -175,7 +188,13 @@ def after(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
 
 def _renders(args, ds, scenes):
     """(scene, sequence, h, w) -> the stage cache's conditions of the sequence's frames (the
-    prior's renders a `small` run's frames were generated from), [N, 3, h, w] in [0, 1]."""
+    prior's renders a `small` run's frames were generated from), [N, 3, h, w] in [0, 1]; with
+    --anchor-frames, that submission's frames instead (another 3D method's renders)."""
+    if args.anchor_frames is not None:
+        from vcm_lowpass import submission_frames
+
+        return lambda scene, q, h, w: torch.from_numpy(
+            submission_frames(args.anchor_frames, scene, list(q.frames))).permute(0, 3, 1, 2).float()
     config, _ = Skyeyes.configure(args.preset, args.set)
     m = Skyeyes(config, args.workdir / "work", progress=False)
     m.fit_train(ds)
@@ -244,9 +263,11 @@ AFTER = ("after", "time", "flow", "chain")
 
 
 def _is_map(target: str) -> bool:
-    """map, mapN (N 2-8), mapNwK (K >= 1)."""
-    tiles, w, k = target[3:].partition("w")
-    return target[:3] == "map" and tiles in ("", *"2345678") and (not w or k.isdigit() and int(k) >= 1)
+    """[l|o]map, [l|o]mapN (N 2-8), [l|o]mapNwK (K >= 1)."""
+    prefix, is_map, rest = target.partition("map")
+    tiles, w, k = rest.partition("w")
+    return (bool(is_map) and prefix in FITS and tiles in ("", *"2345678")
+            and (not w or k.isdigit() and int(k) >= 1))
 
 
 def parse(text: str):
@@ -270,7 +291,7 @@ def parse(text: str):
         if parts[0] == "flow" and len(parts) == 4 and parts[3] in ("mean", "median"):
             return "flow", float(parts[1]), float(parts[2]), parts[3]
         if parts[0] == "sampler" and len(parts) == 6 and (parts[3] == "render" or _is_map(parts[3]) and
-                                                          "w" not in parts[3]):
+                                                          parts[3].startswith("map") and "w" not in parts[3]):
             return "sampler", float(parts[1]), float(parts[2]), parts[3], int(parts[4]), int(parts[5])
     except ValueError:
         pass
@@ -290,6 +311,9 @@ def main(argv=None) -> None:
     ap.add_argument("--submission", type=Path, default=None,
                     help="the frames to anchor (a `small` run's): with --write, written anchored; without, the `after` "
                          "settings screened on them (above)")
+    ap.add_argument("--anchor-frames", type=Path, default=None, metavar="SUB",
+                    help="with --submission: anchor to this submission's frames (e.g. a `gaussians3d` run's, of the "
+                         "same test sequences and size) instead of the stage cache's prior renders")
     ap.add_argument("settings", nargs="+", type=parse, help="WHERE:SIGMA:MIX[:TARGET[:FROM:TO]] (above)")
     args = ap.parse_args(argv)
     from skyeyes_bench import paths
@@ -300,6 +324,8 @@ def main(argv=None) -> None:
         if args.submission is None or len(args.settings) != 1 or args.settings[0][0] not in AFTER:
             ap.error("--write takes --submission and one `after` setting (or a chain of them)")
         return _write(args, ds, args.settings[0])
+    if args.anchor_frames is not None and args.submission is None:
+        ap.error("--anchor-frames takes --submission (the frames it anchors)")
     if args.submission is not None and any(s[0] == "sampler" for s in args.settings):
         ap.error("--submission screens `after` settings: a `sampler` setting samples frames of its own")
     print(f"{len(seqs)} sequences; --set {' '.join(args.set) or '(none)'}; load average {os.getloadavg()[0]:.1f}",

@@ -230,17 +230,33 @@ def lowpass_transfer(imgs: torch.Tensor, coords: Callable[[int], tuple[np.ndarra
     return torch.from_numpy(np.stack(out)).to(imgs.device, imgs.dtype)
 
 
-def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1) -> torch.Tensor:
+def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1, fit: str = "lstsq",
+                   sigma: float = 0.0) -> torch.Tensor:
     """src [N, 3, H, W] with its colours mapped by the affine map (a 3x3 matrix and an offset)
     that fits dst [N, 3, H, W] best in least squares over all N frames. tiles > 1: one map for each
     cell of a tiles x tiles grid of the screen, fitted on the pixels of all N frames within a cell
     of it either way around the cell's centre, and the maps blended bilinearly between the cells'
     centres (constant beyond the outer ones), so the map varies smoothly over the screen and not
-    at all in time."""
+    at all in time.
+
+    fit "lstsq": the map that predicts dst best (a regression, so it shrinks src's contrast by
+    as much as src fails to predict dst); "monge": the linear map that moves src's colour
+    distribution onto dst's, means and covariances matched exactly (the Monge map between the
+    two Gaussian fits, Pitie & Kokaram 2007), so the contrast is dst's. sigma > 0: fitted on the
+    Gaussian low-passes of src and dst (std sigma px), and applied to src itself."""
+    if fit not in ("lstsq", "monge"):
+        raise ValueError(f"affine_colours: fit {fit!r}, expected 'lstsq' or 'monge'")
     n, _, h, w = src.shape
     cpu = torch.device("cpu")
-    a = torch.cat([src.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64, device=cpu)], -1)
-    b = dst.permute(0, 2, 3, 1).double().cpu()
+
+    def design(x: torch.Tensor) -> torch.Tensor:  # [N, 3, H, W] -> [N, H, W, 4]: the colours and a 1
+        return torch.cat([x.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64, device=cpu)], -1)
+
+    def low(x: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(np.stack([_blur(f, sigma) for f in x.detach().double().cpu().numpy()])) if sigma > 0 else x
+
+    a, fa = design(src), design(low(src))
+    b = low(dst).permute(0, 2, 3, 1).double().cpu()
     cells = torch.arange(tiles, dtype=torch.float64, device=cpu) + 0.5
     cy, cx = cells * h / tiles, cells * w / tiles
     out = torch.zeros(n, h, w, 3, dtype=torch.float64, device=cpu)
@@ -253,9 +269,26 @@ def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1) -> torc
         rows = (ys - cy[i]).abs() < h / tiles
         for j in range(tiles):
             cols = (xs - cx[j]).abs() < w / tiles
-            m = torch.linalg.lstsq(a[:, rows][:, :, cols].reshape(-1, 4), b[:, rows][:, :, cols].reshape(-1, 3)).solution
+            x, y = fa[:, rows][:, :, cols].reshape(-1, 4), b[:, rows][:, :, cols].reshape(-1, 3)
+            m = torch.linalg.lstsq(x, y).solution if fit == "lstsq" else _monge(x[:, :3], y)
             out += (wy[:, i, None] * wx[None, :, j])[None, :, :, None] * (a @ m)
     return out.to(src.dtype).permute(0, 3, 1, 2)
+
+
+def _monge(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """The affine map [4, 3] (rows: the 3x3 matrix, then the offset) that takes the Gaussian fit of
+    the colours x [M, 3] onto that of y [M, 3] with the least mean squared move: A = S^-1/2
+    (S^1/2 T S^1/2)^1/2 S^-1/2 for covariances S (x's) and T (y's), each with eps on its diagonal."""
+    def root(c: torch.Tensor, p: float) -> torch.Tensor:
+        val, vec = torch.linalg.eigh(c)
+        return vec @ torch.diag(val.clamp(min=eps) ** p) @ vec.T
+
+    eye = eps * torch.eye(3, dtype=x.dtype, device=x.device)
+    mx, my = x.mean(0), y.mean(0)
+    s, t = torch.cov((x - mx).T) + eye, torch.cov((y - my).T) + eye
+    h, hi = root(s, 0.5), root(s, -0.5)
+    a = hi @ root(h @ t @ h, 0.5) @ hi
+    return torch.cat([a, (my - mx @ a)[None]], 0)
 
 
 def anchored(x: torch.Tensor, target: torch.Tensor, sigma: float, mix: float = 1.0) -> torch.Tensor:

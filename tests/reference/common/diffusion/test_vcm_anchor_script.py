@@ -133,3 +133,38 @@ def test_flow_mean_and_median_of_a_detail_that_flips_sign(va):
     torch.testing.assert_close(med[1:-1], -2 * h[1:-1], atol=1e-4, rtol=0)
     torch.testing.assert_close(med[[0, -1]], torch.zeros_like(med[[0, -1]]), atol=1e-4, rtol=0)
     assert float(h.abs().max()) > 0.03
+
+
+def test_fitted_map_targets_parse_and_fit_as_named(va):
+    """`lmapN` fits the regression on the setting's low-passes, `omapN` matches the distributions
+    there (`warp.affine_colours`' sigma and fit); the sampler takes the preset's map only."""
+    assert va.parse("after:3:0.5:lmap4") == ("after", 3.0, 0.5, "lmap4")
+    assert va.parse("after:2:0.7:omap2w3") == ("after", 2.0, 0.7, "omap2w3")
+    for bad in ("after:3:0.5:xmap4", "after:3:0.5:lmap9", "sampler:3:1:omap4:2:9"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected"):
+            va.parse(bad)
+    g = torch.Generator().manual_seed(5)
+    imgs, renders = torch.rand(3, 3, 16, 16, generator=g), torch.rand(3, 3, 16, 16, generator=g)
+    torch.testing.assert_close(va.mapped(imgs, renders, "lmap2", 2.0), warp.affine_colours(renders, imgs, 2, sigma=2.0))
+    torch.testing.assert_close(va.mapped(imgs, renders, "omap2", 2.0),
+                               warp.affine_colours(renders, imgs, 2, fit="monge", sigma=2.0))
+    torch.testing.assert_close(va.mapped(imgs, renders, "map2", 2.0), warp.affine_colours(renders, imgs, 2))
+
+
+def test_anchor_frames_are_read_from_the_named_submission(va, tmp_path):
+    """--anchor-frames: the target of a sequence is that submission's frames of it, in the
+    sequence's order, as [N, 3, H, W] in [0, 1]."""
+    from types import SimpleNamespace
+
+    from skyeyes_bench.imagefiles import write_image
+
+    rng = np.random.default_rng(0)
+    imgs = [rng.integers(0, 256, (8, 8, 3), dtype=np.uint8) for _ in range(3)]
+    frames = [SimpleNamespace(file=f"seq/{i:06d}.png") for i in (2, 0, 1)]
+    (tmp_path / "scene-a" / "seq").mkdir(parents=True)
+    for i, im in enumerate(imgs):
+        write_image(tmp_path / "scene-a" / "seq" / f"{i:06d}.png", im.astype(np.float32) / 255)
+    of = va._renders(SimpleNamespace(anchor_frames=tmp_path), None, [])
+    got = of(SimpleNamespace(name="scene-a"), SimpleNamespace(frames=frames), 8, 8)
+    want = torch.from_numpy(np.stack([imgs[2], imgs[0], imgs[1]]).astype(np.float32) / 255).permute(0, 3, 1, 2)
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=0)

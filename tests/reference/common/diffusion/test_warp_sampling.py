@@ -401,6 +401,46 @@ def test_affine_colours_on_a_grid_follows_a_map_that_varies_over_the_screen():
     assert grid < one / 4, (one, grid)
 
 
+def test_monge_colours_recover_a_symmetric_map_and_match_any_covariance():
+    """fit="monge": where dst = A src + b with A symmetric positive definite (the one case where
+    that map is the least move), it gives dst back; for colours no affine map explains, its output
+    has dst's mean and covariance exactly (numpy's), where a least-squares map shrinks the
+    variance by as much as src fails to predict dst."""
+    g = torch.Generator().manual_seed(3)
+    src = torch.rand(4, 3, 16, 16, generator=g, dtype=torch.float64)
+    q = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    a = q @ q.T + 0.3 * torch.eye(3, dtype=torch.float64)
+    dst = torch.einsum("ij,njhw->nihw", a, src) + torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)[None, :, None, None]
+    for tiles in (1, 3):
+        np.testing.assert_allclose(warp.affine_colours(src, dst, tiles, fit="monge").numpy(), dst.numpy(), atol=1e-4)
+    other = torch.rand(4, 3, 16, 16, generator=g, dtype=torch.float64) ** 2  # independent of src
+    flat = lambda x: x.permute(0, 2, 3, 1).reshape(-1, 3).numpy()  # noqa: E731
+    out, want = flat(warp.affine_colours(src, other, 1, fit="monge")), flat(other)
+    np.testing.assert_allclose(out.mean(0), want.mean(0), atol=1e-12)
+    np.testing.assert_allclose(np.cov(out.T), np.cov(want.T), atol=1e-6)
+    assert flat(warp.affine_colours(src, other, 1)).var(0).max() < 0.05 * want.var(0).min()
+    with pytest.raises(ValueError, match="fit"):
+        warp.affine_colours(src, other, 1, fit="moments")
+
+
+def test_affine_colours_fitted_on_low_passes_ignore_detail_only_the_source_has():
+    """src = a smooth field + a checkerboard (nothing below a 3 px Gaussian away from the border),
+    dst = 2 x the smooth field. Fitted on the pixels, the checkerboard in the regressor shrinks the
+    gain (errors in variables); fitted on the 3 px low-passes (sigma=3) the gain is 2, so the
+    mapped src's low-pass is dst's."""
+    g = torch.Generator().manual_seed(4)
+    smooth = ndimage.gaussian_filter(torch.rand(2, 3, 48, 48, generator=g, dtype=torch.float64).numpy(),
+                                     (0, 0, 6, 6), mode="reflect")
+    smooth = torch.from_numpy((smooth - smooth.mean()) * 8)
+    checker = torch.from_numpy(((np.indices((48, 48)).sum(0) % 2) * 2 - 1).astype(np.float64)) * 0.3
+    src, dst = smooth + checker + 0.5, 2 * smooth + 0.4
+    low = lambda x: ndimage.gaussian_filter(x.numpy(), (0, 0, 3, 3), mode="reflect")[..., 14:-14, 14:-14]  # noqa: E731
+    fitted = warp.affine_colours(src, dst, 1, sigma=3.0)
+    np.testing.assert_allclose(low(fitted), low(dst), atol=0.01)
+    pixels = np.abs(low(warp.affine_colours(src, dst, 1)) - low(dst)).mean()
+    assert pixels > 10 * np.abs(low(fitted) - low(dst)).mean(), pixels
+
+
 def test_anchored_takes_the_targets_low_pass_and_keeps_the_detail():
     """A checkerboard (no energy below a Gaussian of 3 px: its low-pass is 0 to 1e-19 away from
     the border, where the reflection breaks it) on 0.5, anchored with mix 1 to a flat 0.3, is the

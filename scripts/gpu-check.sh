@@ -167,6 +167,7 @@ jobs_main() {  # runs in its own session (setsid): small, then the smokes and te
     [ -n "$pick" ] && small_args="--set compile=$pick $small_args"
     echo "small runs with: ${small_args:-the preset as it is}"
   fi
+  rm -rf "$W/skyeyes-small"  # a fresh run: an earlier check's stage cache and submission would be read as this one's
   t_start  # small's seconds count from here
   touch "$W/running-small"
   (stage skyeyes-small 1500 python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset "$SMALL" \

@@ -125,11 +125,6 @@ def mapped(imgs: torch.Tensor, renders: torch.Tensor, target: str, sigma: float 
                                             tiles, **how)[min(t, k)] for t in range(len(imgs))])
 
 
-def _low(a: torch.Tensor, sigma: float) -> np.ndarray:
-    """[N, C, H, W] -> its Gaussian low-pass over H and W (`warp`'s, reflected at the border), float64."""
-    return np.stack([warp._blur(f, sigma) for f in a.double().numpy()])
-
-
 def in_time(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
     """Frames [N, 3, H, W] in [0, 1] smoothed over time after sampling (`setting`: time, flow)."""
     from scipy.ndimage import gaussian_filter1d
@@ -137,12 +132,12 @@ def in_time(imgs: torch.Tensor, renders: torch.Tensor, setting) -> torch.Tensor:
     x = imgs.double().numpy()
     if setting[0] == "time":
         _, sigma, tau = setting
-        d = _low(imgs, sigma) - _low(mapped(imgs, renders, "map4"), sigma)
+        d = warp.blur_frames(imgs, sigma) - warp.blur_frames(mapped(imgs, renders, "map4"), sigma)
         return torch.from_numpy(x + gaussian_filter1d(d, tau, axis=0, mode="nearest") - d).clamp(0, 1).to(imgs.dtype)
     _, sigma, w, how = setting
     g = renders.permute(0, 2, 3, 1).numpy()
     back, ahead = warp.flow_coords(g), warp.flow_coords(g[::-1].copy())  # frame j - 1 (j + 1) seen from j
-    detail, n = x - _low(imgs, sigma), len(x)
+    detail, n = x - warp.blur_frames(imgs, sigma), len(x)
     out = x.copy()
     for j in range(n):
         near = []

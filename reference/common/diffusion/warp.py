@@ -143,6 +143,11 @@ def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(a, (0, sigma, sigma), mode="reflect")
 
 
+def blur_frames(x: torch.Tensor, sigma: float) -> np.ndarray:
+    """Frames [N, C, H, W] -> their Gaussian low-passes (`_blur`, each frame on its own), float64."""
+    return np.stack([_blur(f, sigma) for f in x.detach().double().cpu().numpy()])
+
+
 def depth_coords(depths: list[np.ndarray], cameras: list[Camera],
                  tol: float = DEPTH_TOL) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
     """j -> (uv, valid) of frame j - 1 seen from frame j, by depth and the poses (`warp_coords`
@@ -252,11 +257,9 @@ def affine_colours(src: torch.Tensor, dst: torch.Tensor, tiles: int = 1, fit: st
     def design(x: torch.Tensor) -> torch.Tensor:  # [N, 3, H, W] -> [N, H, W, 4]: the colours and a 1
         return torch.cat([x.permute(0, 2, 3, 1).double().cpu(), torch.ones(n, h, w, 1, dtype=torch.float64, device=cpu)], -1)
 
-    def low(x: torch.Tensor) -> torch.Tensor:
-        return torch.from_numpy(np.stack([_blur(f, sigma) for f in x.detach().double().cpu().numpy()])) if sigma > 0 else x
-
-    a, fa = design(src), design(low(src))
-    b = low(dst).permute(0, 2, 3, 1).double().cpu()
+    a = design(src)
+    fa = design(torch.from_numpy(blur_frames(src, sigma))) if sigma > 0 else a  # what the map is fitted on
+    b = (torch.from_numpy(blur_frames(dst, sigma)) if sigma > 0 else dst).permute(0, 2, 3, 1).double().cpu()
     cells = torch.arange(tiles, dtype=torch.float64, device=cpu) + 0.5
     cy, cx = cells * h / tiles, cells * w / tiles
     out = torch.zeros(n, h, w, 3, dtype=torch.float64, device=cpu)
@@ -294,11 +297,8 @@ def _monge(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
 def anchored(x: torch.Tensor, target: torch.Tensor, sigma: float, mix: float = 1.0) -> torch.Tensor:
     """x [N, C, H, W] with its Gaussian low-pass (std `sigma` px, reflected at the border) moved
     `mix` of the way to `target`'s; the rest of x (its detail) stays its own."""
-    def low(a: torch.Tensor) -> np.ndarray:
-        return np.stack([_blur(f, sigma) for f in a.detach().double().cpu().numpy()])
-
     x64 = x.detach().cpu().double()
-    return (x64 + mix * torch.as_tensor(low(target) - low(x), device=x64.device)).to(x.dtype)
+    return (x64 + mix * torch.as_tensor(blur_frames(target, sigma) - blur_frames(x, sigma), device=x64.device)).to(x.dtype)
 
 
 def prior_anchor(imgs: torch.Tensor, renders: torch.Tensor, sigma: float, mix: float = 1.0,

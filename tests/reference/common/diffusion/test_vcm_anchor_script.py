@@ -125,7 +125,7 @@ def test_flow_mean_and_median_of_a_detail_that_flips_sign(va):
     render, flip, detail = _static_scene(n)
     imgs = (0.3 + 0.4 * render).float() + flip * detail
     d = flip * detail
-    h = d.double() - torch.from_numpy(va._low(d, 1.0))
+    h = d.double() - torch.from_numpy(warp.blur_frames(d, 1.0))
     mean = va.after(imgs, render, va.parse("flow:1:1:mean")).double() - imgs.double()
     med = va.after(imgs, render, va.parse("flow:1:1:median")).double() - imgs.double()
     torch.testing.assert_close(mean[1:-1], -4 * h[1:-1] / 3, atol=1e-4, rtol=0)

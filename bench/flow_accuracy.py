@@ -12,8 +12,8 @@ deepflow, tvl1, farneback, pcaflow: OpenCV's) between the prior's renders (--pri
 its cached renders, `<scene>-<key>.npz`) and, with --submission, between that submission's
 frames; `zero` (no motion); and with --prior (a `sugar` run's folder of `scenes/<scene>/model.pt`)
 the prior's own depth and the poses (`prior-depth`, `warp.prior_depth`), or that depth with the
-pixels whose ray meets the ground plane under the prior's Gaussians nearer given the plane's
-depth (`prior-ground`, `ground_filled`); `aerial-sweep`, a depth from the aerial views alone
+pixels whose ray meets the ground plane under the prior's Gaussians (`warp.prior_ground`) nearer
+given the plane's depth (`prior-ground`, `ground_filled`); `aerial-sweep`, a depth from the aerial views alone
 (`aerial_sweep_depth`, ~5 s a frame; a depth way's seconds count its warps only). --rigid adds each flow made rigid with the poses
 (`rigid_from_flow`).
 
@@ -103,15 +103,6 @@ def rigid_from_flow(uv: np.ndarray, ok: np.ndarray, cam_j, cam_i, *, median_px: 
     return moved_by_depth(depth, cam_j, cam_i), depth
 
 
-def ground_height(prior, scene) -> float:
-    """The ground's height (world z, up) under a Gaussian prior's fitted scene: the most common
-    height (0.1 m bins) among its lowest quarter of Gaussians (the road seen from above)."""
-    mu = prior.scene_model(scene)[0].means.detach().cpu().numpy()
-    z = np.sort(mu[:, 2])[: max(len(mu) // 4, 1)]
-    hist, edges = np.histogram(z, bins=np.arange(z.min(), z.max() + 0.2, 0.1))
-    return float(edges[hist.argmax()] + 0.05)
-
-
 def ground_filled(depth: np.ndarray, cam, zg: float) -> np.ndarray:
     """`depth` [H, W] with each pixel whose ray meets the ground plane z = zg nearer than its
     depth (or where it is +inf: nothing of the prior's) given the plane's depth."""
@@ -197,7 +188,7 @@ def main(argv=None) -> None:
         npz = np.load(found[0])
         if prior is not None:
             prior.fit_scene(scene)  # resumed from its checkpoint
-            zg = ground_height(prior, scene)
+            zg = warp.prior_ground(prior, scene)
         seqs = list(scene.sequences.values())[: args.sequences or None]
         for q in seqs:
             fs = list(q.frames)

@@ -12,7 +12,8 @@ submission to score with `skyeyes-bench evaluate DIR` and pair against the origi
 transfer's alone).
 
 With --bands SIGMA it prints where the flicker is instead: the warp error of the submission's
-and the ground truth's frames low-passed with a Gaussian of SIGMA px, and of what is left.
+and the ground truth's frames low-passed with a Gaussian of SIGMA px, and of what is left, each
+also split by the truth's depth of the later frame's pixel (`DEPTH_BANDS`; its +inf: the sky).
 
 A setting is SIGMA:MIX (`vcm_lowpass`, `vcm_lowpass_mix`). --prior is the folder of a `sugar`
 run's scene checkpoints (`scenes/<scene>/model.pt`, e.g. a Skyeyes run's `method/prior` with
@@ -36,10 +37,12 @@ from reference.common.diffusion import warp
 from reference.methods.sugar import SuGaR
 from skyeyes_bench.data.layout import open_dataset
 from skyeyes_bench.imagefiles import read_image
-from skyeyes_bench.metrics.geometry import warp_coords, warp_error
+from skyeyes_bench.metrics.geometry import sample_bilinear, warp_coords, warp_error
 from skyeyes_bench.metrics.image import lpips
 
 TOL = 0.01  # the protocols' depth tolerance of the warp metric
+#: --bands: the bands of the truth's depth (m) the warp error is split by; past the last, the sky.
+DEPTH_BANDS = np.array([0.0, 5.0, 10.0, 20.0, 100.0, np.inf])
 
 
 def _detail(x: np.ndarray) -> float:
@@ -175,19 +178,29 @@ def _bands(ds, sub: Path, scenes: int, sigma: float) -> None:
         return x, low, x - low
 
     sums, n = np.zeros((2, 3)), 0
+    by_depth, count = np.zeros((2, 3, len(DEPTH_BANDS))), np.zeros(len(DEPTH_BANDS))
     for scene in ds.split("test")[:scenes]:
         for q in scene.sequences.values():
             fs = list(q.frames)
             for a, b in zip(fs[:-1], fs[1:]):
                 uv, valid = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
                 n += int(valid.sum())
+                band = np.searchsorted(DEPTH_BANDS, b.depth()[valid], side="right") - 1  # the sky (+inf): the last
+                count += np.bincount(band, minlength=len(DEPTH_BANDS))
                 for r, (x, y) in enumerate([(read_image(sub / scene.name / a.file), read_image(sub / scene.name / b.file)),
                                             (a.image(), b.image())]):
                     for k, (u, v) in enumerate(zip(parts(x), parts(y))):
                         e, m = warp_error(u, v, uv, valid)
                         sums[r, k] += e * m
-    for name, row in zip(("submission", "ground truth"), sums / max(n, 1)):
+                        px = np.abs(np.asarray(v, np.float64)[valid] - sample_bilinear(u, uv[valid])).mean(1)
+                        by_depth[r, k] += np.bincount(band, weights=px, minlength=len(DEPTH_BANDS))
+    names = [f"{lo:g}-{hi:g} m" for lo, hi in zip(DEPTH_BANDS[:-1], DEPTH_BANDS[1:])] + ["sky"]
+    print("the truth's depth of the later frame's pixel: " + ", ".join(
+        f"{k} {c / max(count.sum(), 1):.3f} of the pixels" for k, c in zip(names, count)))
+    for r, (name, row) in enumerate(zip(("submission", "ground truth"), sums / max(n, 1))):
         print(f"{name}: warp {row[0]:.4f}, low-pass (sigma {sigma:g} px) {row[1]:.4f}, the rest {row[2]:.4f}")
+        for k, part in enumerate(("warp", "low-pass", "the rest")):
+            print(f"  {part} by depth: " + ", ".join(f"{b} {e / max(c, 1):.4f}" for b, e, c in zip(names, by_depth[r, k], count)))
 
 
 def write_transformed(submission: Path, out: Path, ds, suffix: str, extra: dict, transform) -> None:

@@ -52,7 +52,7 @@ from skyeyes_bench.metrics.geometry import warp_coords, warp_error
 from skyeyes_bench.metrics.image import lpips
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flow_accuracy import ground_filled, ground_height, rigid_from_flow  # noqa: E402
+from flow_accuracy import ground_filled, rigid_from_flow  # noqa: E402
 
 TOL = 0.01  # the protocols' depth tolerance of the warp metric
 #: --moves fused: the prior's depth (with the ground plane) moves what it puts nearer than this
@@ -153,7 +153,7 @@ def moves(kind: str, m: Skyeyes, current: dict, tol: float):
 
             return split
         if kind in ("ground", "fused"):
-            zg = ground_height(m.prior, scene)
+            zg = warp.prior_ground(m.prior, scene)
             depths = [ground_filled(warp.prior_depth(m.prior, scene, f, w, h), c, zg) for f, c in zip(frames, cams)]
             by_depth = warp.depth_coords(depths, cams, tol=tol)
 

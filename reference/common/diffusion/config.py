@@ -210,6 +210,11 @@ class DiffusionConfig:
     # Local attention of each token over the previous frame's window x window neighbourhood after
     # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
     vcm_local: int = 0
+    # The clip's first frame (the frame already generated) enters the VCM moved into the next
+    # frame's view by the optical flow between their conditions, on that frame's condition
+    # (`warp.FlowAlign`), so the local attention finds its detail in its window; the VCM trains on
+    # pairs made so from the train split's frames (`stages.aligned_firsts`).
+    vcm_align: bool = False
     # Warped sampling (`diffusion.warp`; 0: none): the clip's first frame, moved into each new
     # frame by the prior's depth and the poses, holds the pixels it reaches for this many of the
     # `sample_steps` DDIM steps. Sampling only (no stage key); needs a prior with depth (`sugar`).
@@ -229,6 +234,11 @@ class DiffusionConfig:
     vcm_anchor: float = 0.0
     vcm_anchor_mix: float = 1.0
     vcm_anchor_tiles: int = 4
+    # The street from one view (`warp.street_transfer`; 0: none): last, each frame's pixels of the
+    # street's plane (under the prior's Gaussians, `warp.prior_ground`) move this share of the way
+    # to the colour of the frame that sees that point `warp.STREET_VIEW_M` away. Sampling only;
+    # needs a Gaussian prior (its depth and Gaussians: `sugar`, `gaussians3d`).
+    vcm_street: float = 0.0
     # Shared noise (`sample.frame_noise`; 0: every frame its own): each frame's starting noise is
     # sqrt(vcm_noise) of one draw its sequence shares plus sqrt(1 - vcm_noise) of its own, still a
     # standard normal per frame. `vcm_noise_sigma` > 0: only the noise's low frequencies are
@@ -282,8 +292,8 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_anchor",
-            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_align", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_anchor",
+            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_street", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -39,6 +39,10 @@ from .config import DiffusionConfig
 from .guidance import Unguided
 from .presets import GPU_TRAINING
 
+#: The priors made of Gaussians, whose depth (`warp.prior_depth`) and means (`warp.prior_ground`)
+#: the warped sampling and the street and sky transfer use.
+GAUSSIAN_PRIORS = ("sugar", "gaussians3d")
+
 if TYPE_CHECKING:
     import torch
 
@@ -85,6 +89,12 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"{config.vcm_anchor_tiles}: expected vcm_anchor >= 0 (pixels), 0 < vcm_anchor_mix <= 1, "
                          "vcm_anchor_tiles >= 1, and when vcm_anchor is not 0 the "
                          "VCM on (vcm=true) and a prior's renders as the condition (the frames' anchor)")
+    if not 0.0 <= config.vcm_street <= 1.0 or \
+            (config.vcm_street and not (config.vcm and config.condition == "prior"
+                                        and config.prior_method in GAUSSIAN_PRIORS)):
+        raise ValueError(f"vcm_street {config.vcm_street}: expected 0 <= vcm_street <= 1, and when it is not 0 the "
+                         f"VCM on (vcm=true) and the renders of a Gaussian prior ({', '.join(GAUSSIAN_PRIORS)}) as the "
+                         f"condition (its depth and Gaussians find the street), not {config.prior_method!r}")
     if not 0.0 <= config.vcm_noise <= 1.0 or config.vcm_noise_sigma < 0 or (config.vcm_noise and not config.vcm) or \
             (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
         raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
@@ -207,14 +217,15 @@ class DiffusionMethod(Method):
     def scene_parts(self) -> list[SceneConditions | PriorFits]:
         """Fitted on the test scenes at once, before each scene's own fit: the condition part
         (a prior fitted per scene `jobs` at a time and rendered, `render_priors`), and with
-        `vcm_warp` the prior's fitted scenes (its depth moves frames; cached renders fit none)."""
+        `vcm_warp` or `vcm_street` the prior's fitted scenes (its depth moves frames or finds the
+        street; cached renders fit none)."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
-        if not self.config.vcm_warp:
+        if not (self.config.vcm_warp or self.config.vcm_street):
             return [self.condition]
-        if self.config.prior_method not in ("sugar", "gaussians3d"):
-            raise ValueError(f"vcm_warp: the prior {self.config.prior_method!r} is not Gaussians "
-                             "(sugar, gaussians3d), whose depth moves the frames")
+        if self.config.prior_method not in GAUSSIAN_PRIORS:
+            raise ValueError(f"vcm_warp, vcm_street: the prior {self.config.prior_method!r} is not Gaussians "
+                             f"({', '.join(GAUSSIAN_PRIORS)}), whose depth moves the frames")
         return [self.condition, PriorFits(lambda: self.prior)]
 
     def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[dict[str, np.ndarray], dict]:
@@ -249,6 +260,8 @@ class DiffusionMethod(Method):
             renders = torch.as_tensor(_guides(priors, *imgs.shape[-2:]), device=imgs.device).permute(0, 3, 1, 2)
             imgs = prior_anchor(imgs, renders, self.config.vcm_anchor, self.config.vcm_anchor_mix,
                                 self.config.vcm_anchor_tiles)
+        if self.config.vcm_street:  # the street from one view of each of its points
+            imgs = self._street(scene, sequence, imgs)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
@@ -275,8 +288,15 @@ class DiffusionMethod(Method):
         acm = self.guidance.sampling_model(self.acm)
         noise = self._start_noise(sample.sample_shape(tuple(conds.shape), acm.cfg), seed, priors)
         if c.vcm and (self.vcm is not None or c.vcm_warp):
+            align = None
+            if c.vcm_align and self.vcm is not None:
+                from .warp import FlowAlign, flow_coords
+
+                res = c.core.resolution
+                align = FlowAlign(conds, flow_coords(_guides(priors, res, res)), c.core)
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
-                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp, noise=noise)
+                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp, noise=noise,
+                                          align=align)
         return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength,
                                     noise=noise)
 
@@ -295,6 +315,19 @@ class DiffusionMethod(Method):
         h, w = shape[-2:]
         f = -(-DIS_MIN_PX // min(h, w))  # 1 on every preset's grid; more for grids DIS refuses
         return carried_noise(own, grid_coords(flow_coords(_guides(priors, h * f, w * f)), f), c.vcm_noise)
+
+    def _street(self, scene: Scene, sequence: Sequence, imgs):
+        """`vcm_street`: the street of a sequence's decoded frames [N, 3, H, W] taken from one view
+        of each of its points (`warp.street_transfer`), by the prior's depth and Gaussians."""
+        from . import warp
+
+        h, w = imgs.shape[-2:]
+        zg = warp.prior_ground(self.prior, scene)
+        if zg is None:  # no street under the cameras in the prior: nothing to take
+            return imgs
+        depths = [warp.prior_depth(self.prior, scene, f, w, h) for f in sequence.frames]
+        cams = [warp.scaled_camera(f.camera(), w, h) for f in sequence.frames]
+        return warp.street_transfer(imgs, cams, depths, zg, mix=self.config.vcm_street)
 
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the

@@ -174,7 +174,7 @@ def sample_frames(model: ControlledUNet, conds: torch.Tensor, *, steps: int, see
 @torch.no_grad()
 def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tensor, *, steps: int,
                     seed: int, clip: int = 12, strength: float = 1.0, progress=None,
-                    warp=None, hold: int = 0, noise: torch.Tensor | None = None) -> torch.Tensor:
+                    warp=None, hold: int = 0, noise: torch.Tensor | None = None, align=None) -> torch.Tensor:
     """Skyeyes inference (Sec. 3.3 and supplement Sec. 2.2): frame 1 from the ACM alone, then
     clips of `clip` frames whose first frame is the last frame generated so far.
 
@@ -185,6 +185,8 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
     `warp` (`warp.WarpTargets`) and `hold`: the clip's first frame, warped into each new frame,
     holds the pixels it reaches for the first `hold` steps (`ddim_clip`). `vcm` None: every frame
     from the ACM alone, one at a time, held by the previous frame's warp (`ddim`).
+    `align` (`warp.FlowAlign`): the clip's first frame enters moved into its second frame's view,
+    on that frame's condition (`vcm_align`).
     """
     n = len(conds)
     if noise is None:
@@ -198,8 +200,11 @@ def sample_sequence(acm: ControlledUNet, vcm: ControlledUNet, conds: torch.Tenso
             new = ddim(acm, conds[i:i + 1], steps=steps, noise=noise[i:i + 1], strength=strength,
                        held=held, hold=hold)
         else:
-            c = torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first frame keeps its own prior
-            new = ddim_clip(vcm, c, out[-1], steps=steps, noise=noise[i:i + m], strength=strength,
+            if align is None:
+                first, c = out[-1], torch.cat([conds[i - 1:i], conds[i:i + m]])  # the first keeps its own prior
+            else:
+                first, c = align(out[-1], i - 1, i), torch.cat([conds[i:i + 1], conds[i:i + m]])
+            new = ddim_clip(vcm, c, first, steps=steps, noise=noise[i:i + m], strength=strength,
                             held=held, hold=hold)
         out.extend(new)
         i += m

@@ -29,6 +29,12 @@ The prior anchor (`vcm_anchor`, `prior_anchor`) moves nothing between frames: ea
 part moves towards its own render of the 3D prior, which is steady from frame to frame by
 construction, with the render's colours first mapped to the frames' (`affine_colours`), so the
 ACM's correction of the prior's colours stays.
+
+The street from one view (`vcm_street`, `street_transfer`) moves nothing by a flow either: the
+street is a plane under the prior's Gaussians (`prior_ground`), where the poses place every pixel
+to a fraction of a pixel, so each point of it takes its colour from one frame's view of it, the
+same whichever frame shows it. `FlowAlign` (`vcm_align`) gives the VCM's attention the frame
+before moved into the new frame's view.
 """
 
 from __future__ import annotations
@@ -40,7 +46,7 @@ import torch
 import torch.nn.functional as F
 
 from skyeyes_bench.cameras import Camera
-from skyeyes_bench.metrics.geometry import warp_coords
+from skyeyes_bench.metrics.geometry import project, sample_bilinear, warp_coords
 
 from .core import CoreConfig, decode, encode, from_diffused, to_diffused
 
@@ -134,6 +140,29 @@ class WarpTargets:
             masks.append(torch.as_tensor(valid)[None, None])
         m = encode_mask(torch.cat(masks), cfg, z.shape[0])
         return torch.stack(targets) * m, m
+
+
+class FlowAlign:
+    """The VCM's view of the frame before (`vcm_align`): `(z, i, j)` -> frame i's clean sample z
+    [C, h, w] (model space, on frame i's condition) moved into frame j's view by `coords(j)` (the
+    optical flow between the two frames' conditions, `flow_coords`) and put on frame j's
+    condition; the pixels the flow does not reach keep frame i's own. So the VCM's local
+    attention looks for a frame's detail in the frame before at the same place of the picture,
+    not where the camera's motion left it (up to 28 px a frame on the near road at `small`,
+    beyond a 5 x 5 window at any level; bench/flow_accuracy.py)."""
+
+    def __init__(self, conds: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                 cfg: CoreConfig):
+        self.conds, self.coords, self.cfg = conds, coords, cfg
+
+    def __call__(self, z: torch.Tensor, i: int, j: int) -> torch.Tensor:
+        if j != i + 1:
+            raise ValueError(f"FlowAlign: frame {i} into frame {j}; the flow is between neighbours")
+        cfg = self.cfg
+        img = decode(from_diffused(z[None].float().cpu(), self.conds[i:i + 1].cpu(), cfg), cfg)[0]  # [3, res, res]
+        uv, valid = self.coords(j)
+        moved = torch.where(torch.as_tensor(valid)[None], warp_image(img, uv, valid), img)
+        return to_diffused(encode(moved[None], cfg), self.conds[j:j + 1].cpu(), cfg)[0].to(z.dtype)
 
 
 def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
@@ -352,3 +381,110 @@ def carried_noise(own: torch.Tensor, coords: Callable[[int], tuple[np.ndarray, n
         z[:, tgt] = mean / k.sqrt() + e[:, tgt] - group_e / k
         out.append(z.reshape(c, h, w).to(own.dtype))
     return torch.stack(out) if n else own.clone()
+
+
+def prior_ground(prior, scene) -> float | None:
+    """The street's height (world z, up) under a Gaussian prior's fitted scene: `street_height` of
+    its Gaussians' means under the ground cameras (`street_ceiling`); None where none lie there."""
+    from reference.common.geometry.cloud import street_ceiling, street_height
+
+    means = prior.scene_model(scene)[0].means.detach().cpu().numpy()
+    return street_height(means[:, 2], below=street_ceiling([f.camera().c2w[2, 3] for f in scene.ground]), share=1.0)
+
+
+#: `street_transfer`: the street is taken where it lies nearer than this (planar depth, m).
+STREET_FAR_M = 30.0
+#: `street_transfer`: a point of the street takes its colour from the frame that sees it at the
+#: planar depth nearest this (m). NOTE: bench/vcm_street.py on SynthTown small's first test scene
+#: (docs/skyeyes.md, "The street from one view"), LPIPS against the same frames without it: the
+#: nearest view +0.011 (the ACM invents most where the prior's near road is empty, at the bottom
+#: of the frame), 3 / 4 / 6 / 10 / 15 m +0.008 / +0.002 / +0.004 / +0.006 / +0.007, the warp
+#: error within 0.001 of each other.
+STREET_VIEW_M = 4.0
+#: `street_transfer`'s minification of the owner's view: the Gaussians (px) it chooses from.
+_MIP_SIGMAS = (0.0, 0.5, 1.0, 2.0, 4.0)
+
+
+def street_points(cam: Camera, depth: np.ndarray, zg: float, *, tol: float = DEPTH_TOL,
+                  far: float = STREET_FAR_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where a frame sees the street, the plane z = zg (world z up), by its camera and the prior's
+    planar depth [H, W] (+inf: nothing of the prior's): (points [HW, 3] where the pixels' rays
+    meet the plane, their planar depth [HW] (+inf: the ray does not fall), street [HW]: the
+    plane nearer than `far` and not behind the prior's surface (its depth, within `tol`, or
+    +inf: the prior leaves most of the near road empty, bench/flow_accuracy.py))."""
+    o, d = cam.rays(normalize=False)  # camera z = 1: t is planar depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (zg - o[:, 2]) / d[:, 2]
+    t = np.where((d[:, 2] < 0) & (t > 0), t, np.inf)
+    street = (t < far) & (t <= np.asarray(depth, np.float64).ravel() * (1.0 + tol))
+    return o + d * np.where(np.isfinite(t), t, 0.0)[:, None], t, street
+
+
+def _seen(uv: np.ndarray, masks: np.ndarray, h: int, w: int) -> np.ndarray:
+    """uv [A, M, 2] in A frames -> [A, M]: within the frame's pixel centres and, at the nearest
+    pixel, inside that frame's mask (masks [A, H*W])."""
+    with np.errstate(invalid="ignore"):
+        inside = (uv[..., 0] >= 0.5) & (uv[..., 0] <= w - 0.5) & (uv[..., 1] >= 0.5) & (uv[..., 1] <= h - 0.5)
+    ix = np.clip(np.nan_to_num(uv[..., 0]).astype(np.int64), 0, w - 1)
+    iy = np.clip(np.nan_to_num(uv[..., 1]).astype(np.int64), 0, h - 1)
+    return inside & np.take_along_axis(masks, iy * w + ix, axis=1)
+
+
+def _mip(x: np.ndarray, o: int, level: int, cache: dict) -> np.ndarray:
+    """Frame o of x [N, H, W, 3] blurred by `_MIP_SIGMAS[level]` (made once per sequence)."""
+    from scipy.ndimage import gaussian_filter
+
+    if level == 0:
+        return x[o]
+    if (o, level) not in cache:
+        cache[o, level] = gaussian_filter(x[o], (_MIP_SIGMAS[level], _MIP_SIGMAS[level], 0), mode="nearest")
+    return cache[o, level]
+
+
+def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray], zg: float, *,
+                    mix: float = 1.0, view_m: float = STREET_VIEW_M, tol: float = DEPTH_TOL,
+                    far: float = STREET_FAR_M) -> torch.Tensor:
+    """A sequence's decoded frames [N, 3, H, W] in [0, 1] -> the same with the street taken from
+    one view of each of its points (`vcm_street`), so that every frame shows it alike: where a
+    frame sees the street (`street_points`), the point takes its colour from the frame that sees
+    it at the planar depth nearest `view_m` (the same frame whichever frame asks; 0: the nearest
+    view), that view blurred as much as it sees the point nearer (a Gaussian of 0.5 sqrt(s^2 -
+    1) px for s times nearer, the nearest of `_MIP_SIGMAS`). By the poses and the plane, no
+    flow: the road is the one surface whose geometry the method knows to a pixel (bench/
+    flow_accuracy.py: the plane under the prior's Gaussians, median 0.42 px on the near road,
+    where the renders' flow errs by 11 px). The rest of each frame stays its own. The street's
+    pixels move `mix` of the way, half of it on its border pixels.
+
+    cameras: the frames' cameras at H x W (`scaled_camera`); depths: the prior's planar depths
+    [H, W] (`prior_depth`); zg: the street's height (world z, up; `prior_ground`)."""
+    from scipy.ndimage import uniform_filter
+
+    if not 0 < mix <= 1 or view_m < 0:
+        raise ValueError(f"street_transfer: mix {mix} (0 < mix <= 1), view_m {view_m} (>= 0)")
+    n, _, h, w = imgs.shape
+    if not (n == len(cameras) == len(depths)):
+        raise ValueError(f"street_transfer: {n} frames, {len(cameras)} cameras, {len(depths)} depths")
+    x = imgs.detach().double().cpu().numpy().transpose(0, 2, 3, 1)  # [N, H, W, 3]
+    parts = [street_points(c, d, zg, tol=tol, far=far) for c, d in zip(cameras, depths)]
+    street = np.stack([p[2] for p in parts])  # [N, HW]
+    c2ws, ks = np.stack([c.c2w for c in cameras]), np.stack([c.K for c in cameras])
+    out, mips = x.copy(), {}
+    for k, (pts, _, on) in enumerate(parts):
+        target = x[k].reshape(-1, 3).copy()
+        idx = np.flatnonzero(on)
+        if len(idx):
+            uv, z = project(pts[idx], np.ones(len(idx)), c2ws, ks)  # [N, M, 2], [N, M]
+            seen = _seen(uv, street, h, w)
+            pick = np.abs(z - view_m) if view_m else z
+            owner = np.where(seen.any(axis=0), np.argmin(np.where(seen, pick, np.inf), axis=0), -1)
+            scale = z[k] / np.take_along_axis(z, np.maximum(owner, 0)[None], 0)[0]
+            want = 0.5 * np.sqrt(np.maximum(scale ** 2 - 1.0, 0.0))
+            level = np.abs(want[:, None] - np.asarray(_MIP_SIGMAS)[None]).argmin(1)
+            for o in np.unique(owner[owner >= 0]):  # -1: no frame sees it within its pixel centres
+                for lv in np.unique(level[owner == o]):
+                    sel = (owner == o) & (level == lv)
+                    target[idx[sel]] = sample_bilinear(_mip(x, o, lv, mips), uv[o, sel])
+        m = on.reshape(h, w).astype(np.float64)
+        weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
+        out[k] = x[k] + weight[..., None] * (target.reshape(h, w, 3) - x[k])
+    return torch.from_numpy(out.transpose(0, 3, 1, 2).copy()).to(imgs.device, imgs.dtype).clamp(0.0, 1.0)

@@ -3,11 +3,8 @@ against closed forms: a flow made rigid with the poses, and the ground plane's d
 
 from __future__ import annotations
 
-import types
-
 import numpy as np
 import pytest
-import torch
 from builders.bench_scripts import load_bench
 
 from skyeyes_bench.cameras import Camera, intrinsics
@@ -41,14 +38,6 @@ def test_ground_filled_is_the_plane_below_the_horizon_and_keeps_what_is_nearer(f
     want = np.where(below, 2.0 * f / np.where(below, v - cy, 1.0), np.inf)[:, None].repeat(32, 1)
     want[30, 5] = 1.0
     np.testing.assert_allclose(out, want, rtol=1e-12)
-
-
-def test_ground_height_is_the_most_common_height_of_the_lowest_quarter(fa):
-    rng = np.random.default_rng(0)
-    z = np.concatenate([rng.normal(0.3, 0.02, 600), rng.uniform(1.0, 20.0, 1800), [-5.0]])
-    means = torch.as_tensor(np.stack([np.zeros_like(z), np.zeros_like(z), z], 1))
-    prior = types.SimpleNamespace(scene_model=lambda scene: (types.SimpleNamespace(means=means),))
-    assert abs(fa.ground_height(prior, None) - 0.3) <= 0.1
 
 
 def test_rigid_from_flow_recovers_a_rigid_motion_and_drops_what_leaves_the_epipolar_line(fa):

@@ -483,3 +483,242 @@ def test_skyeyes_checks_vcm_anchor(tmp_path):
         with pytest.raises(ValueError, match="vcm_anchor"):
             Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
     Skyeyes(dataclasses.replace(smoke, vcm_anchor=2.0, vcm_anchor_mix=0.5), tmp_path)
+
+
+def test_skyeyes_checks_vcm_street(tmp_path):
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    smoke = PRESETS["smoke"]
+    for bad in (dict(vcm_street=-0.1), dict(vcm_street=1.5), dict(vcm=False, vcm_street=1.0),
+                dict(vcm_street=1.0, condition="aerial"), dict(vcm_street=1.0, prior_method="mvs")):
+        with pytest.raises(ValueError, match="vcm_street"):
+            Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, vcm_street=1.0), tmp_path)
+
+
+def test_prior_ground_is_the_street_under_the_cameras_among_the_gaussians():
+    """Gaussians of a street at z = 0.1 (sd 0.05 m), a few floaters under it and facades up to
+    20 m; cameras 2 m up: the street's height is the mode of what lies under the cameras (0.05
+    with `street_height`'s 0.1 m bins smoothed over 0.5 m), where the lower half's mode (a fused
+    cloud's rule) would put it 0.25 m low, under the road."""
+    rng = np.random.default_rng(0)
+    z = np.concatenate([0.1 + rng.normal(0, 0.05, 4000), rng.uniform(-0.5, 0.1, 300), rng.uniform(0.0, 20.0, 4000)])
+    xyz = np.zeros((len(z), 3))
+    xyz[:, 2] = z
+    model = GaussianModel.from_points(xyz, np.full_like(xyz, 0.5), 0)
+    cam = _cam()
+    cam.c2w[2, 3] = 2.0
+    scene = types.SimpleNamespace(ground=[types.SimpleNamespace(camera=lambda: cam)])
+    prior = types.SimpleNamespace(scene_model=lambda s: (model,))
+    assert abs(warp.prior_ground(prior, scene) - 0.1) <= 0.06
+
+
+def _shift_coords(dx: int, size: int):
+    """j -> (uv, valid): frame j - 1 seen from frame j when the picture moved `dx` whole pixels to
+    the right (pixel x of frame j shows pixel x - dx of frame j - 1), valid where that lands inside."""
+    xs, ys = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    uv = np.stack([xs - dx, ys], -1)
+    return lambda j: (uv, (uv[..., 0] > 0) & (uv[..., 0] < size))
+
+
+def test_flow_align_moves_the_frame_and_puts_it_on_the_next_condition():
+    """A whole-pixel shift: frame j's view of frame i is frame i rolled by the shift (a closed
+    form: np.roll), frame i's own pixels where the shift brings nothing, expressed as a residual
+    from frame j's condition (through a patch fold and a residual scale); neighbours only."""
+    cfg = core.CoreConfig(resolution=8, patch=2, conditioning="concat", residual=True, residual_scale=2.0, coords=True)
+    g = torch.Generator().manual_seed(2)
+    cc = core.encode_cond(torch.rand(2, 3, 8, 8, generator=g), cfg)
+    img = torch.rand(1, 3, 8, 8, generator=g) * 0.8 + 0.1
+    z = core.to_diffused(core.encode(img, cfg), cc[:1], cfg)[0]
+    out = warp.FlowAlign(cc, _shift_coords(2, 8), cfg)(z, 0, 1)
+    assert out.shape == z.shape
+    got = core.decode(core.from_diffused(out[None], cc[1:2], cfg), cfg)[0].numpy()
+    want = np.roll(img[0].numpy(), 2, axis=-1)
+    want[..., :2] = img[0].numpy()[..., :2]  # nothing comes there: frame i's own pixels
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="neighbours"):
+        warp.FlowAlign(cc, _shift_coords(2, 8), cfg)(z, 0, 2)
+
+
+class CondShrink(Shrink):
+    """`Shrink` that also records its conditions."""
+
+    def forward(self, x_t, t, cond=None):
+        self.conds = getattr(self, "conds", []) + [cond.clone()]
+        return super().forward(x_t, t, cond)
+
+
+def test_sequence_sampler_gives_the_vcm_the_aligned_frame_before_on_the_next_condition():
+    """With `align`, each 2-frame clip's clean first frame is align(the frame just generated, i -
+    1, i), entering on frame i's condition; the output keeps the generated frames themselves, and
+    frame 0 is the ACM's alone as without it."""
+    n, steps = 4, 4
+    conds = torch.arange(n, dtype=torch.float32)[:, None, None, None].expand(n, 3, 8, 8).contiguous()
+    calls = []
+
+    def fake_align(z, i, j):
+        calls.append((z.clone(), i, j))
+        return z + 100.0 * (i + 1)
+
+    free = sample.sample_sequence(Shrink(CFG), Shrink(CFG), conds, steps=steps, seed=5, clip=2)
+    vcm_model = CondShrink(CFG)
+    out = sample.sample_sequence(Shrink(CFG), vcm_model, conds, steps=steps, seed=5, clip=2, align=fake_align)
+    assert [(i, j) for _, i, j in calls] == [(0, 1), (1, 2), (2, 3)]
+    assert torch.equal(out[0], free[0])
+    for k, (z, i, _) in enumerate(calls):
+        assert torch.equal(z, out[i])  # the generated frame, not its aligned copy
+        first_in, t_in = vcm_model.calls[k * steps]
+        assert torch.equal(first_in[0], out[i] + 100.0 * (i + 1)) and int(t_in[0]) == 0
+        assert torch.equal(vcm_model.conds[k * steps][0], conds[i + 1])  # both frames on frame i + 1's condition
+        assert torch.equal(vcm_model.conds[k * steps][1], conds[i + 1])
+
+
+def test_aligned_training_pairs_are_the_frame_before_moved_into_each_frame(monkeypatch):
+    """`stages.aligned_firsts`: row j is row j - 1 of its sequence moved by the conditions' flow
+    (here a whole-pixel shift standing in for it) and re-expressed on row j's condition; a
+    sequence's first row is zero."""
+    from reference.common.diffusion import stages
+
+    cfg = core.CoreConfig(resolution=8, patch=2, conditioning="concat", residual=True, residual_scale=2.0, coords=True)
+    g = torch.Generator().manual_seed(3)
+    renders = torch.rand(5, 3, 8, 8, generator=g)
+    imgs = torch.rand(5, 3, 8, 8, generator=g) * 0.8 + 0.1
+    cc = core.encode_cond(renders, cfg)
+    d = stages.TrainSet(list(range(5)), core.to_diffused(core.encode(imgs, cfg), cc, cfg), cc, "", "")
+    seen = []
+
+    def fake_flow(guides, **kw):
+        seen.append(guides)
+        return _shift_coords(1, 8)
+
+    monkeypatch.setattr(warp, "flow_coords", fake_flow)
+    out = stages.aligned_firsts(d, [[0, 1, 2], [3, 4]], cfg)
+    # the flow is computed on the conditions' colours (the renders), a sequence at a time
+    np.testing.assert_allclose(seen[1], renders[3:].permute(0, 2, 3, 1).numpy(), atol=1e-6)
+    assert torch.equal(out[0], torch.zeros_like(out[0])) and torch.equal(out[3], torch.zeros_like(out[3]))
+    for j in (1, 2, 4):
+        got = core.decode(core.from_diffused(out[j:j + 1], cc[j:j + 1], cfg), cfg)[0].numpy()
+        want = np.roll(imgs[j - 1].numpy(), 1, axis=-1)
+        want[..., :1] = imgs[j - 1].numpy()[..., :1]
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+
+
+def _street(n: int = 5, size: int = 24, step: float = 0.8):
+    """A camera 2 m over the plane z = 0 (world z up), looking level along +x and moving `step` m
+    a frame, over a smooth ground texture under a smooth sky; each frame's colours off by its own
+    constant (a flicker). -> (frames [N, 3, H, W], cameras, offsets [N], ground(x, y), sky(dirs))."""
+    rot = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera x, y, z -> world -y, -z, +x
+    cams = []
+    for k in range(n):
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = rot, [k * step, 0.0, 2.0]
+        cams.append(Camera(intrinsics(70.0, size, size), c2w, size, size))
+
+    def ground(x, y):
+        return np.stack([0.4 + 0.1 * np.sin(0.4 * x), 0.3 + 0.1 * np.cos(0.5 * y), 0.35 + 0.05 * np.sin(0.3 * (x + y))], -1)
+
+    def sky(d):
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        return np.stack([0.5 + 0.2 * d[..., 2], 0.6 + 0.1 * d[..., 1], 0.8 - 0.1 * d[..., 2]], -1)
+
+    offsets = np.array([0.0, 0.06, -0.04, 0.08, -0.02, 0.05, 0.0][:n])
+    frames = []
+    for cam, c in zip(cams, offsets):
+        o, d = cam.rays(normalize=False)
+        t = np.where(d[:, 2] < 0, -o[:, 2] / np.where(d[:, 2] < 0, d[:, 2], -1.0), np.inf)
+        p = o + d * np.where(np.isfinite(t), t, 0.0)[:, None]
+        col = np.where(np.isfinite(t)[:, None], ground(p[:, 0], p[:, 1]), sky(d)) + c
+        frames.append(col.reshape(size, size, 3).transpose(2, 0, 1))
+    return torch.tensor(np.stack(frames), dtype=torch.float32), cams, offsets, ground, sky
+
+
+def test_street_points_are_the_plane_under_the_horizon_before_the_prior():
+    """Level camera 2 m up: a pixel is street when its ray meets the plane (at planar depth 2 /
+    the ray's fall) nearer than `far` and not behind the prior's surface (or where the prior has
+    nothing); the points lie on the plane."""
+    _, cams, _, _, _ = _street(n=1)
+    cam = cams[0]
+    _, d = cam.rays(normalize=False)
+    depth = np.full((24, 24), np.inf)
+    depth[20:, :6] = 1.0  # something of the prior's in front of the near street
+    pts, t, street = warp.street_points(cam, depth, 0.0, far=12.0)
+    fall = -d[:, 2]
+    want_t = np.where(fall > 0, 2.0 / np.where(fall > 0, fall, 1.0), np.inf)
+    np.testing.assert_allclose(t, want_t, rtol=1e-12)
+    np.testing.assert_array_equal(street, (want_t < 12.0) & (want_t <= depth.ravel() * (1 + warp.DEPTH_TOL)))
+    assert street.reshape(24, 24)[20:, :6].sum() == 0 and street.reshape(24, 24)[20:, 6:].all()
+    assert not street.reshape(24, 24)[:12].any()  # at and above the horizon: no street
+    np.testing.assert_allclose(pts[street][:, 2], 0.0, atol=1e-9)
+
+
+def _owner_reference(cams, p, h, w, far, view_m):
+    """The frame whose view of street point p is chosen (a slow loop with `Camera.project`): the
+    one that sees it within its pixel centres, as street at the nearest pixel, at the planar
+    depth nearest view_m (0: the nearest)."""
+    best, owner = np.inf, None
+    for s, cam in enumerate(cams):
+        uv, z = cam.project(p[None])
+        u, v = uv[0]
+        if z[0] > 0 and 0.5 <= u <= w - 0.5 and 0.5 <= v <= h - 0.5:
+            _, ds = cam.rays(np.array([[np.floor(u) + 0.5, np.floor(v) + 0.5]]), normalize=False)
+            key = abs(z[0] - view_m) if view_m else z[0]
+            if -2.0 / min(ds[0, 2], -1e-12) < far and key < best:
+                best, owner = key, s
+    return owner
+
+
+@pytest.mark.parametrize("view_m", [0.0, 6.0])
+def test_street_transfer_takes_each_point_from_one_view(view_m):
+    """A camera driving over a textured street, each frame off by its own constant: a street pixel
+    becomes the texture plus the offset of the frame that sees its point at the depth nearest
+    `view_m` (`_owner_reference`); above the street nothing changes; the warp error between
+    frames (the metric's own warp, by the true depth) falls to the texture's resampling error."""
+    from skyeyes_bench.metrics.geometry import warp_coords, warp_error
+
+    imgs, cams, offsets, ground, _ = _street()
+    n, _, h, w = imgs.shape
+    depths = [np.full((h, w), np.inf)] * n
+    out = warp.street_transfer(imgs, cams, depths, 0.0, far=12.0, view_m=view_m).numpy()
+    x = imgs.numpy()
+    owners = set()
+    for k in (0, 2):
+        o, d = cams[k].rays(normalize=False)
+        fall = np.where(d[:, 2] < 0, -d[:, 2], 0.0)
+        street = ((fall > 0) & (2.0 < 12.0 * fall)).reshape(h, w)
+        np.testing.assert_array_equal(out[k][:, ~street], x[k][:, ~street])
+        for i in range(h * w):
+            r, c = divmod(i, w)
+            if r in (0, h - 1) or c in (0, w - 1) or not street[r - 1:r + 2, c - 1:c + 2].all():
+                continue  # the ramp's border pixels
+            p = o[i] + d[i] * (2.0 / fall[i])
+            owner = _owner_reference(cams, p, h, w, 12.0, view_m)
+            owners.add(owner)
+            np.testing.assert_allclose(out[k, :, r, c], np.clip(ground(p[0], p[1]) + offsets[owner], 0, 1), atol=0.02)
+    assert len(owners) >= 3  # the points come from several views
+    before = after = 0.0
+    for k in range(n - 1):
+        depth = []
+        for cam in (cams[k + 1], cams[k]):
+            _, d = cam.rays(normalize=False)
+            depth.append(np.where(d[:, 2] < 0, -2.0 / np.where(d[:, 2] < 0, d[:, 2], -1.0), np.inf).reshape(h, w))
+        uv, ok = warp_coords(depth[0], cams[k + 1], depth[1], cams[k], 0.01)
+        ok &= (depth[0] < 12.0)  # the street the transfer covers
+        before += warp_error(x[k].transpose(1, 2, 0), x[k + 1].transpose(1, 2, 0), uv, ok)[0]
+        after += warp_error(out[k].transpose(1, 2, 0), out[k + 1].transpose(1, 2, 0), uv, ok)[0]
+    assert before / (n - 1) > 0.04 and after < 0.3 * before  # what is left: the ramps, resampling
+    half = warp.street_transfer(imgs, cams, depths, 0.0, far=12.0, view_m=view_m, mix=0.5).numpy()
+    np.testing.assert_allclose(half, 0.5 * (x + out), atol=1e-5)
+    with pytest.raises(ValueError, match="mix"):
+        warp.street_transfer(imgs, cams, depths, 0.0, mix=0.0)
+
+
+def test_street_transfer_leaves_what_the_prior_puts_in_front():
+    """Pixels where the prior's surface stands before the plane (a wall, a car) are not street:
+    they keep their own colours exactly."""
+    imgs, cams, _, _, _ = _street(n=3)
+    depths = [np.full((24, 24), np.inf) for _ in cams]
+    for dep in depths:
+        dep[:, 10:14] = 3.0
+    out = warp.street_transfer(imgs, cams, depths, 0.0, far=12.0)
+    torch.testing.assert_close(out[..., 10:14], imgs[..., 10:14], rtol=0, atol=0)
+    assert not torch.allclose(out[..., 16:, :8], imgs[..., 16:, :8])

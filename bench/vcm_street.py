@@ -60,7 +60,7 @@ class Sequences:
         self.m = Skyeyes(config, args.workdir / "work", progress=False)
         self.m.fit_train(ds)
         self.m.fit_scenes(scenes, progress=False)
-        self.zg = {}
+        self.zg, self.geometry = {}, {}
 
     def apply(self, setting, scene, q, raw: np.ndarray) -> np.ndarray:
         """Frames [N, H, W, 3] in [0, 1] -> the same through `setting`."""
@@ -77,8 +77,10 @@ class Sequences:
             if scene.name not in self.zg:
                 prior.fit_scene(scene)  # resumed from its checkpoint
                 self.zg[scene.name] = warp.prior_ground(prior, scene)
-            cams = [warp.scaled_camera(f.camera(), w, h) for f in frames]
-            depths = [warp.prior_depth(prior, scene, f, w, h) for f in frames]
+            if q.id not in self.geometry:  # rendered once a sequence, whichever settings follow
+                self.geometry = {q.id: ([warp.scaled_camera(f.camera(), w, h) for f in frames],
+                                        [warp.prior_depth(prior, scene, f, w, h) for f in frames])}
+            cams, depths = self.geometry[q.id]
             x = warp.street_transfer(x, cams, depths, self.zg[scene.name], mix=mix, view_m=view_m)
         return x.permute(0, 2, 3, 1).numpy()
 

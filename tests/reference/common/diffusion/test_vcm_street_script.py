@@ -41,8 +41,8 @@ def test_a_setting_is_the_anchor_then_the_street(vs, monkeypatch):
     parts = vs.Sequences.__new__(vs.Sequences)
     parts.m = types.SimpleNamespace(scene_model=lambda s: {id(f): None for f in frames},
                                     prior=types.SimpleNamespace(fit_scene=lambda s: None))
-    parts.zg = {}
-    scene, q = types.SimpleNamespace(name="s"), types.SimpleNamespace(frames=frames)
+    parts.zg, parts.geometry = {}, {}
+    scene, q = types.SimpleNamespace(name="s"), types.SimpleNamespace(frames=frames, id="q")
     raw = np.full((3, 4, 4, 3), 0.25, np.float32)
     out = parts.apply((0.6, 0.8, 4.0), scene, q, raw)
     assert calls == [("anchor", 3.0, 0.6, 4), ("street", 3, 0.25, 0.8, 4.0)]

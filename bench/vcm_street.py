@@ -1,14 +1,17 @@
-"""The street from one view (`vcm_street`, `warp.street_transfer`; issue 36), screened on a run's
-frames: each frame's pixels of the street's plane (under the prior's Gaussians) take the colour
-of the frame that sees that point VIEW_M away, so the road holds still from frame to frame.
+"""The street from one view (`vcm_street`, `warp.street_transfer`) and the sky from one fit
+(`vcm_sky`, `warp.sky_fit`; issue 36), screened on a run's frames: each frame's pixels of the
+street's plane (under the prior's Gaussians) take the colour of the frame that sees that point
+VIEW_M away, and its sky one smooth function of the direction, so the road and the sky hold still
+from frame to frame.
 
     PYTHONPATH= .venv/bin/python bench/vcm_street.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
         --workdir /tmp/vcm-screen --submission RUN/submission --scenes 1 0.5:0:4 0.6:1:4 0.6:1:0
 
-A setting is ANCHOR:MIX[:VIEW_M]: first the prior anchor at `vcm_anchor_mix` ANCHOR (0: none;
-sigma 3 px, a 4 x 4 grid of colour maps: `warp.prior_anchor`, what `vcm_anchor` does) on the
-submission's frames, then the street transfer at `vcm_street` MIX (0: none) with the owner view
-VIEW_M m away (default `warp.STREET_VIEW_M`; 0: the nearest view). The submission should be a
+A setting is ANCHOR:MIX[:VIEW_M[:SKY]]: first the prior anchor at `vcm_anchor_mix` ANCHOR (0:
+none; sigma 3 px, a 4 x 4 grid of colour maps: `warp.prior_anchor`, what `vcm_anchor` does) on
+the submission's frames, then the street transfer at `vcm_street` MIX (0: none) with the owner
+view VIEW_M m away (default `warp.STREET_VIEW_M`; 0: the nearest view), then the sky from one fit
+of the sequence's at `vcm_sky` SKY (default 0: none; `warp.sky_fit`). The submission should be a
 run without either (the `small` preset's frames before the anchor: carried noise, the paper's
 VCM), so that each setting is what the pipeline would make from the same sampled frames, up to
 the frames' 8-bit rounding.
@@ -42,12 +45,13 @@ from vcm_lowpass import submission_frames, write_transformed  # noqa: E402
 from vcm_screen import features, metric_pairs, report, screen_parser, screened, scored  # noqa: E402
 
 
-def parse(text: str) -> tuple[float, float, float]:
-    """ANCHOR:MIX[:VIEW_M] -> (anchor mix, street mix, view distance)."""
+def parse(text: str) -> tuple[float, float, float, float]:
+    """ANCHOR:MIX[:VIEW_M[:SKY]] -> (anchor mix, street mix, view distance, sky mix)."""
     parts = [float(v) for v in text.split(":")]
-    if len(parts) not in (2, 3) or not (0 <= parts[0] <= 1 and 0 <= parts[1] <= 1):
-        raise SystemExit(f"setting {text!r}: expected ANCHOR:MIX[:VIEW_M], ANCHOR and MIX in [0, 1]")
-    return parts[0], parts[1], parts[2] if len(parts) == 3 else warp.STREET_VIEW_M
+    if len(parts) not in (2, 3, 4) or not all(0 <= parts[i] <= 1 for i in (0, 1, 3) if i < len(parts)):
+        raise SystemExit(f"setting {text!r}: expected ANCHOR:MIX[:VIEW_M[:SKY]], ANCHOR, MIX and SKY in [0, 1]")
+    view = parts[2] if len(parts) >= 3 else warp.STREET_VIEW_M
+    return parts[0], parts[1], view, parts[3] if len(parts) == 4 else 0.0
 
 
 class Sequences:
@@ -64,7 +68,7 @@ class Sequences:
 
     def apply(self, setting, scene, q, raw: np.ndarray) -> np.ndarray:
         """Frames [N, H, W, 3] in [0, 1] -> the same through `setting`."""
-        anchor, mix, view_m = setting
+        anchor, mix, view_m, sky = setting
         frames = list(q.frames)
         h, w = raw.shape[1:3]
         x = torch.from_numpy(raw).permute(0, 3, 1, 2).float()
@@ -72,7 +76,7 @@ class Sequences:
             renders = torch.from_numpy(_guides([self.m.scene_model(scene)[frame_key(scene, f)] for f in frames],
                                                h, w)).permute(0, 3, 1, 2)
             x = warp.prior_anchor(x, renders, 3.0, anchor, 4)
-        if mix:
+        if mix or sky:
             prior = self.m.prior
             if scene.name not in self.zg:
                 prior.fit_scene(scene)  # resumed from its checkpoint
@@ -81,7 +85,10 @@ class Sequences:
                 self.geometry = {q.id: ([warp.scaled_camera(f.camera(), w, h) for f in frames],
                                         [warp.prior_depth(prior, scene, f, w, h) for f in frames])}
             cams, depths = self.geometry[q.id]
-            x = warp.street_transfer(x, cams, depths, self.zg[scene.name], mix=mix, view_m=view_m)
+            if mix:
+                x = warp.street_transfer(x, cams, depths, self.zg[scene.name], mix=mix, view_m=view_m)
+            if sky:
+                x = warp.sky_fit(x, cams, depths, mix=sky)
         return x.permute(0, 2, 3, 1).numpy()
 
 
@@ -89,14 +96,14 @@ def main(argv=None) -> None:
     ap = screen_parser(__doc__)
     ap.add_argument("--submission", required=True, type=Path, help="a run's submission folder (before the anchor)")
     ap.add_argument("--write", type=Path, help="write the first setting's frames of every test scene here")
-    ap.add_argument("settings", nargs="+", help="ANCHOR:MIX[:VIEW_M] (above)")
+    ap.add_argument("settings", nargs="+", help="ANCHOR:MIX[:VIEW_M[:SKY]] (above)")
     args = ap.parse_args(argv)
     settings = [parse(s) for s in args.settings]
     if args.write is not None:
         ds = screened(args)[0]
         seqs = Sequences(args, ds, ds.split("test"))
         extra = {"vcm_anchor": 3.0, "vcm_anchor_mix": settings[0][0], "vcm_street": settings[0][1],
-                 "street_view_m": settings[0][2], "transfer": f"bench/vcm_street.py --write {args.settings[0]}"}
+                 "street_view_m": settings[0][2], "vcm_sky": settings[0][3], "transfer": f"bench/vcm_street.py --write {args.settings[0]}"}
         write_transformed(args.submission, args.write, ds, "-street", extra,
                           lambda scene, q, raw: seqs.apply(settings[0], scene, q, raw))
         return

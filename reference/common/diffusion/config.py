@@ -239,6 +239,11 @@ class DiffusionConfig:
     # to the colour of the frame that sees that point `warp.STREET_VIEW_M` away. Sampling only;
     # needs a Gaussian prior (its depth and Gaussians: `sugar`, `gaussians3d`).
     vcm_street: float = 0.0
+    # The sky as one function of the direction (`warp.sky_fit`; 0: none): after the street, each
+    # frame's pixels where the prior sees nothing above the horizon move this share of the way to
+    # one smooth fit of the whole sequence's sky (a polynomial in the ray's direction: a direction
+    # at infinity looks the same from every pose). Sampling only; needs a Gaussian prior (its depth).
+    vcm_sky: float = 0.0
     # Shared noise (`sample.frame_noise`; 0: every frame its own): each frame's starting noise is
     # sqrt(vcm_noise) of one draw its sequence shares plus sqrt(1 - vcm_noise) of its own, still a
     # standard normal per frame. `vcm_noise_sigma` > 0: only the noise's low frequencies are
@@ -293,7 +298,7 @@ WHOLE_UNET_LR = 1e-4
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
 VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_align", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_anchor",
-            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_street", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
+            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_street", "vcm_sky", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

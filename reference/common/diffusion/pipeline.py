@@ -89,12 +89,13 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"{config.vcm_anchor_tiles}: expected vcm_anchor >= 0 (pixels), 0 < vcm_anchor_mix <= 1, "
                          "vcm_anchor_tiles >= 1, and when vcm_anchor is not 0 the "
                          "VCM on (vcm=true) and a prior's renders as the condition (the frames' anchor)")
-    if not 0.0 <= config.vcm_street <= 1.0 or \
-            (config.vcm_street and not (config.vcm and config.condition == "prior"
-                                        and config.prior_method in GAUSSIAN_PRIORS)):
-        raise ValueError(f"vcm_street {config.vcm_street}: expected 0 <= vcm_street <= 1, and when it is not 0 the "
-                         f"VCM on (vcm=true) and the renders of a Gaussian prior ({', '.join(GAUSSIAN_PRIORS)}) as the "
-                         f"condition (its depth and Gaussians find the street), not {config.prior_method!r}")
+    for name in ("vcm_street", "vcm_sky"):
+        v = getattr(config, name)
+        if not 0.0 <= v <= 1.0 or \
+                (v and not (config.vcm and config.condition == "prior" and config.prior_method in GAUSSIAN_PRIORS)):
+            raise ValueError(f"{name} {v}: expected 0 <= {name} <= 1, and when it is not 0 the VCM on (vcm=true) "
+                             f"and the renders of a Gaussian prior ({', '.join(GAUSSIAN_PRIORS)}) as the condition "
+                             f"(its depth and Gaussians find the street and the sky), not {config.prior_method!r}")
     if not 0.0 <= config.vcm_noise <= 1.0 or config.vcm_noise_sigma < 0 or (config.vcm_noise and not config.vcm) or \
             (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
         raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
@@ -217,14 +218,14 @@ class DiffusionMethod(Method):
     def scene_parts(self) -> list[SceneConditions | PriorFits]:
         """Fitted on the test scenes at once, before each scene's own fit: the condition part
         (a prior fitted per scene `jobs` at a time and rendered, `render_priors`), and with
-        `vcm_warp` or `vcm_street` the prior's fitted scenes (its depth moves frames or finds the
-        street; cached renders fit none)."""
+        `vcm_warp`, `vcm_street` or `vcm_sky` the prior's fitted scenes (its depth moves frames or
+        finds the street and the sky; cached renders fit none)."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
-        if not (self.config.vcm_warp or self.config.vcm_street):
+        if not (self.config.vcm_warp or self.config.vcm_street or self.config.vcm_sky):
             return [self.condition]
         if self.config.prior_method not in GAUSSIAN_PRIORS:
-            raise ValueError(f"vcm_warp, vcm_street: the prior {self.config.prior_method!r} is not Gaussians "
+            raise ValueError(f"vcm_warp, vcm_street, vcm_sky: the prior {self.config.prior_method!r} is not Gaussians "
                              f"({', '.join(GAUSSIAN_PRIORS)}), whose depth moves the frames")
         return [self.condition, PriorFits(lambda: self.prior)]
 
@@ -260,7 +261,7 @@ class DiffusionMethod(Method):
             renders = torch.as_tensor(_guides(priors, *imgs.shape[-2:]), device=imgs.device).permute(0, 3, 1, 2)
             imgs = prior_anchor(imgs, renders, self.config.vcm_anchor, self.config.vcm_anchor_mix,
                                 self.config.vcm_anchor_tiles)
-        if self.config.vcm_street:  # the street from one view of each of its points
+        if self.config.vcm_street or self.config.vcm_sky:  # the street from one view, the sky from one fit
             imgs = self._street(scene, sequence, imgs)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
@@ -318,16 +319,18 @@ class DiffusionMethod(Method):
 
     def _street(self, scene: Scene, sequence: Sequence, imgs):
         """`vcm_street`: the street of a sequence's decoded frames [N, 3, H, W] taken from one view
-        of each of its points (`warp.street_transfer`), by the prior's depth and Gaussians."""
+        of each of its points (`warp.street_transfer`), by the prior's depth and Gaussians; then
+        `vcm_sky`: their sky from one fit of the sequence's (`warp.sky_fit`), by the prior's depth."""
         from . import warp
 
+        c = self.config
         h, w = imgs.shape[-2:]
-        zg = warp.prior_ground(self.prior, scene)
-        if zg is None:  # no street under the cameras in the prior: nothing to take
-            return imgs
         depths = [warp.prior_depth(self.prior, scene, f, w, h) for f in sequence.frames]
         cams = [warp.scaled_camera(f.camera(), w, h) for f in sequence.frames]
-        return warp.street_transfer(imgs, cams, depths, zg, mix=self.config.vcm_street)
+        zg = warp.prior_ground(self.prior, scene) if c.vcm_street else None
+        if zg is not None:  # None: no street under the cameras in the prior, nothing to take
+            imgs = warp.street_transfer(imgs, cams, depths, zg, mix=c.vcm_street)
+        return warp.sky_fit(imgs, cams, depths, mix=c.vcm_sky) if c.vcm_sky else imgs
 
     def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
         """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the

@@ -33,7 +33,9 @@ ACM's correction of the prior's colours stays.
 The street from one view (`vcm_street`, `street_transfer`) moves nothing by a flow either: the
 street is a plane under the prior's Gaussians (`prior_ground`), where the poses place every pixel
 to a fraction of a pixel, so each point of it takes its colour from one frame's view of it, the
-same whichever frame shows it. `FlowAlign` (`vcm_align`) gives the VCM's attention the frame
+same whichever frame shows it. The sky (`vcm_sky`, `sky_fit`) is a direction at infinity, the
+same colour from every pose: one smooth fit of the sequence's sky pixels paints it in every
+frame. `FlowAlign` (`vcm_align`) gives the VCM's attention the frame
 before moved into the new frame's view.
 """
 
@@ -487,4 +489,58 @@ def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.n
         m = on.reshape(h, w).astype(np.float64)
         weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
         out[k] = x[k] + weight[..., None] * (target.reshape(h, w, 3) - x[k])
+    return torch.from_numpy(out.transpose(0, 3, 1, 2).copy()).to(imgs.device, imgs.dtype).clamp(0.0, 1.0)
+
+
+def _sky_basis(d: np.ndarray, degree: int) -> np.ndarray:
+    """Unit directions [M, 3] (world, z up) -> the monomials of their components up to `degree` [M, K]."""
+    cols = [np.ones(len(d))]
+    for total in range(1, degree + 1):
+        for i in range(total + 1):
+            for j in range(total - i + 1):
+                k = total - i - j
+                cols.append(d[:, 0] ** i * d[:, 1] ** j * d[:, 2] ** k)
+    return np.stack(cols, 1)
+
+
+def sky_fit(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray], *, mix: float = 1.0,
+            degree: int = 2, trim: float = 0.2, up: float = 0.0) -> torch.Tensor:
+    """A sequence's frames [N, 3, H, W] in [0, 1] -> the same with the sky one smooth function of
+    the direction for the whole sequence: where the prior sees nothing (depth +inf) above the
+    horizon (world ray z > `up`), the colour moves `mix` of the way to a polynomial of degree
+    `degree` in the ray's direction, least squares over every frame's sky pixels (refitted without
+    the `trim` share of the largest residuals: the ghosts of buildings the generator paints)."""
+    from scipy.ndimage import uniform_filter
+
+    if not 0 < mix <= 1 or degree < 0 or not 0 <= trim < 1:
+        raise ValueError(f"sky_fit: mix {mix} (0 < mix <= 1), degree {degree} (>= 0), trim {trim} (0 <= trim < 1)")
+    n, _, h, w = imgs.shape
+    if not (n == len(cameras) == len(depths)):
+        raise ValueError(f"sky_fit: {n} frames, {len(cameras)} cameras, {len(depths)} depths")
+    x = imgs.detach().double().cpu().numpy().transpose(0, 2, 3, 1)
+    dirs, masks = [], []
+    for c, dep in zip(cameras, depths):
+        _, d = c.rays()
+        dirs.append(d)
+        masks.append(np.isinf(np.asarray(dep).ravel()) & (d[:, 2] > up))
+    mask = np.stack(masks)
+    if not mask.any():
+        return imgs.clone()
+    d_all = np.concatenate([d[m] for d, m in zip(dirs, masks)])
+    y_all = np.concatenate([x[k].reshape(-1, 3)[m] for k, m in enumerate(masks)])
+    step = max(1, len(d_all) // 200_000)
+    a, y = _sky_basis(d_all[::step], degree), y_all[::step]
+    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    if trim:
+        r = np.linalg.norm(a @ coef - y, axis=1)
+        keep = r <= np.quantile(r, 1.0 - trim)
+        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
+    out = x.copy()
+    for k in range(n):
+        m = masks[k].reshape(h, w).astype(np.float64)
+        if not m.any():
+            continue
+        target = np.clip(_sky_basis(dirs[k], degree) @ coef, 0, 1).reshape(h, w, 3)
+        weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
+        out[k] = x[k] + weight[..., None] * (target - x[k])
     return torch.from_numpy(out.transpose(0, 3, 1, 2).copy()).to(imgs.device, imgs.dtype).clamp(0.0, 1.0)

@@ -485,15 +485,16 @@ def test_skyeyes_checks_vcm_anchor(tmp_path):
     Skyeyes(dataclasses.replace(smoke, vcm_anchor=2.0, vcm_anchor_mix=0.5), tmp_path)
 
 
-def test_skyeyes_checks_vcm_street(tmp_path):
+@pytest.mark.parametrize("name", ["vcm_street", "vcm_sky"])
+def test_skyeyes_checks_vcm_street_and_sky(tmp_path, name):
     from reference.methods.skyeyes import PRESETS, Skyeyes
 
     smoke = PRESETS["smoke"]
-    for bad in (dict(vcm_street=-0.1), dict(vcm_street=1.5), dict(vcm=False, vcm_street=1.0),
-                dict(vcm_street=1.0, condition="aerial"), dict(vcm_street=1.0, prior_method="mvs")):
-        with pytest.raises(ValueError, match="vcm_street"):
+    for bad in ({name: -0.1}, {name: 1.5}, {name: 1.0, "vcm": False},
+                {name: 1.0, "condition": "aerial"}, {name: 1.0, "prior_method": "mvs"}):
+        with pytest.raises(ValueError, match=name):
             Skyeyes(dataclasses.replace(smoke, **bad), tmp_path)
-    Skyeyes(dataclasses.replace(smoke, vcm_street=1.0), tmp_path)
+    Skyeyes(dataclasses.replace(smoke, **{name: 1.0}), tmp_path)
 
 
 def test_prior_ground_is_the_street_under_the_cameras_among_the_gaussians():
@@ -722,3 +723,100 @@ def test_street_transfer_leaves_what_the_prior_puts_in_front():
     out = warp.street_transfer(imgs, cams, depths, 0.0, far=12.0)
     torch.testing.assert_close(out[..., 10:14], imgs[..., 10:14], rtol=0, atol=0)
     assert not torch.allclose(out[..., 16:, :8], imgs[..., 16:, :8])
+
+
+def _sky_pixels(cam, depth):
+    """[H, W] the pixels `sky_fit` treats as sky: nothing of the prior's, the ray above the horizon."""
+    _, d = cam.rays()
+    return (np.isinf(depth).ravel() & (d[:, 2] > 0)).reshape(depth.shape)
+
+
+def test_sky_fit_is_one_function_of_the_direction_for_the_sequence():
+    """A sky linear in the ray's direction, each frame off by its own constant (`_street`): with
+    no trimming, the interior sky pixels of every frame become that sky plus the offsets' mean
+    (the least squares of a degree 1 or 2 polynomial over the same directions in every frame);
+    the street keeps its own colours exactly; the mask's border pixels go half the way; half the
+    mix is half the way."""
+    imgs, cams, offsets, _, sky = _street()
+    n, _, h, w = imgs.shape
+    depths = [np.full((h, w), np.inf) for _ in cams]
+    mean = offsets.mean()  # the cameras only translate: every frame's sky pixels see the same directions
+    for degree in (1, 2):
+        out = warp.sky_fit(imgs, cams, depths, degree=degree, trim=0.0).numpy()
+        for k, cam in enumerate(cams):
+            m = _sky_pixels(cam, depths[k])
+            inner = m & (ndimage.uniform_filter(m.astype(float), 3, mode="nearest") > 0.999)
+            _, d = cam.rays()
+            want = sky(d).reshape(h, w, 3) + mean
+            np.testing.assert_allclose(out[k].transpose(1, 2, 0)[inner], want[inner], atol=1e-5)
+            np.testing.assert_array_equal(out[k][:, ~m], imgs[k].numpy()[:, ~m])
+            edge = m & ~inner
+            np.testing.assert_allclose(out[k].transpose(1, 2, 0)[edge],
+                                       0.5 * (imgs[k].numpy().transpose(1, 2, 0)[edge] + want[edge]), atol=1e-5)
+    assert inner.sum() > 50
+    half = warp.sky_fit(imgs, cams, depths, mix=0.5, trim=0.0).numpy()
+    np.testing.assert_allclose(half, 0.5 * (imgs.numpy() + warp.sky_fit(imgs, cams, depths, trim=0.0).numpy()), atol=1e-5)
+    for bad in (dict(mix=0.0), dict(mix=1.5), dict(degree=-1), dict(trim=1.0)):
+        with pytest.raises(ValueError, match="sky_fit"):
+            warp.sky_fit(imgs, cams, depths, **bad)
+    with pytest.raises(ValueError, match="2 depths"):
+        warp.sky_fit(imgs, cams, depths[:2])
+
+
+def test_sky_fit_trims_a_ghost():
+    """One frame paints a dark ghost over a few of its sky pixels (under a fifth of the
+    sequence's): the trimmed fit is the true sky, exactly, in every frame, the ghost painted
+    over, and the prior's building kept as it is; the untrimmed one is pulled towards the ghost."""
+    imgs, cams, _, _, sky = _street(n=4)
+    n, _, h, w = imgs.shape
+    _, d = cams[0].rays()
+    clean = torch.tensor(np.stack([sky(d).reshape(h, w, 3).transpose(2, 0, 1)] * n), dtype=torch.float32)
+    ground = ~_sky_pixels(cams[0], np.full((h, w), np.inf))
+    clean[:, :, ground] = imgs[:, :, ground]
+    ghosted = clean.clone()
+    ghosted[2, :, 3:7, 8:14] = 0.1
+    depths = [np.full((h, w), np.inf) for _ in range(n)]
+    depths[1][2:6, 4:9] = 20.0  # a building of the prior's against the sky: left as it is
+    m = _sky_pixels(cams[0], depths[0])
+    inner = m & (ndimage.uniform_filter(m.astype(float), 3, mode="nearest") > 0.999)
+    assert 0 < 24 < 0.2 * n * m.sum()
+    out = warp.sky_fit(ghosted, cams, depths).numpy()
+    for k in range(n):
+        keep = ~_sky_pixels(cams[k], depths[k])
+        np.testing.assert_array_equal(out[k][:, keep], ghosted[k].numpy()[:, keep])
+        ok = inner & ~ndimage.binary_dilation(keep, iterations=1)
+        np.testing.assert_allclose(out[k][:, ok], clean[k].numpy()[:, ok], atol=1e-5)
+    pulled = warp.sky_fit(ghosted, cams, depths, trim=0.0).numpy()
+    assert np.abs(pulled[0][:, inner] - clean[0].numpy()[:, inner]).max() > 0.01
+
+
+@pytest.mark.parametrize("street, sky, ground", [(0.8, 1.0, 0.25), (0.8, 0.0, 0.25), (0.0, 0.7, 0.25), (0.8, 1.0, None)])
+def test_pipeline_takes_the_street_then_the_sky(tmp_path, monkeypatch, street, sky, ground):
+    """`Skyeyes._street`: the prior's depth and the scaled cameras of every frame, then the street
+    transfer at `vcm_street` (skipped when it is 0 or the prior has no street), then the sky fit at
+    `vcm_sky` (skipped when 0), each on the one before's frames."""
+    from reference.methods.skyeyes import PRESETS, Skyeyes
+
+    m = Skyeyes(dataclasses.replace(PRESETS["smoke"], vcm_street=street, vcm_sky=sky), tmp_path)
+    m._prior = object()
+    calls = []
+    monkeypatch.setattr(warp, "prior_depth", lambda prior, scene, f, w, h: np.full((h, w), float(f.camera())))
+    monkeypatch.setattr(warp, "scaled_camera", lambda cam, w, h: ("cam", cam, w, h))
+    monkeypatch.setattr(warp, "prior_ground", lambda prior, scene: ground)
+    monkeypatch.setattr(warp, "street_transfer", lambda x, cams, depths, zg, *, mix:
+                        calls.append(("street", [c[1] for c in cams], [d[0, 0] for d in depths], zg, mix)) or x + 1)
+    monkeypatch.setattr(warp, "sky_fit", lambda x, cams, depths, *, mix:
+                        calls.append(("sky", [c[1] for c in cams], [d[0, 0] for d in depths], mix)) or x * 2)
+    frames = [7, 8, 9]  # each frame's camera, and its prior depth
+    seq = types.SimpleNamespace(frames=[types.SimpleNamespace(camera=lambda k=k: k) for k in frames])
+    imgs = torch.zeros(3, 3, 4, 5)
+    out = m._street(types.SimpleNamespace(name="s"), seq, imgs)
+    want, x = [], 0.0
+    if street and ground is not None:
+        want.append(("street", frames, [7.0, 8.0, 9.0], ground, street))
+        x = x + 1
+    if sky:
+        want.append(("sky", frames, [7.0, 8.0, 9.0], sky))
+        x = x * 2
+    assert calls == want
+    torch.testing.assert_close(out, torch.full_like(imgs, x))

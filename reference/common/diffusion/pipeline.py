@@ -40,7 +40,7 @@ from .guidance import Unguided
 from .presets import GPU_TRAINING
 
 #: The priors made of Gaussians, whose depth (`warp.prior_depth`) and means (`warp.prior_ground`)
-#: the warped sampling and the street transfer use.
+#: the warped sampling, the street transfer and the sky fit use.
 GAUSSIAN_PRIORS = ("sugar", "gaussians3d")
 
 if TYPE_CHECKING:

@@ -49,21 +49,35 @@ def render_all(method, dataset) -> dict:
 
 
 class StandInPrior(Method):
-    """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised. Counts its calls."""
+    """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised, and as its fitted
+    scene a Gaussian prior's model (`warp.prior_depth`, `warp.prior_ground` read it): a grid of
+    grey Gaussians on the street 1.6 m under the ground cameras, nothing above it (the sky).
+    Counts its calls."""
 
     name = "stand-in-prior"
     presets = {"default": {}}
+    #: the street's height under the ground cameras (m)
+    CAMERA_HEIGHT_M = 1.6
 
     def __init__(self, workdir: Path, seed: int = 0):
-        super().__init__({}, workdir, seed=seed)
+        import types
+
+        # what a Gaussian prior's config gives `warp.prior_depth`
+        super().__init__(types.SimpleNamespace(sh_degree=0, render_near_m=0.05), workdir, seed=seed)
         self.fitted: list[str] = []
 
     def config_dict(self) -> dict:
         return {"blur": 3, "noise": 0.1}
 
     def fit_scene_model(self, scene, *, progress):
+        from reference.common.gaussians.model import GaussianModel
+
         self.fitted.append(scene.name)
-        return None, {}
+        pos = np.array([f.camera().c2w[:3, 3] for f in scene.ground])
+        gx, gy = np.meshgrid(np.arange(pos[:, 0].min() - 20, pos[:, 0].max() + 20, 0.5),
+                             np.arange(pos[:, 1].min() - 20, pos[:, 1].max() + 20, 0.5))
+        xyz = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, pos[:, 2].min() - self.CAMERA_HEIGHT_M)], 1)
+        return (GaussianModel.from_points(xyz, np.full_like(xyz, 0.5), 0, opacity=0.9, max_scale=0.5),), {}
 
     def render_sequence(self, scene, sequence):
         from scipy.ndimage import uniform_filter

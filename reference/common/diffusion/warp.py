@@ -489,7 +489,7 @@ def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.n
         m = on.reshape(h, w).astype(np.float64)
         weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
         out[k] = x[k] + weight[..., None] * (target.reshape(h, w, 3) - x[k])
-    return torch.from_numpy(out.transpose(0, 3, 1, 2).copy()).to(imgs.device, imgs.dtype).clamp(0.0, 1.0)
+    return torch.as_tensor(out.transpose(0, 3, 1, 2).copy(), device=imgs.device).to(imgs.dtype).clamp(0.0, 1.0)
 
 
 def _sky_basis(d: np.ndarray, degree: int) -> np.ndarray:
@@ -543,4 +543,4 @@ def sky_fit(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray],
         target = np.clip(_sky_basis(dirs[k], degree) @ coef, 0, 1).reshape(h, w, 3)
         weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
         out[k] = x[k] + weight[..., None] * (target - x[k])
-    return torch.from_numpy(out.transpose(0, 3, 1, 2).copy()).to(imgs.device, imgs.dtype).clamp(0.0, 1.0)
+    return torch.as_tensor(out.transpose(0, 3, 1, 2).copy(), device=imgs.device).to(imgs.dtype).clamp(0.0, 1.0)

@@ -12,8 +12,8 @@ none; sigma 3 px, a 4 x 4 grid of colour maps: `warp.prior_anchor`, what `vcm_an
 the submission's frames, then the street transfer at `vcm_street` MIX (0: none) with the owner
 view VIEW_M m away (default `warp.STREET_VIEW_M`; 0: the nearest view), then the sky from one fit
 of the sequence's at `vcm_sky` SKY (default 0: none; `warp.sky_fit`). The submission should be a
-run without either (the `small` preset's frames before the anchor: carried noise, the paper's
-VCM), so that each setting is what the pipeline would make from the same sampled frames, up to
+run without any of the three (the `small` preset's frames before the anchor: carried noise, the
+paper's VCM; `reproduce ... --set vcm_anchor=0 --set vcm_street=0 --set vcm_sky=0`), so that each setting is what the pipeline would make from the same sampled frames, up to
 the frames' 8-bit rounding.
 
 Scored as bench/vcm_screen.py scores (`report`), each setting's frames rounded to 8 bits: the

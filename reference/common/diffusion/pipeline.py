@@ -324,11 +324,13 @@ class DiffusionMethod(Method):
         from . import warp
 
         c = self.config
+        zg = warp.prior_ground(self.prior, scene) if c.vcm_street else None  # None: no street to take
+        if zg is None and not c.vcm_sky:
+            return imgs  # nothing to do: no depths rendered
         h, w = imgs.shape[-2:]
         depths = [warp.prior_depth(self.prior, scene, f, w, h) for f in sequence.frames]
         cams = [warp.scaled_camera(f.camera(), w, h) for f in sequence.frames]
-        zg = warp.prior_ground(self.prior, scene) if c.vcm_street else None
-        if zg is not None:  # None: no street under the cameras in the prior, nothing to take
+        if zg is not None:
             imgs = warp.street_transfer(imgs, cams, depths, zg, mix=c.vcm_street)
         return warp.sky_fit(imgs, cams, depths, mix=c.vcm_sky) if c.vcm_sky else imgs
 

@@ -443,6 +443,21 @@ def _mip(x: np.ndarray, o: int, level: int, cache: dict) -> np.ndarray:
     return cache[o, level]
 
 
+def _blend(x: np.ndarray, target: np.ndarray, mask: np.ndarray, mix: float) -> np.ndarray:
+    """A frame x [H, W, 3] moved `mix` of the way to target [H, W, 3] on mask [H, W] (bool), half
+    of that on the mask's border pixels (those with a 3 x 3 neighbour outside it)."""
+    from scipy.ndimage import uniform_filter
+
+    m = mask.astype(np.float64)
+    weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
+    return x + weight[..., None] * (target - x)
+
+
+def _as_frames(out: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """Frames [N, H, W, 3] (numpy) -> [N, 3, H, W] on `like`'s device and dtype, in [0, 1]."""
+    return torch.as_tensor(out.transpose(0, 3, 1, 2).copy(), device=like.device).to(like.dtype).clamp(0.0, 1.0)
+
+
 def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray], zg: float, *,
                     mix: float = 1.0, view_m: float = STREET_VIEW_M, tol: float = DEPTH_TOL,
                     far: float = STREET_FAR_M) -> torch.Tensor:
@@ -459,8 +474,6 @@ def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.n
 
     cameras: the frames' cameras at H x W (`scaled_camera`); depths: the prior's planar depths
     [H, W] (`prior_depth`); zg: the street's height (world z, up; `prior_ground`)."""
-    from scipy.ndimage import uniform_filter
-
     if not 0 < mix <= 1 or view_m < 0:
         raise ValueError(f"street_transfer: mix {mix} (0 < mix <= 1), view_m {view_m} (>= 0)")
     n, _, h, w = imgs.shape
@@ -486,10 +499,8 @@ def street_transfer(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.n
                 for lv in np.unique(level[owner == o]):
                     sel = (owner == o) & (level == lv)
                     target[idx[sel]] = sample_bilinear(_mip(x, o, lv, mips), uv[o, sel])
-        m = on.reshape(h, w).astype(np.float64)
-        weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
-        out[k] = x[k] + weight[..., None] * (target.reshape(h, w, 3) - x[k])
-    return torch.as_tensor(out.transpose(0, 3, 1, 2).copy(), device=imgs.device).to(imgs.dtype).clamp(0.0, 1.0)
+        out[k] = _blend(x[k], target.reshape(h, w, 3), on.reshape(h, w), mix)
+    return _as_frames(out, imgs)
 
 
 def _sky_basis(d: np.ndarray, degree: int) -> np.ndarray:
@@ -509,9 +520,8 @@ def sky_fit(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray],
     the direction for the whole sequence: where the prior sees nothing (depth +inf) above the
     horizon (world ray z > `up`), the colour moves `mix` of the way to a polynomial of degree
     `degree` in the ray's direction, least squares over every frame's sky pixels (refitted without
-    the `trim` share of the largest residuals: the ghosts of buildings the generator paints)."""
-    from scipy.ndimage import uniform_filter
-
+    the `trim` share of the largest residuals: the ghosts of buildings the generator paints); half
+    of that on the sky's border pixels."""
     if not 0 < mix <= 1 or degree < 0 or not 0 <= trim < 1:
         raise ValueError(f"sky_fit: mix {mix} (0 < mix <= 1), degree {degree} (>= 0), trim {trim} (0 <= trim < 1)")
     n, _, h, w = imgs.shape
@@ -537,10 +547,7 @@ def sky_fit(imgs: torch.Tensor, cameras: list[Camera], depths: list[np.ndarray],
         coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
     out = x.copy()
     for k in range(n):
-        m = masks[k].reshape(h, w).astype(np.float64)
-        if not m.any():
-            continue
-        target = np.clip(_sky_basis(dirs[k], degree) @ coef, 0, 1).reshape(h, w, 3)
-        weight = mix * np.maximum(m * (uniform_filter(m, 3, mode="nearest") > 0.999), 0.5 * m)
-        out[k] = x[k] + weight[..., None] * (target - x[k])
-    return torch.as_tensor(out.transpose(0, 3, 1, 2).copy(), device=imgs.device).to(imgs.dtype).clamp(0.0, 1.0)
+        if masks[k].any():
+            target = np.clip(_sky_basis(dirs[k], degree) @ coef, 0, 1).reshape(h, w, 3)
+            out[k] = _blend(x[k], target, masks[k].reshape(h, w), mix)
+    return _as_frames(out, imgs)

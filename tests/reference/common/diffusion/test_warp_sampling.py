@@ -790,17 +790,19 @@ def test_sky_fit_trims_a_ghost():
     assert np.abs(pulled[0][:, inner] - clean[0].numpy()[:, inner]).max() > 0.01
 
 
-@pytest.mark.parametrize("street, sky, ground", [(0.8, 1.0, 0.25), (0.8, 0.0, 0.25), (0.0, 0.7, 0.25), (0.8, 1.0, None)])
+@pytest.mark.parametrize("street, sky, ground", [(0.8, 1.0, 0.25), (0.8, 0.0, 0.25), (0.0, 0.7, 0.25), (0.8, 1.0, None), (0.8, 0.0, None)])
 def test_pipeline_takes_the_street_then_the_sky(tmp_path, monkeypatch, street, sky, ground):
     """`Skyeyes._street`: the prior's depth and the scaled cameras of every frame, then the street
     transfer at `vcm_street` (skipped when it is 0 or the prior has no street), then the sky fit at
-    `vcm_sky` (skipped when 0), each on the one before's frames."""
+    `vcm_sky` (skipped when 0), each on the one before's frames; with neither, no depth rendered."""
     from reference.methods.skyeyes import PRESETS, Skyeyes
 
     m = Skyeyes(dataclasses.replace(PRESETS["smoke"], vcm_street=street, vcm_sky=sky), tmp_path)
     m._prior = object()
     calls = []
-    monkeypatch.setattr(warp, "prior_depth", lambda prior, scene, f, w, h: np.full((h, w), float(f.camera())))
+    rendered = []
+    monkeypatch.setattr(warp, "prior_depth", lambda prior, scene, f, w, h:
+                        rendered.append(f) or np.full((h, w), float(f.camera())))
     monkeypatch.setattr(warp, "scaled_camera", lambda cam, w, h: ("cam", cam, w, h))
     monkeypatch.setattr(warp, "prior_ground", lambda prior, scene: ground)
     monkeypatch.setattr(warp, "street_transfer", lambda x, cams, depths, zg, *, mix:
@@ -819,4 +821,5 @@ def test_pipeline_takes_the_street_then_the_sky(tmp_path, monkeypatch, street, s
         want.append(("sky", frames, [7.0, 8.0, 9.0], sky))
         x = x * 2
     assert calls == want
+    assert len(rendered) == (3 if want else 0)  # no depths rendered when there is nothing to take
     torch.testing.assert_close(out, torch.full_like(imgs, x))

@@ -129,6 +129,9 @@ def _comparable(a: dict, b: dict, current_sha256: str | None = None) -> list[str
         if ea.get("weights_sha256") != eb.get("weights_sha256") and "ok" == ea.get("status") == eb.get("status"):
             why.append(f"extractor {_shown(ex)} used different weights (sha256 {_shown(ea.get('weights_sha256'))[:12]}"
                        f"... vs {_shown(eb.get('weights_sha256'))[:12]}...): features are not comparable")
+    sa, sb = (d["dataset"].get("split", "test") for d in (a, b))
+    if sa != sb:
+        why.append(f"A was scored on the {_shown(sa)} split, B on the {_shown(sb)} split")
     if a["sha256"]["ground_truth"] != b["sha256"]["ground_truth"] or \
             a["dataset"]["sequences"] != b["dataset"]["sequences"]:
         why.append(f"A and B were scored against different ground truth (dataset {a['dataset']['name']!r} "

@@ -63,37 +63,44 @@ def parse_shard(text: str | tuple | None) -> tuple[int, int] | None:
 
 
 def resolve_data(manifest: dict, protocol, data) -> Path:
-    """The dataset folder: `data` if given, else `<cache>/data/<dataset name>`, else the
-    protocol's default location; the error names the command that makes it."""
+    """The dataset folder: `data` if given, else `<cache>/data/<dataset name>`, else (for a test
+    submission) the protocol's default location; the error names the command that makes it."""
     if data is not None:
         return Path(data)
     name = manifest["dataset"]["name"]
+    val = manifest["dataset"].get("split", "test") == "val"
     candidates = [paths.data_dir() / name]
     loc = protocol.data.default_location
-    if loc.startswith("cache:"):
+    if loc.startswith("cache:") and not val:
         candidates.append(paths.data_dir() / loc[len("cache:"):])
     for c in candidates:
         if (c / "dataset.json").is_file():
             return c
     if protocol.data.source == "synthtown":
         preset = name[len("synthtown-"):] if name.startswith("synthtown-") else "small"
-        how = f"make it with `skyeyes-bench data synthtown --preset {preset}`"
+        how = f"make it with `skyeyes-bench data synthtown --preset {preset}{' --split val' if val else ''}`"
     else:
         how = f"import it (`skyeyes-bench data --help`) and pass --data DIR"
     raise UserError(f"dataset {name!r} for {protocol.ref} not found (looked in "
                     f"{', '.join(str(c) for c in candidates)}); {how}")
 
 
-def open_inputs(sub: Path, data=None, protocol: str | None = None):
+def open_inputs(sub: Path, data=None, protocol: str | None = None, split: str | None = None):
     """(submission.json, the protocol that scores it, the dataset) of the submission folder `sub`:
-    `protocol` (`id@N`) or the one submission.json names; the dataset `data` or `resolve_data`'s.
+    `protocol` (`id@N`) or the one submission.json names; the dataset `data` or `resolve_data`'s,
+    seen as the split the submission holds scores it (`splits.scored_view`: "test", or "val").
+    `split`: the split the caller expects (None: the submission's own).
     Raises UserError / ValidationError for a manifest, protocol or dataset that cannot be used."""
     from .data.layout import open_dataset
     from .protocol import load_protocol
+    from .splits import check_split, scored_view
 
     manifest = read_submission(sub)
+    held = manifest["dataset"].get("split", "test")
+    if split is not None and check_split(split) != held:
+        raise UserError(f"{sub}/submission.json: field 'dataset.split' is {held!r}, --split asks for {split!r}")
     proto = load_protocol(protocol or manifest["protocol"])
-    return manifest, proto, open_dataset(resolve_data(manifest, proto, data))
+    return manifest, proto, scored_view(open_dataset(resolve_data(manifest, proto, data)), held, proto)
 
 
 def _clips(n_frames: int, length: int, stride: int) -> list[range]:
@@ -110,7 +117,8 @@ def _frame_batches(items: list, size: int):
 
 
 def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = False,
-             progress: bool = True, protocol: str | None = None, device: str | None = "cpu") -> dict[str, Any]:
+             progress: bool = True, protocol: str | None = None, device: str | None = "cpu",
+             split: str | None = None) -> dict[str, Any]:
     """Score a submission folder against its protocol.
 
     Args:
@@ -129,6 +137,9 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
             GPU features agree with the CPU's to float rounding, so scores may differ in their last
             digits; the device type is recorded as `extractors.<id>.device`, and features are cached
             per device type.
+        split: the split the submission must hold, "test" or "val" (None: whichever it holds, as
+            its submission.json says); a validation submission is scored on the validation scenes
+            and its results say `dataset.split: "val"` (never ranked).
     Returns:
         The results dict (or the partial dict for a shard).
     Raises:
@@ -142,7 +153,7 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     if out is not None:  # before any work: a refused output never costs a scoring run
         check_out(out, force, [sub])
     with contextlib.ExitStack() as held:  # the output's lock, taken once the dataset is known
-        return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held)
+        return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held, split)
 
 
 def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
@@ -154,13 +165,13 @@ def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
 
 
 def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: bool, protocol, dev,
-              held: contextlib.ExitStack) -> dict[str, Any]:
+              held: contextlib.ExitStack, split: str | None = None) -> dict[str, Any]:
     from .metrics.extractors import on_device
 
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
     with timed_stage(timing, "validate_s"):
-        manifest, protocol, ds = open_inputs(sub, data, protocol)
+        manifest, protocol, ds = open_inputs(sub, data, protocol, split)
         if out is not None:
             check_out(out, force, [sub, ds.root])  # the lock file beside `out` must not land in the dataset either
             held.enter_context(outputunit.output_lock(out))  # a second run to this --out: one line, exit 2
@@ -169,7 +180,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         all_seqs = ds.sequences("test")
         seq_ids = [q.id for q in all_seqs]
         if shard is not None and shard[1] > len(all_seqs):
-            raise UserError(f"--shard {shard[0]}/{shard[1]}: the test split has {len(all_seqs)} sequences, so "
+            raise UserError(f"--shard {shard[0]}/{shard[1]}: the {ds.scored} split has {len(all_seqs)} sequences, so "
                             f"at most {len(all_seqs)} shards (each shard scores whole sequences)")
         mine = [k for k in range(len(all_seqs)) if shard is None or k % shard[1] == shard[0]]
         frames = [(all_seqs[k].scene, f) for k in mine for f in all_seqs[k].frames]
@@ -182,7 +193,7 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         "format": PARTIAL_FORMAT,
         "tool": {"name": "skyeyes-bench", "version": __version__},
         "protocol": {"ref": protocol.ref, "sha256": protocol.sha256},
-        "dataset": {"name": ds.name, "root": str(ds.root), "sequences": seq_ids,
+        "dataset": {"name": ds.name, "root": str(ds.root), "split": ds.scored, "sequences": seq_ids,
                     "frames": len(expected_frames(ds)),
                     "resolution": sorted({f"{f.width}x{f.height}" for _, f in expected_frames(ds)}),
                     "official_resolution": f"{protocol.data.width}x{protocol.data.height}"},

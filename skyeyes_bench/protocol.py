@@ -90,6 +90,24 @@ class StatsSpec:
 
 
 @dataclass(frozen=True)
+class ValSpec:
+    """The validation split of every version of a protocol (`protocols/<id>/val.toml`): where a
+    method's settings are chosen, never ranked. Not part of a version's sha256: it changes no
+    test score (STYLE.md #13: tune on validation, report on test)."""
+
+    towns: tuple[str, ...]  # the towns / regions whose lanes make it
+    # "own": towns of their own, in a dataset of their own beside the test data (SynthTown:
+    # `data synthtown --split val`); "train": a declared part of the train towns, which a run on
+    # the validation split leaves out of its training (CARLA, CitySample: no other data exists)
+    source: str
+    why: str  # prose: why these towns
+
+
+VAL_FILE = "val.toml"
+VAL_SOURCES = ("own", "train")
+
+
+@dataclass(frozen=True)
 class Protocol:
     id: str
     version: int
@@ -102,6 +120,7 @@ class Protocol:
     statistics: StatsSpec
     sha256: str = field(default="", compare=False)
     path: str = field(default="", compare=False)
+    val: ValSpec | None = field(default=None, compare=False)  # the family's val.toml; not hashed
 
     @property
     def ref(self) -> str:
@@ -117,7 +136,7 @@ class Protocol:
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        d.pop("sha256"), d.pop("path")
+        d.pop("sha256"), d.pop("path"), d.pop("val")
         d["metrics"] = {m.pop("name"): {k: v for k, v in m.items() if v is not None} for m in d["metrics"]}
         if not d["data"]["dataset_protocol"]:  # unset: absent, so older protocols keep their sha256
             del d["data"]["dataset_protocol"]
@@ -294,7 +313,33 @@ def load_protocol_file(path: str | Path) -> Protocol:
             f"{path}: file says id={proto.id!r} version={proto.version}, "
             f"expected id={path.parent.name!r} version={int(m.group(1))} from its path"
         )
+    val = path.parent / VAL_FILE
+    if m and (val.exists() or val.is_symlink()):
+        proto = dataclasses.replace(proto, val=load_val(val, proto))
     return proto
+
+
+def load_val(path: Path, proto: Protocol) -> ValSpec:
+    """The validation split `path` declares for `proto`'s family, checked against its towns: one
+    line naming the file and key for anything else."""
+    raw = read_toml(path, "a validation split TOML file")
+    spec = _build(ValSpec, raw, "val", str(path))
+    if not spec.towns:
+        raise UserError(f"{path}: key 'towns' must name at least one town")
+    if spec.source not in VAL_SOURCES:
+        raise UserError(f"{path}: key 'source' is {spec.source!r}, expected one of {', '.join(VAL_SOURCES)}")
+    clash = sorted(set(spec.towns) & set(proto.data.test))
+    if clash:
+        raise UserError(f"{path}: key 'towns' names the test town(s) {', '.join(clash)} of {proto.ref}; "
+                        "a validation split is apart from test")
+    inside = set(spec.towns) <= set(proto.data.train)
+    if spec.source == "train" and not inside:
+        raise UserError(f"{path}: key 'towns' must be train towns of {proto.ref} ({', '.join(proto.data.train)}) "
+                        "with source = \"train\"")
+    if spec.source == "own" and set(spec.towns) & set(proto.data.train):
+        raise UserError(f"{path}: key 'towns' names train towns of {proto.ref} with source = \"own\" "
+                        "(towns of their own); use source = \"train\" for a part of the train towns")
+    return spec
 
 
 def load_protocol(ref: str, root: Path | None = None) -> Protocol:

@@ -26,11 +26,14 @@ import numpy as np
 
 from . import __version__, fields, imagefiles, inputfiles, outputfiles
 from .errors import UserError, ValidationError
+from .splits import SCORED
 
 SUBMISSION_FILE = "submission.json"
 EXPECTED_FILE = "EXPECTED_FRAMES.txt"
 FORMAT = "skyeyes-bench/submission@1"
-#: Split whose ground frames a submission must hold.
+#: The dataset split whose ground frames a submission holds: the test split of its dataset, or of
+#: the view of a run on the validation split (`splits.scored_view`), whose "test" scenes are the
+#: validation scenes; submission.json says which (`dataset.split`).
 SPLIT = "test"
 #: What `submission template` and `SubmissionWriter` write: `overwrite` (--force) replaces only an
 #: empty folder or a folder holding a submission.json (`outputfiles.OutputKind`).
@@ -117,7 +120,7 @@ def make_manifest(ds, *, method: str, method_version: str, config: dict | None, 
         "method_version": str(method_version),
         "protocol": current,
         "protocol_sha256": _protocol_sha(current),
-        "dataset": {"name": ds.name, "split": SPLIT, "frames": n},
+        "dataset": {"name": ds.name, "split": ds.scored, "frames": n},
         "created": _now(),
         "tool_version": __version__,
         "timings": dict(timings or {}),
@@ -159,7 +162,7 @@ class SubmissionWriter(outputfiles.AtomicFolderWriter):
         """Write the image for ground `frame` of `scene_name`. image: float [H, W, 3] in [0,1] or uint8."""
         key = (scene_name, frame.file)
         if key not in self._expected:
-            raise UserError(f"{scene_name}/{frame.file}: not a ground frame of a {SPLIT} scene of dataset "
+            raise UserError(f"{scene_name}/{frame.file}: not a ground frame of a {self.ds.scored} scene of dataset "
                             f"{self.ds.name!r}")
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[2] != 3:
@@ -232,6 +235,9 @@ def _manifest_problems(m: Any, file: Path) -> list[str]:
     ds = m.get("dataset")
     if not isinstance(ds, dict) or not isinstance(ds.get("name"), str) or not ds.get("name"):
         problems.append(f"{file}: field 'dataset.name' missing (the dataset the frames were made for)")
+    elif ds.get("split", "test") not in SCORED:
+        problems.append(f"{file}: field 'dataset.split' is {fields.short(ds.get('split'))}, expected one of "
+                        f"{', '.join(map(repr, SCORED))}")
     for key in ("hardware", "config"):
         if m.get(key) is not None and not isinstance(m[key], dict):
             problems.append(f"{file}: field '{key}' must be an object, got {fields.short(m[key])}")
@@ -307,6 +313,9 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
         problems.append(f"{ds.root}/dataset.json: dataset is for protocol {ds.protocol!r}, the submission "
                         f"for {protocol.ref!r}" + (f" (which scores data made for {protocol.data_ref!r})"
                                                   if protocol.data_ref != protocol.ref else ""))
+    if manifest["dataset"].get("split", "test") != ds.scored:
+        problems.append(f"{mfile}: field 'dataset.split' is {manifest['dataset'].get('split', 'test')!r}, the "
+                        f"dataset is seen as its {ds.scored!r} split")
     if manifest["dataset"]["name"] != ds.name:
         problems.append(f"{mfile}: field 'dataset.name' is {manifest['dataset']['name']!r}, the dataset is "
                         f"{ds.name!r}")
@@ -326,7 +335,7 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
             if name in dirnames:
                 continue
             if rel not in expected and rel not in (SUBMISSION_FILE, EXPECTED_FILE):
-                problems.append(f"{p}: extra file (not a ground frame of a {SPLIT} scene of {ds.name!r})")
+                problems.append(f"{p}: extra file (not a ground frame of a {ds.scored} scene of {ds.name!r})")
     # 2. the expected frames
     check = frames if frames is not None else all_expected
     missing = []

@@ -187,8 +187,8 @@ def _set_metrics(doc: dict, features: dict, protocol, rs: _Resampling, timing: d
 def format_summary(res: dict) -> str:
     """Human-readable lines for the terminal."""
     lines = [f"{res['submission'].get('method')} {res['submission'].get('method_version') or ''} on "
-             f"{res['protocol']['ref']} ({res['dataset']['name']}, {len(res['frames'])} frames, "
-             f"{len(res['dataset']['sequences'])} sequences)"]
+             f"{res['protocol']['ref']} ({res['dataset']['name']}, {res['dataset'].get('split', 'test')} split, "
+             f"{len(res['frames'])} frames, {len(res['dataset']['sequences'])} sequences)"]
     st = res.get("statistics") or {}
     if st.get("cluster"):
         lines.append(f"  intervals: {st['interval']} over {st['clusters']} {st['cluster']}s"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 #: SynthTown size presets (`skyeyes_bench.data.synthtown.presets.PRESETS`, not imported here so
 #: that building the parser stays light).
-_PRESETS = ("smoke", "small", "small-v1", "paper")
+_PRESETS = ("smoke", "small", "small-v1", "small-stiff", "paper")
 
 
 def register(sub) -> None:
@@ -46,11 +46,17 @@ def _add_synthtown(ds) -> None:
         "(yaw offsets k*45 deg, every 2 m, 2 m high, pitch 0) and aerial views at 52 m, pitch -45 deg; "
         "RGB, depth (EXR, metres) and semantics. Presets: smoke (tests, seconds; synthtown@1), small "
         "(synthtown@2's official data: 128x128, 8 test lanes, 32-frame sequences; ~20 min on 2 cores), "
-        "small-v1 (synthtown@1's official data), paper (512x512, hours on a CPU).")
+        "small-v1 (synthtown@1's official data), small-stiff (synthtown-stiff@1: small's train towns and a "
+        "tilted, cloudy test town), paper (512x512, hours on a CPU). --split val makes the preset's "
+        "validation data instead: the same train towns and the validation town val-0, in a dataset of its "
+        "own (<dataset>-val), where settings are chosen; it is never ranked.")
     q.add_argument("--out", metavar="DIR", help="dataset folder to create (default: the data cache, "
                    "<cache>/data/<dataset>[-seed<N>], e.g. synthtown-v2-small, where evaluate and reproduce look)")
     q.add_argument("--preset", choices=_PRESETS, default="small", help="size preset (default: small)")
     q.add_argument("--seed", type=int, default=0, help="dataset seed: other towns and lanes (default: 0)")
+    q.add_argument("--split", choices=("test", "val"), default="test",
+                   help="test: the protocol's train and test towns (default); val: the train towns and the "
+                   "validation towns, the data to choose a method's settings on")
     q.add_argument("--force", action="store_true", help="replace an existing dataset folder")
     q.add_argument("--workers", type=int, default=None, help="render processes (default: 1 for smoke, else 2)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -205,14 +211,15 @@ def _synthtown(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers {args.workers}: expected an integer >= 1")
     if args.out is None and not args.force and args.workers is None:
-        root = paths.data_dir() / dataset_name(args.preset, args.seed)
+        root = paths.data_dir() / dataset_name(args.preset, args.seed, args.split)
         existed = (root / "dataset.json").is_file()
-        root = ensure_dataset(args.preset, args.seed, progress=not args.quiet)
+        root = ensure_dataset(args.preset, args.seed, progress=not args.quiet, split=args.split)
         print(f"{'exists' if existed else 'wrote'} {root}")
         return 0
-    out = Path(args.out) if args.out else paths.data_dir() / dataset_name(args.preset, args.seed)
+    out = Path(args.out) if args.out else paths.data_dir() / dataset_name(args.preset, args.seed, args.split)
     check_out(out, args.force, [])  # --force replaces a dataset (or an empty folder) only, never e.g. a home folder
-    generate_dataset(out, args.preset, args.seed, overwrite=args.force, progress=not args.quiet, workers=args.workers)
+    generate_dataset(out, args.preset, args.seed, overwrite=args.force, progress=not args.quiet, workers=args.workers,
+                     split=args.split)
     print(f"wrote {out}")
     return 0
 

@@ -32,6 +32,10 @@ def register(sub) -> None:
     p.add_argument("--protocol", metavar="ID@N", help="score with this protocol instead of the one submission.json "
                    "names; it must score the same data, e.g. synthtown@3 for a synthtown@2 submission (same frames, "
                    "plus the seen/unseen and warp metrics)")
+    p.add_argument("--split", choices=("test", "val"),
+                   help="the split the submission must hold (default: the one its submission.json names): test, "
+                   "the protocol's ranked split, or val, the validation split settings are chosen on (a "
+                   "submission made with `reproduce --split val`; its results say so and are never filed)")
     p.add_argument("--device", default="cpu", metavar="DEV",
                    help="where the feature extractors (Inception, I3D, LPIPS) run: cpu (default; the reference), "
                    "cuda or cuda:N for speed, auto (cuda when visible). GPU features agree with CPU ones to float "
@@ -65,7 +69,7 @@ def _one(args, sub: str) -> int:
     shard = parse_shard(args.shard)
     out = args.out or default_out(sub, shard)
     res = evaluate(sub, data=args.data, out=out, shard=shard, force=args.force,
-                   progress=not args.quiet, protocol=args.protocol, device=args.device)
+                   progress=not args.quiet, protocol=args.protocol, device=args.device, split=args.split)
     if args.json:
         print(json.dumps(res, indent=2))
     elif shard:
@@ -89,7 +93,7 @@ def _many(args, subs: list[str], ray: str | None) -> int:
     if args.shard is not None:
         raise UserError("--shard I/N: one SUBMISSION without --ray (--ray splits each submission itself; "
                         "--shards N says into how many)")
-    for flag, given in (("--out", args.out), ("--json", args.json)):
+    for flag, given in (("--out", args.out), ("--json", args.json), ("--split", args.split)):
         if given and len(subs) > 1:
             raise UserError(f"{flag}: only with one SUBMISSION (several write SUBMISSION.results.json each)")
     jobs = [Job(Path(s), Path(args.out) if args.out else default_out(s), data=args.data, protocol=args.protocol)

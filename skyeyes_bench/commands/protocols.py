@@ -40,12 +40,16 @@ def _toml_value(v) -> str:
 
 
 def _show(args) -> int:
-    from ..protocol import load_protocol
+    import dataclasses
+    from pathlib import Path
+
+    from ..protocol import VAL_FILE, load_protocol
 
     p = load_protocol(args.ref)
     d = p.to_dict()
+    val = dataclasses.asdict(p.val) if p.val is not None else None
     if args.json:
-        print(json.dumps({"ref": p.ref, "sha256": p.sha256, "file": p.path, **d}, indent=2))
+        print(json.dumps({"ref": p.ref, "sha256": p.sha256, "file": p.path, **d, "val": val}, indent=2))
         return 0
     print(f"# {p.ref}  sha256 {p.sha256}\n# file: {p.path}")
     for k in ("id", "version", "title", "description", "reference"):
@@ -61,6 +65,13 @@ def _show(args) -> int:
     print("\n[statistics]")
     for k, v in d["statistics"].items():
         print(f"{k} = {_toml_value(v)}")
+    if val is None:
+        print("\n# no validation split declared: settings cannot be chosen on this protocol's data")
+    else:
+        print(f"\n# the validation split of every {p.id} version ({Path(p.path).parent / VAL_FILE}; where settings "
+              "are chosen, never ranked; not part of the sha256)\n[val]")
+        for k, v in val.items():
+            print(f"{k} = {_toml_value(v)}")
     return 0
 
 

@@ -16,6 +16,9 @@ def register(sub) -> None:
     q.add_argument("--data", required=True, metavar="DIR", help="dataset folder (holds dataset.json)")
     q.add_argument("--out", required=True, metavar="SUB", help="submission folder to create")
     q.add_argument("--from-ground-truth", action="store_true", help="copy the ground-truth frames in")
+    q.add_argument("--split", choices=("test", "val"), default="test",
+                   help="the frames of the test split (default) or of the validation split, where settings are "
+                   "chosen (the dataset's 'val' split, or the part of its train towns its protocol declares)")
     q.add_argument("--force", action="store_true", help="replace an existing SUB")
 
 
@@ -25,16 +28,20 @@ def run(args) -> int:
 
 def _template(args) -> int:
     from ..data.layout import open_dataset
+    from ..protocol import current_for_data, load_protocol
+    from ..splits import scored_view
     from ..submission import EXPECTED_FILE, expected_frames, write_template
 
     ds = open_dataset(args.data)
+    if args.split != "test":
+        ds = scored_view(ds, args.split, load_protocol(current_for_data(ds.protocol)))
     out = write_template(ds, args.out, from_ground_truth=args.from_ground_truth, overwrite=args.force)
     n = len(expected_frames(ds))
     if args.from_ground_truth:
-        print(f"{out}: complete submission of the {n} ground-truth frames (evaluate it: "
+        print(f"{out}: complete submission of the {n} ground-truth frames of the {ds.scored} split (evaluate it: "
               f"`skyeyes-bench evaluate {out} --data {args.data}`)")
     else:
-        print(f"{out}: submission.json and {EXPECTED_FILE} ({n} frames to render)")
+        print(f"{out}: submission.json and {EXPECTED_FILE} ({n} frames of the {ds.scored} split to render)")
     return 0
 
 

@@ -150,6 +150,9 @@ class Dataset:
     splits: dict[str, tuple[str, ...]]
     scenes: dict[str, Scene]
     meta: dict = field(default_factory=dict)
+    # The split its "test" scenes stand for: "test", or "val" in the view of a run on the
+    # validation split (`splits.scored_view`: "train" and "test" are then what that run fits and scores).
+    scored: str = "test"
 
     def split(self, name: str) -> list[Scene]:
         if name not in self.splits:

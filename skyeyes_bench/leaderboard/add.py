@@ -84,6 +84,10 @@ def check_results(path: Path) -> dict:
               f"merge every shard first (`skyeyes-bench merge PARTS... --out results.json`)")
     doc, _ = read_results(path)
     checks.results_fields(doc, path)  # paths and page text, before anything uses them
+    split = doc["dataset"].get("split", "test")
+    if split != "test":
+        _fail(path, "dataset.split", f"is {split!r}: results on the validation split are for choosing settings and "
+              "are never ranked; file the test split's (STYLE.md #13)")
     ref = doc["protocol"]["ref"]
     try:
         proto = load_protocol(ref)

@@ -60,7 +60,7 @@ def tiles_rendered(preset: str, seed: int, rows: int, size: int) -> list[dict]:
     for entry in plan(p, seed):
         scene = Scene.from_town(entry["town"], cull_m=p.cull_m)
         for li, lane in enumerate(entry["lanes"][:1]):
-            ground, aerial = lane_cameras(lane, p)
+            ground, aerial = lane_cameras(lane, p, entry["town"])
             g = [c for s, i, c in ground if s == "yaw000"][p.frames // 2]
             a = aerial[0][2]
             ai, ad, al = render(scene, a, aa=3)

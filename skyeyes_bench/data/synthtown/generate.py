@@ -22,43 +22,60 @@ from ...cameras import Camera
 from ...errors import UserError
 from ..writer import DatasetWriter
 from . import town as tw
-from .presets import PRESETS, TEST_TOWNS, TRAIN_TOWNS, Preset
+from .presets import PRESETS, SPLITS, TRAIN_TOWNS, VAL_TOWNS, Preset, for_split
 from .render import LABELS, PALETTE, Scene, render_batch
 
 #: Bump when the rendered bytes change for the same preset and seed.
 GENERATOR_VERSION = "1"
 
 
-def dataset_name(preset: str | Preset, seed: int) -> str:
-    """The dataset's name and cache folder: the preset's `dataset` (e.g. synthtown-v2-small), -seedN if seed > 0."""
-    return get_preset(preset).dataset + (f"-seed{seed}" if seed != 0 else "")
+def dataset_name(preset: str | Preset, seed: int, split: str = "test") -> str:
+    """The dataset's name and cache folder: the preset's `dataset` (e.g. synthtown-v2-small; its
+    validation data's: synthtown-v2-small-val), -seedN if seed > 0."""
+    return get_preset(preset, split).dataset + (f"-seed{seed}" if seed != 0 else "")
 
 
-def get_preset(preset: str | Preset) -> Preset:
-    if isinstance(preset, Preset):
-        return preset
-    if preset not in PRESETS:
-        raise UserError(f"unknown SynthTown preset {preset!r}; known: {', '.join(PRESETS)}")
-    return PRESETS[preset]
+def get_preset(preset: str | Preset, split: str = "test") -> Preset:
+    """The named preset (or `preset` itself), for the data of `split` (`presets.for_split`)."""
+    if split not in SPLITS:
+        raise UserError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
+    if not isinstance(preset, Preset):
+        if preset not in PRESETS:
+            raise UserError(f"unknown SynthTown preset {preset!r}; known: {', '.join(PRESETS)}")
+        preset = PRESETS[preset]
+    if split == "val" and preset.protocol == "synthtown-stiff@1":
+        raise UserError(f"preset {preset.name!r}: its protocol {preset.protocol} is for reporting only and has "
+                        "no validation split (choose settings on `--preset small --split val`)")
+    return for_split(preset, split)
 
 
-def lane_cameras(lane: dict, p: Preset) -> tuple[list[tuple[str, int, Camera]], list[tuple[int, float, Camera]]]:
-    """Ground cameras [(sequence, index, camera)] and aerial cameras [(point, yaw offset, camera)] of a lane."""
+def lane_cameras(lane: dict, p: Preset, town: tw.Town | None = None
+                 ) -> tuple[list[tuple[str, int, Camera]], list[tuple[int, float, Camera]]]:
+    """Ground cameras [(sequence, index, camera)] and aerial cameras [(point, yaw offset, camera)] of
+    a lane (`lane`'s start and heading in `town`'s coordinates). In a tilted town (`Town.world`)
+    the cameras stand the protocol's heights above the street's points in the world, level
+    (pitch 0 and -45 deg in the world), heading along the street's direction seen from above."""
     h = lane["heading_deg"]
     fwd = np.array([np.cos(np.deg2rad(h)), np.sin(np.deg2rad(h))])
     pts = [np.asarray(lane["start"]) + i * p.step_m * fwd for i in range(p.frames)]
+    if town is not None and town.world is not None:
+        pts = [town.to_world([x, y, 0.0]) for x, y in pts]
+        f3 = town.to_world([fwd[0], fwd[1], 0.0])
+        h = float(np.rad2deg(np.arctan2(f3[1], f3[0])))
+    else:
+        pts = [np.array([x, y, 0.0]) for x, y in pts]
     ground = []
     for k in range(8):
         yaw = 45 * k
-        for i, xy in enumerate(pts):
-            cam = Camera.from_ypr([xy[0], xy[1], p.ground_height_m], h + yaw, 0.0,
+        for i, pt in enumerate(pts):
+            cam = Camera.from_ypr([pt[0], pt[1], pt[2] + p.ground_height_m], h + yaw, 0.0,
                                   fov_deg=p.fov_deg, width=p.width, height=p.height)
             ground.append((f"yaw{yaw:03d}", i, cam))
     aerial = []
     for i in range(0, p.frames, p.aerial_stride):
         for k in range(p.aerial_yaws):
             off = k * 360.0 / p.aerial_yaws
-            cam = Camera.from_ypr([pts[i][0], pts[i][1], p.aerial_height_m], h + off, p.aerial_pitch_deg,
+            cam = Camera.from_ypr([pts[i][0], pts[i][1], pts[i][2] + p.aerial_height_m], h + off, p.aerial_pitch_deg,
                                   fov_deg=p.fov_deg, width=p.width, height=p.height)
             aerial.append((i, off, cam))
     return ground, aerial
@@ -97,7 +114,7 @@ def _default_workers(p: Preset) -> int:
 
 
 def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwrite: bool = False,
-                     progress: bool = True, workers: int | None = None) -> Path:
+                     progress: bool = True, workers: int | None = None, split: str = "test") -> Path:
     """Render a SynthTown dataset into `out` (atomically: a temporary folder moved into place).
 
     Args:
@@ -107,11 +124,13 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
         overwrite: replace an existing `out` (only once the new one is complete).
         progress: tqdm progress bar on stderr.
         workers: render processes (default: 1 for smoke, else min(2, cores); env SKYEYES_WORKERS).
+        split: "test" (the preset's train and test towns) or "val" (its train towns and the
+            validation towns instead: `presets.for_split`).
     Returns:
         `out`.
     """
     out = Path(out)
-    p = get_preset(preset)
+    p = get_preset(preset, split)
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise UserError(f"seed {seed!r}: expected an integer >= 0")
     seed = int(seed)
@@ -135,10 +154,9 @@ def generate_dataset(out: Path, preset: str = "small", seed: int = 0, *, overwri
         results = (r for c in chunks for r in c)
         with DatasetWriter(out, name=dataset_name(p, seed), protocol=p.protocol, overwrite=overwrite) as w:
             _write_views(w, towns, where, results, p, seed, bar)
-            splits = {
-                "train": [s for e in towns if e["town"].name in TRAIN_TOWNS for s in e["scenes"]],
-                "test": [s for e in towns if e["town"].name in TEST_TOWNS for s in e["scenes"]],
-            }
+            roles = [town_role(e["town"].name) for e in towns]
+            splits = {role: [s for e, r in zip(towns, roles) if r == role for s in e["scenes"]]
+                      for role in ("train", "val", "test") if role == "train" or role in roles}
             w.finish(splits=splits, meta={
                 "generator": "synthtown", "generator_version": GENERATOR_VERSION, "preset": p.name,
                 "preset_config": p.to_dict(), "seed": seed, "official": p.official,
@@ -162,7 +180,7 @@ def _render_jobs(towns: list[dict], p: Preset, seed: int) -> tuple[int, list[tup
     jobs, where = [], []
     for ti, entry in enumerate(towns):
         for li, lane in enumerate(entry["lanes"]):
-            ground, aerial = lane_cameras(lane, p)
+            ground, aerial = lane_cameras(lane, p, entry["town"])
             for kind, cams in (("ground", ground), ("aerial", aerial)):
                 for a, b, cam in cams:
                     where.append((ti, li, kind, a, b, cam))
@@ -198,8 +216,14 @@ def _write_views(w: DatasetWriter, towns: list[dict], where: list[tuple], result
         prev.close()
 
 
-def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) -> Path:
-    """`<cache>/data/<the preset's dataset>[-seed<N>]`, generated there first if absent.
+def town_role(name: str) -> str:
+    """The split a town's lanes belong to: "train", "val" or "test" (the test and stiff towns)."""
+    return "train" if name in TRAIN_TOWNS else "val" if name in VAL_TOWNS else "test"
+
+
+def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True, split: str = "test") -> Path:
+    """`<cache>/data/<the preset's dataset>[-seed<N>]`, generated there first if absent (with
+    `split="val"`, the preset's validation data: `<dataset>-val`).
 
     A folder there made for another protocol or preset configuration (an older release's data
     under the same name) is a one-line error, not silently used.
@@ -210,7 +234,7 @@ def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) 
     """
     import fcntl
 
-    p = get_preset(preset)
+    p = get_preset(preset, split)
     path = paths.data_dir() / dataset_name(p, int(seed))
     if (path / "dataset.json").is_file():
         return _check_cached(path, p)
@@ -221,7 +245,7 @@ def ensure_dataset(preset: str = "small", seed: int = 0, progress: bool = True) 
             return _check_cached(path, p)
         if path.exists():
             raise UserError(f"{path}: exists but holds no dataset.json (not a SynthTown dataset); remove it")
-        return generate_dataset(path, p.name, int(seed), progress=progress)
+        return generate_dataset(path, p, int(seed), progress=progress)
 
 
 def _check_cached(path: Path, p: Preset) -> Path:

@@ -65,6 +65,14 @@ class Preset:
 
 TRAIN_TOWNS = ("train-0", "train-1")
 TEST_TOWNS = ("test-0",)
+#: The validation towns: towns of their own (their name seeds their own random stream), never
+#: trained on or ranked; where a method's settings are chosen (`--split val`,
+#: protocols/synthtown/val.toml).
+VAL_TOWNS = ("val-0",)
+#: The splits a SynthTown dataset can be made for: "test" (the protocol's train and test towns)
+#: or "val" (the same train towns and the validation towns, in a dataset of its own, so the
+#: ranked data stays byte for byte what it was).
+SPLITS = ("test", "val")
 
 PRESETS: dict[str, Preset] = {
     # Tests and CI: one train lane, one test lane, 16-frame sequences, tiny images (synthtown@1:
@@ -83,8 +91,29 @@ PRESETS: dict[str, Preset] = {
                        lanes=(("train-0", 2), ("train-1", 2), ("test-0", 2)),
                        frames=20, aerial_stride=4, aerial_yaws=8, official=True, protocol="synthtown@1",
                        dataset="synthtown-small"),
+    # synthtown-stiff@1's data (docs/synthtown.md, "Stiff towns"): `small` with its test town
+    # replaced by a tilted, cloudy one (town.STIFF), where the street is no level plane and the
+    # sky no smooth function of the direction; the same train towns.
+    "small-stiff": Preset("small-stiff", 128, 128, aa=2, blocks=(5, 5),
+                          lanes=(("train-0", 2), ("train-1", 2), ("stiff-0", 8)),
+                          frames=32, aerial_stride=4, aerial_yaws=8, protocol="synthtown-stiff@1",
+                          dataset="synthtown-v2-small-stiff"),
     # Paper-sized images and fuller counts (GPU users; hours on a CPU).
     "paper": Preset("paper", 512, 512, aa=3, blocks=(5, 5),
                     lanes=(("train-0", 6), ("train-1", 6), ("test-0", 8)),
                     frames=32, aerial_stride=2, aerial_yaws=8, dataset="synthtown-v2-paper"),
 }
+
+
+def for_split(p: Preset, split: str) -> Preset:
+    """The preset of `p`'s dataset for `split`: "test", `p` itself; "val", the same train towns
+    and as many lanes of the validation towns as `p` has test lanes, in a dataset of its own
+    (`<dataset>-val`), never official."""
+    if split not in SPLITS:
+        raise ValueError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
+    if split == "test":
+        return p
+    train = tuple((t, n) for t, n in p.lanes if t in TRAIN_TOWNS)
+    n_test = sum(n for t, n in p.lanes if t not in TRAIN_TOWNS)
+    return dataclasses.replace(p, name=f"{p.name}-val", lanes=train + tuple((t, n_test) for t in VAL_TOWNS),
+                               official=False, dataset=f"{p.dataset}-val")

@@ -295,13 +295,42 @@ def _box_material(town: tw.Town, k, pb, lo, hi, axis, top):
     return col, lab
 
 
-def sky_colour(d: np.ndarray, sun: np.ndarray) -> np.ndarray:
-    """Linear sky radiance [P, 3] for directions [P, 3]: horizon-to-zenith gradient, sun glow."""
+def sky_colour(d: np.ndarray, sun: np.ndarray, clouds: float = 0.0) -> np.ndarray:
+    """Linear sky radiance [P, 3] for world directions [P, 3]: horizon-to-zenith gradient, sun
+    glow; with `clouds` > 0, clouds over it (`cloud_cover`)."""
     dn = d / np.linalg.norm(d, axis=1, keepdims=True)
     e = np.clip(dn[:, 2], 0.0, 1.0)
     col = SKY_HORIZON + (SKY_ZENITH - SKY_HORIZON) * np.sqrt(e)[:, None]
     glow = np.clip(np.einsum("ij,j->i", dn, sun), 0.0, 1.0) ** 24
-    return col + glow[:, None] * np.array([0.5, 0.45, 0.35])
+    col = col + glow[:, None] * np.array([0.5, 0.45, 0.35])
+    if clouds > 0:
+        c = cloud_cover(dn, clouds)[:, None]
+        col = col * (1.0 - c) + CLOUD * (0.8 + 0.2 * e)[:, None] * c
+    return col
+
+
+#: Cloud layer: height (m) and linear albedo under the sky's light.
+CLOUD_HEIGHT_M = 1500.0
+CLOUD = np.array([0.80, 0.80, 0.82])
+
+
+def cloud_cover(dn: np.ndarray, cover: float) -> np.ndarray:
+    """Cloud density [P] in [0, 1] seen in unit world directions dn [P, 3]: value noise on a
+    layer at `CLOUD_HEIGHT_M` (three octaves, 900 / 350 / 120 m), thresholded so that about
+    `cover` of the layer is cloud, thinning into the haze towards the horizon. A texture of the
+    direction that no smooth function of it follows (the stiff towns' sky)."""
+    up = dn[:, 2]
+    s = CLOUD_HEIGHT_M / np.maximum(up, 0.05)
+    x, y = dn[:, 0] * s, dn[:, 1] * s
+    n = 0.5 * vnoise(x, y, 900.0, 11) + 0.3 * vnoise(x, y, 350.0, 12) + 0.2 * vnoise(x, y, 120.0, 13)
+    lo = 1.0 - cover - 0.08
+    r = np.clip((n - lo) / 0.2, 0.0, 1.0)
+    return r * r * (3 - 2 * r) * np.clip(up / 0.08, 0.0, 1.0)
+
+
+def _rows_times(v: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """v [P, 3] -> v @ m (m [3, 3]), elementwise (no BLAS: the same on any thread count)."""
+    return v[:, 0:1] * m[0] + v[:, 1:2] * m[1] + v[:, 2:3] * m[2]
 
 
 def shade_rays(scene: Scene, o: np.ndarray, d: np.ndarray, *, shadows: bool = True, stats: dict | None = None):
@@ -318,6 +347,11 @@ def shade_rays(scene: Scene, o: np.ndarray, d: np.ndarray, *, shadows: bool = Tr
     town = scene.town
     R = len(o)
     dnorm = np.linalg.norm(d, axis=1)
+    d_world, sun, up = d, town.sun, np.array([0.0, 0.0, 1.0])
+    if town.world is not None:  # a tilted town: trace in its own coordinates, light in the world's
+        o, d = _rows_times(o, town.world), _rows_times(d, town.world)
+        sun = _rows_times(town.sun[None], town.world)[0]
+        up = town.world[2].copy()  # the world's up in town coordinates
     t_ground = ground_hit(o, d)
     t_cull = scene.cull_m / dnorm
     t_prim, prim = trace(scene.grid, town.box_lo, town.box_hi, town.ell_centre, town.ell_radii, o, d,
@@ -330,16 +364,16 @@ def shade_rays(scene: Scene, o: np.ndarray, d: np.ndarray, *, shadows: bool = Tr
     light = np.zeros(R)
     hs = np.nonzero(hit)[0]
     sky = np.nonzero(~hit)[0]
-    colour[sky] = sky_colour(d[sky], town.sun)
+    colour[sky] = sky_colour(d_world[sky], town.sun, town.clouds)
     if hs.size:
         p, n, albedo, lab = surface(scene, o[hs], d[hs], t[hs], prim[hs], on_ground[hs])
         label[hs] = lab
-        cos = np.einsum("ij,j->i", n, town.sun)
+        cos = np.einsum("ij,j->i", n, sun)
         vis = (cos > 0).astype(np.float64)
         if shadows:
             lit = np.nonzero(cos > 0)[0]
             so = p[lit] + SHADOW_OFFSET * n[lit]
-            sd = np.broadcast_to(town.sun, so.shape).copy()
+            sd = np.broadcast_to(sun, so.shape).copy()
             ts, _ = trace(scene.grid, town.box_lo, town.box_hi, town.ell_centre, town.ell_radii, so, sd,
                           np.full(len(lit), scene.cull_m), any_hit=True, stats=stats)
             vis[lit] = np.where(np.isfinite(ts), 0.0, 1.0)
@@ -347,7 +381,7 @@ def shade_rays(scene: Scene, o: np.ndarray, d: np.ndarray, *, shadows: bool = Tr
                 stats["shadow_rays"] = stats.get("shadow_rays", 0) + len(lit)
         direct = np.maximum(cos, 0.0) * vis
         light[hs] = direct
-        ambient = 0.55 + 0.45 * n[:, 2]  # sky light: full from above, half from the side
+        ambient = 0.55 + 0.45 * (n[:, 0] * up[0] + n[:, 1] * up[1] + n[:, 2] * up[2])  # sky light: full from above, half from the side
         radiance = albedo * (direct[:, None] * SUN_RADIANCE + ambient[:, None] * SKY_AMBIENT)
         dist = t[hs] * dnorm[hs]
         fog = 1.0 - np.exp(-dist / HAZE_M)

@@ -5,6 +5,10 @@ arguments on any machine (numpy's PCG64 stream, no time or hash randomisation). 
 list of axis-aligned boxes, a list of ellipsoids (tree crowns) and the ground plane z = 0, whose
 painted markings the renderer computes from the street grid stored here.
 
+The stiff towns (`STIFF`) break two things a method may assume of a street: the whole town is
+tilted in the world (a rigid rotation, `Town.world`: its streets climb and lean) and its sky is
+cloudy (`Town.clouds`). Their geometry in town coordinates is made exactly as any town's.
+
 Street cross-section (metres from a street's centre line): 0..3.5 driving lane, 3.5..6 parking
 strip (road), then the block's raised sidewalk (kerb 0.15 m) 3.5 m wide, then the lots.
 """
@@ -24,6 +28,13 @@ DRIVE_LANE = 3.5  # m, width of one driving lane
 SIDEWALK_WIDTH = 3.5  # m
 KERB_HEIGHT = 0.15  # m
 GRASS_HEIGHT = 0.17  # m, lawns sit just above the sidewalk so their faces never coincide
+
+#: The stiff towns, by name: the tilt of the whole town (degrees, about a horizontal axis at
+#: `tilt_axis_deg` from the x axis) and the sky's cloud cover (0..1, `render.cloud_cover`). A
+#: 5 degree tilt about an axis 30 degrees off the street grid makes every lane climb and lean at
+#: once: 2.5 and 4.3 degrees (a 4-8 % grade, a steep city street). Every other town is level
+#: under a clear sky.
+STIFF = {"stiff-0": {"tilt_deg": 5.0, "tilt_axis_deg": 30.0, "clouds": 0.55}}
 
 # Linear-light albedos. NOTE: picked by eye to resemble common facade paints and brick.
 FACADE_COLOURS = np.array([
@@ -59,8 +70,11 @@ class Town:
         box_colour: [N, 3] linear albedo.
         bld: per-building parameters (dict of arrays, see `_building_params`).
         ell_centre, ell_radii: [M, 3] tree crowns; ell_colour: [M, 3].
-        sun: [3] unit vector towards the sun.
+        sun: [3] unit vector towards the sun, in the world.
         lanes: list of camera paths (dicts: start [x, y], heading deg, street, side).
+        world: [3, 3] rotation from town to world coordinates (a stiff town's tilt); None: the
+            town is level, its coordinates the world's.
+        clouds: the sky's cloud cover, 0 (clear) .. 1.
     """
 
     name: str
@@ -78,6 +92,13 @@ class Town:
     ell_colour: np.ndarray
     sun: np.ndarray
     params: dict = field(default_factory=dict)
+    world: np.ndarray | None = None
+    clouds: float = 0.0
+
+    def to_world(self, p) -> np.ndarray:
+        """Town coordinates [..., 3] -> world coordinates (the same for a level town)."""
+        p = np.asarray(p, dtype=np.float64)
+        return p if self.world is None else p @ self.world.T
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -169,7 +190,21 @@ def make_town(name: str, seed: int, blocks: tuple[int, int] = (4, 4), *, scale: 
     elev = np.deg2rad(rng.uniform(35, 55))
     azim = np.deg2rad(rng.uniform(20, 70) + 90 * rng.integers(4))
     sun = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
-    return _assemble(name, seed, [nbx, nby], xs, ys, sc, elev, azim, sun)
+    t = _assemble(name, seed, [nbx, nby], xs, ys, sc, elev, azim, sun)
+    if name in STIFF:  # no draws from the town's stream: its geometry is any town's
+        stiff = STIFF[name]
+        t.world = tilt_rotation(stiff["tilt_deg"], stiff["tilt_axis_deg"])
+        t.clouds = float(stiff["clouds"])
+        t.params.update(stiff)
+    return t
+
+
+def tilt_rotation(tilt_deg: float, axis_deg: float) -> np.ndarray:
+    """[3, 3] rotation by `tilt_deg` about the horizontal axis at `axis_deg` from x (Rodrigues)."""
+    a = np.array([np.cos(np.deg2rad(axis_deg)), np.sin(np.deg2rad(axis_deg)), 0.0])
+    th = np.deg2rad(tilt_deg)
+    cross = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.cos(th) * np.eye(3) + np.sin(th) * cross + (1.0 - np.cos(th)) * np.outer(a, a)
 
 
 def _street_grid(rng, nbx: int, nby: int) -> tuple[np.ndarray, np.ndarray]:

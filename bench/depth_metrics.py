@@ -1,9 +1,13 @@
 """Cost and behaviour of the depth-based metrics' geometry (docs/metrics.md): seen masks of every
 ground frame of one lane against all its aerial views, the warps of consecutive frames, the
-unseen share per depth tolerance, and the ground truth's warp floor.
+unseen share per depth tolerance, and the ground truth's warp floor, on a validation lane (a
+tolerance is chosen here, never on test: STYLE.md #13; --split test exits 2).
 
-    nice -n 19 .venv/bin/python bench/depth_metrics.py [--data DIR] [--scene test-0-lane00] [--tols 0.005,0.01,0.02,0.05]
+    nice -n 19 .venv/bin/python bench/depth_metrics.py [--preset small] [--data DIR] [--scene val-0-lane00] [--tols 0.005,0.01,0.02,0.05]
 
+The data is --data (default: the SynthTown validation data of --preset, `skyeyes-bench data
+synthtown --preset P --split val`, made if absent) as a run on its validation split sees it; the
+lane is --scene, one of its validation scenes (default: the first).
 Prints the machine's load average before and after (the figures scale with it on a shared CPU).
 Computes directly (no mask cache), single process.
 """
@@ -12,29 +16,37 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import numpy as np
 
-from skyeyes_bench import paths
-from skyeyes_bench.data.layout import open_dataset
+from reference import screen
+from skyeyes_bench.errors import UserError
 from skyeyes_bench.metrics.geometry import seen_mask, warp_coords, warp_error
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(paths.data_dir() / "synthtown-v2-small"))
-    ap.add_argument("--scene", default=None, help="test scene (default: the first)")
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
+                    "made if absent)")
+    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
+                    "validation data, STYLE.md #13)")
+    ap.add_argument("--preset", default="small", help="the SynthTown preset of the default data (default small)")
+    ap.add_argument("--scene", default=None, help="a validation scene (default: the first)")
     ap.add_argument("--tols", default="0.005,0.01,0.02,0.05")
     ap.add_argument("--frames", type=int, default=0, help="only the first N ground frames (0: all)")
-    args = ap.parse_args()
-    ds = open_dataset(args.data)
-    scene = ds.scenes[args.scene] if args.scene else ds.split("test")[0]
+    args = ap.parse_args(argv)
+    ds = screen.screen_data(args.split, "bench/depth_metrics.py", data=args.data, preset=args.preset)
+    scenes = {s.name: s for s in ds.split("test")}  # the validation scenes (`screen_data`)
+    if args.scene is not None and args.scene not in scenes:
+        raise UserError(f"--scene {args.scene}: not a {ds.scored} scene of {ds.name} ({', '.join(scenes)})")
+    scene = scenes[args.scene] if args.scene else next(iter(scenes.values()))
     frames = [f for q in scene.sequences.values() for f in q.frames]
     if args.frames:
         frames = frames[:args.frames]
-    print(f"{ds.name} {scene.name}: {len(frames)} ground frames {frames[0].width}x{frames[0].height}, "
-          f"{len(scene.aerial)} aerial views {scene.aerial[0].width}x{scene.aerial[0].height}; "
+    print(f"{ds.name} {scene.name} ({ds.scored} split): {len(frames)} ground frames {frames[0].width}x"
+          f"{frames[0].height}, {len(scene.aerial)} aerial views {scene.aerial[0].width}x{scene.aerial[0].height}; "
           f"load average {os.getloadavg()[0]:.1f}, {os.cpu_count()} cores")
     t0 = time.perf_counter()
     cams = [a.camera() for a in scene.aerial]
@@ -68,4 +80,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    screen.run_main(main, sys.argv[1:])

@@ -1,20 +1,23 @@
 """How well each way a method can move frame j - 1 into frame j agrees with the ground truth's
-own correspondence (its depth and the poses, the warp metric's `warp_coords`), on the test lanes
-of a dataset with ground depth. The carried noise, the low-pass transfer and warped sampling
-move frames by one of these (docs/skyeyes.md, "The VCM"), and are only as good as it.
+own correspondence (its depth and the poses, the warp metric's `warp_coords`), on the validation
+lanes of a dataset with ground depth (`reference.screen`: `--split test` is refused, STYLE.md #13).
+The carried noise moves each frame's starting noise by the flow between the prior's renders
+(`additions.view.flow_coords`), the street from one view by the ground plane under the prior's
+Gaussians (`additions.street`); each is only as good as the way it moves by.
 
-    .venv/bin/python bench/flow_accuracy.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small \\
+    .venv/bin/python bench/flow_accuracy.py --data ~/.cache/skyeyes-bench/data/synthtown-v2-small-val \\
         --priors ~/.cache/skyeyes-bench/reference/priors --prior RUN/work/KEY/method/prior \\
         [--submission RUN/submission] [--scenes 1] [--sequences 3] [--ways dis-medium,prior-ground] [--rigid]
 
-Ways: an optical flow (dis-medium, what `warp.flow_coords` uses; dis-fast, dis-ultrafast,
+Ways: an optical flow (dis-medium, what `view.flow_coords` uses; dis-fast, dis-ultrafast,
 deepflow, tvl1, farneback, pcaflow: OpenCV's) between the prior's renders (--priors: the folder of
 its cached renders, `<scene>-<key>.npz`) and, with --submission, between that submission's
-frames; `zero` (no motion); and with --prior (a `sugar` run's folder of `scenes/<scene>/model.pt`)
-the prior's own depth and the poses (`prior-depth`, `warp.prior_depth`), or that depth with the
-pixels whose ray meets the ground plane under the prior's Gaussians (`warp.prior_ground`) nearer
-given the plane's depth (`prior-ground`, `ground_filled`); `aerial-sweep`, a depth from the aerial views alone
-(`aerial_sweep_depth`, ~5 s a frame; a depth way's seconds count its warps only). --rigid adds each flow made rigid with the poses
+frames; `zero` (no motion); and with --prior (a `sugar` run's folder of `scenes/<scene>/model.pt`,
+at --preset) the prior's own depth and the poses (`prior-depth`, `view.prior_depth`), or that
+depth with the pixels whose ray meets the ground plane under the prior's Gaussians
+(`street.prior_ground`) nearer given the plane's depth (`prior-ground`, `ground_filled`);
+`aerial-sweep`, a depth from the aerial views alone (`aerial_sweep_depth`, ~5 s a frame; a depth
+way's seconds count its warps only). --rigid adds each flow made rigid with the poses
 (`rigid_from_flow`).
 
 Prints, per way: the end-point error (pixels) on the pixels both it and the ground truth call
@@ -25,26 +28,28 @@ load before and after.
 
 from __future__ import annotations
 
-import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from reference.common.diffusion import warp
-from skyeyes_bench.data.layout import open_dataset
+from reference import screen
+from reference.common.diffusion.additions.street import prior_ground
+from reference.common.diffusion.additions.view import FLOW_FB_PX, flow_coords, prior_depth
+from skyeyes_bench.errors import UserError
 from skyeyes_bench.imagefiles import read_image
 from skyeyes_bench.metrics.geometry import project, warp_coords
 
-TOL = 0.01  # the protocols' depth tolerance of the warp metric
+TOL = screen.TOL  # the protocols' depth tolerance of the warp metric
 BANDS = [(0, 5), (5, 10), (10, 20), (20, 100), (100, np.inf)]
 FLOWS = ("dis-medium", "dis-fast", "dis-ultrafast", "deepflow", "tvl1", "farneback", "pcaflow")
 
 
 def flow_fn(name: str):
     """(I_j, I_{j-1}) grey uint8 -> flow [H, W, 2] with I_j(x) ~ I_{j-1}(x + flow(x)): the `flow`
-    of `warp.flow_coords`, which checks it forward and backward."""
+    of `view.flow_coords`, which checks it forward and backward."""
     import cv2
 
     if name.startswith("dis-"):
@@ -145,29 +150,27 @@ def aerial_sweep_depth(scene, cam, *, depths: np.ndarray = np.geomspace(2.0, 150
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, type=Path)
+    ap = screen.screen_parser(__doc__)
+    ap.set_defaults(scenes=1)
     ap.add_argument("--priors", required=True, type=Path, help="folder of the prior's cached renders (<scene>-<key>.npz)")
-    ap.add_argument("--prior", type=Path, default=None, help="a sugar run's folder of scenes/<scene>/model.pt "
-                    "(the prior-depth and prior-ground ways)")
+    ap.add_argument("--prior", type=Path, default=None, help="a sugar run's folder of scenes/<scene>/model.pt, at "
+                    "--preset (the prior-depth and prior-ground ways)")
     ap.add_argument("--submission", type=Path, default=None, help="also the flows between this submission's frames")
-    ap.add_argument("--scenes", type=int, default=1)
-    ap.add_argument("--sequences", type=int, default=0, help="the first N sequences of each scene (0: all)")
     ap.add_argument("--ways", default="zero,dis-medium,prior-depth,prior-ground",
                     help=f"comma-separated: zero, {', '.join(FLOWS)}, prior-depth, prior-ground, aerial-sweep")
-    ap.add_argument("--fb-px", type=float, default=warp.FLOW_FB_PX)
+    ap.add_argument("--fb-px", type=float, default=FLOW_FB_PX)
     ap.add_argument("--rigid", action="store_true", help="also each flow made rigid (`rigid_from_flow`)")
     ap.add_argument("--median-px", type=int, default=5)
     args = ap.parse_args(argv)
     ways = args.ways.split(",")
     if any(w.startswith("prior-") for w in ways) and args.prior is None:
         ap.error("the prior-depth and prior-ground ways need --prior")
-    ds = open_dataset(args.data.expanduser())
+    _, scenes, seqs = screen.screened(args, "bench/flow_accuracy.py")
     prior = None
     if args.prior is not None:
         from reference.methods.sugar import SuGaR
 
-        prior = SuGaR.from_preset("small", args.prior.expanduser(), progress=False)
+        prior = SuGaR.from_preset(args.preset, args.prior.expanduser(), progress=False)
     stats: dict[str, dict] = {}
 
     def add(key: str, uv, ok, gt_uv, gt_ok, depth, seconds: float) -> None:
@@ -180,29 +183,33 @@ def main(argv=None) -> None:
         s["s"] += seconds
 
     print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
-    for scene in ds.split("test")[: args.scenes]:
+    for scene in scenes:
         found = sorted(args.priors.expanduser().glob(f"{scene.name}-*.npz"))
         if not found:
-            raise SystemExit(f"--priors {args.priors}: no {scene.name}-*.npz (the prior's cached renders of that "
-                             "scene; run `reproduce` of the preset first)")
+            raise UserError(f"--priors {args.priors}: no {scene.name}-*.npz (the prior's cached renders of that "
+                            "scene; run `reproduce` of the preset first)")
         npz = np.load(found[0])
         if prior is not None:
             prior.fit_scene(scene)  # resumed from its checkpoint
-            zg = warp.prior_ground(prior, scene)
-        seqs = list(scene.sequences.values())[: args.sequences or None]
-        for q in seqs:
+            means = prior.scene_model(scene)[0].means.detach().cpu().numpy()
+            zg = prior_ground(means, [f.camera().c2w[2, 3] for f in scene.ground])
+            if zg is None:
+                raise UserError(f"--prior {args.prior}: none of its Gaussians of {scene.name} lie under the ground "
+                                "cameras (no street for the prior-ground way)")
+        mine = [q for s, q in seqs if s is scene]
+        for q in mine:
             fs = list(q.frames)
             guides = {"prior": np.stack([npz[f.file].astype(np.float32) / 255 for f in fs])}
             if args.submission:
                 guides["frames"] = np.stack([read_image(args.submission / scene.name / f.file) for f in fs])
-            flows = {(way, g): warp.flow_coords(imgs, fb_px=args.fb_px, flow=flow_fn(way))
+            flows = {(way, g): flow_coords(imgs, fb_px=args.fb_px, flow=flow_fn(way))
                      for way in ways if way in FLOWS for g, imgs in guides.items()}
             depths = {}
             if "aerial-sweep" in ways:
                 depths["aerial-sweep"] = [aerial_sweep_depth(scene, f.camera()) for f in fs]
             if prior is not None:
                 h, w = fs[0].height, fs[0].width
-                depths["prior-depth"] = [warp.prior_depth(prior, scene, f, w, h) for f in fs]
+                depths["prior-depth"] = [prior_depth(prior, scene, f, w, h) for f in fs]
                 depths["prior-ground"] = [ground_filled(d, f.camera(), zg) for d, f in zip(depths["prior-depth"], fs)]
             for k in range(1, len(fs)):
                 a, b = fs[k - 1], fs[k]
@@ -226,7 +233,7 @@ def main(argv=None) -> None:
                             t0 = time.perf_counter()
                             ruv, _ = rigid_from_flow(uv, ok, b.camera(), a.camera(), median_px=args.median_px)
                             add(f"{way} on {g}, rigid", ruv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
-        print(f"{scene.name}: {len(seqs)} sequences", flush=True)
+        print(f"{scene.name}: {len(mine)} sequences", flush=True)
     for key, s in stats.items():
         e, d = np.concatenate(s["epe"]), np.concatenate(s["depth"])
         bands = [f"{lo}-{hi if np.isfinite(hi) else ''} m {np.median(e[(d >= lo) & (d < hi)]):.2f}"
@@ -239,4 +246,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    screen.run_main(main, sys.argv[1:])

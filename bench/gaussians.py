@@ -4,6 +4,12 @@
     python bench/gaussians.py raster --sizes 128 --counts 50000
     python bench/gaussians.py split --sizes 128 --counts 50000   # the stages of one call apart
     python bench/gaussians.py fit --preset small   # held-out aerial / ground PSNR vs seconds
+    python bench/gaussians.py fit --preset small --data DIR   # another dataset's validation split
+
+`fit` chooses schedules, so it runs on the validation split (STYLE.md #13; --split test exits 2):
+the first validation lane of --data (default: the SynthTown validation data of --preset,
+`skyeyes-bench data synthtown --preset P --split val`, made if absent), the colours learned on
+what a run on that split trains on.
 
 Caveat: the machine has 2 cores shared with other jobs; figures vary by tens of percent.
 Peak RSS is the process's high-water mark (resource.getrusage), so run one case per process
@@ -21,6 +27,8 @@ import resource
 import subprocess
 import sys
 import time
+
+from reference import screen
 
 
 def synthetic_scene(n: int, size: int, overlap: float = 150.0, seed: int = 0):
@@ -140,10 +148,14 @@ def cmd_split(args) -> None:
 
 
 def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = None, seconds: float | None = None,
-              workdir: str | None = None, overrides: list[str] | tuple = ()) -> list[dict]:
-    """Held-out aerial PSNR and ground-view PSNR against training seconds, for the first test
-    scene of a SynthTown preset. Prints one line per training checkpoint. `overrides`: `--set`
-    strings on top of the preset (every 8th aerial view is held out)."""
+              workdir: str | None = None, overrides: list[str] | tuple = (), split: str = "val") -> list[dict]:
+    """Held-out aerial PSNR and ground-view PSNR against training seconds, for the first
+    validation scene of `data` (default: SynthTown's validation data of the preset). Prints one
+    line per training checkpoint. `overrides`: `--set` strings on top of the preset (every 8th
+    aerial view is held out). `split`: val (test is refused: `screen.screen_data`)."""
+    from skyeyes_bench.splits import screening_split
+
+    screening_split(split, "bench/gaussians.py fit")  # before anything is imported, made or read
     import tempfile
     from pathlib import Path
 
@@ -152,16 +164,12 @@ def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = No
 
     from reference.common.gaussians.train import psnr
     from reference.methods import get_method_class
-    from skyeyes_bench.data.layout import open_dataset
 
-    if data is None:
-        from skyeyes_bench.data.synthtown import ensure_dataset
-
-        data = ensure_dataset(preset if preset in ("smoke", "small", "paper") else "small")
-    ds = open_dataset(data)
-    scene = ds.split("test")[0]
     cls = get_method_class(method)
-    config, _ = cls.configure(preset, ["holdout_every=8", *overrides])
+    config, _ = cls.configure(preset, ["holdout_every=8", *overrides])  # checked before any data is made
+    ds = screen.screen_data(split, "bench/gaussians.py fit", data=data,
+                            preset=preset if preset in ("smoke", "small", "paper") else "small")
+    scene = ds.split("test")[0]
     m = cls(config, Path(workdir or tempfile.mkdtemp(prefix="gs-curve-")), progress=False)
     m.fit_train(ds)  # the learned colour map and backgrounds, as reproduce does
     aerial = list(scene.aerial)
@@ -190,10 +198,11 @@ def fit_curve(preset: str, method: str = "gaussians3d", *, data: str | None = No
 
 
 def cmd_fit(args) -> None:
-    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds, overrides=args.overrides)
+    fit_curve(args.preset, args.method, data=args.data, seconds=args.seconds, overrides=args.overrides,
+              split=args.split)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("raster")
@@ -212,13 +221,16 @@ def main() -> None:
     f = sub.add_parser("fit")
     f.add_argument("--preset", default="smoke")
     f.add_argument("--method", default="gaussians3d")
-    f.add_argument("--data", default=None)
+    f.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
+                   "made if absent)")
+    f.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
+                   "validation data, STYLE.md #13)")
     f.add_argument("--seconds", type=float, default=None, help="stop reporting after this many training seconds")
     f.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     f.set_defaults(fn=cmd_fit)
-    args = p.parse_args()
+    args = p.parse_args(argv)
     args.fn(args)
 
 
 if __name__ == "__main__":
-    main()
+    screen.run_main(main, sys.argv[1:])

@@ -1,9 +1,16 @@
-"""Depth accuracy and run time of the `mvs` stereo against SynthTown's true aerial depth.
+"""Depth accuracy and run time of the `mvs` stereo against SynthTown's true aerial depth, on the
+validation lanes (settings are chosen here, never on test: STYLE.md #13; --split test exits 2).
 
-    python bench/mvs.py                      # presets smoke and small, every test lane
+    python bench/mvs.py                      # presets smoke and small, every validation lane
     python bench/mvs.py --presets small --set planes=128 --lanes 1
+    python bench/mvs.py --presets small --data DIR   # another dataset's validation split (its
+                                             # protocol's val.toml: own towns or a part of train)
     python bench/mvs.py figure --runs outputs/mvs-small outputs/gaussians3d-small outputs/sugar-small \
         --out docs/img/reconstructions-small.png        # ground truth beside each run's frames
+
+The data is each preset's SynthTown validation data (`skyeyes-bench data synthtown --preset P
+--split val`, made if absent), or --data (one preset) seen as a run on its validation split sees
+it. `figure` shows the frames of the split each run scored (its config.json).
 
 Per preset and lane: seconds of `reconstruct` (plane sweep, consistency, fusion), and over the
 aerial pixels whose true surface lies inside the lane's region box (what the ground cameras can
@@ -26,9 +33,14 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 
 import numpy as np
+
+from reference import screen
+from skyeyes_bench.errors import UserError
+from skyeyes_bench.splits import screening_split
 
 
 def depth_errors(est: np.ndarray, truth: np.ndarray, inside: np.ndarray) -> dict:
@@ -43,7 +55,7 @@ def inside_region(frame, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(true depth [H, W], mask of pixels whose true surface point lies in `box`)."""
     truth = frame.depth()
     if truth is None:
-        raise SystemExit(f"{frame.path}: no depth layer (bench/mvs.py needs SynthTown's aerial depth)")
+        raise UserError(f"{frame.path}: no depth layer (bench/mvs.py needs SynthTown's aerial depth)")
     cam = frame.camera()
     h, w = truth.shape
     v, u = np.mgrid[0:h, 0:w] + 0.5
@@ -92,9 +104,14 @@ def figure(runs: list[str], out: str, frames: int = 4) -> None:
 
     from skyeyes_bench import imagefiles, outputfiles
     from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.protocol import current_for_data, load_protocol
+    from skyeyes_bench.splits import scored_view
 
     cfgs = [json.loads((Path(r) / "config.json").read_text()) for r in runs]
     ds = open_dataset(cfgs[0]["dataset"]["root"])
+    # the split the runs scored (a figure shows results: test, or val for a run on it)
+    split = cfgs[0]["dataset"].get("split", "test")
+    ds = scored_view(ds, split, load_protocol(current_for_data(ds.protocol)))
     scene = ds.split("test")[0]
     seqs = list(scene.sequences.values())
     picks = [seqs[i * len(seqs) // frames] for i in range(frames)]
@@ -117,30 +134,37 @@ def figure(runs: list[str], out: str, frames: int = 4) -> None:
     print(f"wrote {out}")
 
 
-def main() -> None:
-    import sys
-
-    if len(sys.argv) > 1 and sys.argv[1] == "figure":
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["figure"]:
         fp = argparse.ArgumentParser(prog="bench/mvs.py figure")
         fp.add_argument("--runs", nargs="+", required=True, help="reproduce output folders")
         fp.add_argument("--out", required=True)
         fp.add_argument("--frames", type=int, default=4)
-        a = fp.parse_args(sys.argv[2:])
+        a = fp.parse_args(argv[1:])
         figure(a.runs, a.out, a.frames)
         return
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--presets", nargs="+", default=["smoke", "small"])
-    ap.add_argument("--lanes", type=int, default=0, help="test lanes per preset (0: all)")
+    ap.add_argument("--data", default=None, help="dataset folder (one preset; default: each preset's SynthTown "
+                    "validation data, made if absent)")
+    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen "
+                    "on validation data, STYLE.md #13)")
+    ap.add_argument("--lanes", type=int, default=0, help="validation lanes per preset (0: all)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default=None, metavar="FILE")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    screening_split(args.split, "bench/mvs.py")  # before anything is imported, made or read
+    if args.data is not None and len(args.presets) != 1:
+        raise UserError(f"--data {args.data}: with one preset only (--presets {' '.join(args.presets)})")
+    from reference.methods.mvs import MVS
+
+    configs = {preset: MVS.configure(preset, args.overrides)[0] for preset in args.presets}  # checked before work
+    datasets = {preset: screen.screen_data(args.split, "bench/mvs.py", data=args.data, preset=preset)
+                for preset in args.presets}
 
     import torch
-
-    from reference.methods.mvs import MVS
-    from skyeyes_bench.data.layout import open_dataset
-    from skyeyes_bench.data.synthtown import ensure_dataset
 
     torch.set_num_threads(args.threads)
     rows = []
@@ -148,9 +172,8 @@ def main() -> None:
     print("| preset | lane | seconds | abs rel mean | abs rel median | within 0.5 m | within 2% | completeness | points |")
     print("|---|---|---|---|---|---|---|---|---|")
     for preset in args.presets:
-        cfg, _ = MVS.configure(preset, args.overrides)
-        ds = open_dataset(ensure_dataset(preset, progress=False))
-        lanes = ds.split("test")[: args.lanes or None]
+        cfg, ds = configs[preset], datasets[preset]
+        lanes = ds.split("test")[: args.lanes or None]  # the validation lanes (`screen_data`)
         for scene in lanes:
             r = run_lane(scene, cfg)
             r["preset"] = preset
@@ -166,4 +189,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    screen.run_main(main, sys.argv[1:])

@@ -2,13 +2,17 @@
 
     python bench/nerf.py speed                  # training and rendering rays/s (field and baked)
     python bench/nerf.py speed --preset small --views 4 --size 128
-    python bench/nerf.py render --data DIR --preset small   # a fitted lane's ground frames: field
+    python bench/nerf.py render --preset small  # a fitted lane's ground frames: field
                                                 # renderer against bakes (spacing, view): rays/s,
                                                 # agreement, ground PSNR / LPIPS
-    python bench/nerf.py fit --data DIR --preset small --set iterations=600   # held-out aerial
+    python bench/nerf.py fit --preset small --set iterations=600   # held-out aerial
                                                 # PSNR, ground PSNR / LPIPS against training seconds
+    python bench/nerf.py fit --data DIR --preset small   # another dataset's validation split
 
-`render` and `fit` use test lane 0 (`--lane`); `render` keeps its fit in `--work` and reuses it.
+`render` and `fit` choose settings, so they run on the validation split (STYLE.md #13; --split
+test exits 2): validation lane 0 (`--lane`) of --data (default: the SynthTown validation data of
+--preset, `skyeyes-bench data synthtown --preset P --split val`, made if absent), the appearance
+learned on what a run on that split trains on; `render` keeps its fit in `--work` and reuses it.
 Caveat: the machine has 2 cores shared with other jobs; the load average is printed beside every
 figure, and figures vary by tens of percent with it.
 """
@@ -18,8 +22,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
+
+from reference import screen
+from skyeyes_bench.errors import UserError
 
 
 def _load() -> list[float]:
@@ -80,15 +88,24 @@ def speed(args) -> None:
 
 
 def _method(args, extra: list[str], work: Path):
+    """(the dataset as a run on --split sees it, its validation lane --lane, the method fitted on its train)."""
     from reference.methods.nerf import NeRF
-    from skyeyes_bench.data.layout import open_dataset
 
-    ds = open_dataset(Path(args.data))
-    scene = ds.split("test")[args.lane]
-    config, _ = NeRF.configure(args.preset, [*args.set, *extra])
+    config, _ = NeRF.configure(args.preset, [*args.set, *extra])  # checked before any data is made
+    ds = screen.screen_data(args.split, f"bench/nerf.py {args.cmd}", data=args.data, preset=_data_preset(args.preset))
+    lanes = ds.split("test")
+    if not 0 <= args.lane < len(lanes):
+        raise UserError(f"--lane {args.lane}: the {ds.scored} split of {ds.name} has {len(lanes)} lanes")
+    scene = lanes[args.lane]
     m = NeRF(config, work, progress=False)
     m.fit_train(ds)
     return ds, scene, m
+
+
+def _data_preset(preset: str) -> str:
+    """The SynthTown preset whose data a method preset runs on (the method presets beyond smoke and
+    paper run on small's)."""
+    return preset if preset in ("smoke", "small", "paper") else "small"
 
 
 def _psnr(a, b) -> float:
@@ -136,8 +153,12 @@ def render(args) -> None:
     import numpy as np
     import torch
 
+    from reference.common.nerf import bake_field
+
     torch.set_num_threads(args.threads)
     ds, scene, m = _method(args, ["renderer=field"], Path(args.work))
+    # the bake's vertices lie around the lane's ground cameras, as the method's own bake places them
+    centres = torch.tensor(np.unique(np.array([f.c2w[:3, 3] for f in scene.ground]), axis=0), dtype=torch.float32)
     m.fit_scene(scene)  # checkpointed in --work: a second run reuses the fit
     model = m.scene_model(scene)
     frames = _ground_frames(scene, args.per_sequence)
@@ -160,7 +181,8 @@ def render(args) -> None:
                                                bake_samples=samples)
                 model.baked = None
                 t0 = time.perf_counter()
-                model.baked = m._bake(scene, model)
+                model.baked = bake_field(model.field, model.box, voxel_m=voxel, view=view,
+                                         centres=centres.to(model.background.device), grid=model.grid)
                 t_bake = time.perf_counter() - t0
                 t0 = time.perf_counter()
                 baked = [m.render_frame(scene, f, model=model) for f in frames]
@@ -196,11 +218,10 @@ def fit(args) -> None:
     def callback(it, seconds, model):
         c0 = time.process_time()
         cpu = c0 - clock["start"] - clock["eval"]
-        m._scene_models[scene.name] = model
         model.baked = None  # bake this state of the field (renderer="baked")
         with torch.no_grad():
-            aer = np.mean([_psnr(m.render_frame(scene, f, ground=False), f.image()) for f in held])
-            preds = [m.render_frame(scene, f) for f in ground]
+            aer = np.mean([_psnr(m.render_frame(scene, f, ground=False, model=model), f.image()) for f in held])
+            preds = [m.render_frame(scene, f, model=model) for f in ground]
         sig = model.baked.sigma.flatten()  # the haze a young field spreads through the box, 1/m
         model.baked = None
         clock["eval"] += time.process_time() - c0
@@ -217,7 +238,7 @@ def fit(args) -> None:
     print(json.dumps({k: v for k, v in stats.items() if not isinstance(v, list)}), flush=True)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("speed")
@@ -230,10 +251,13 @@ def main() -> None:
     s.add_argument("--set", action="append", default=[])
     for name in ("render", "fit"):
         p = sub.add_parser(name)
-        p.add_argument("--data", required=True)
+        p.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of "
+                       "--preset, made if absent)")
+        p.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are "
+                       "chosen on validation data, STYLE.md #13)")
         p.add_argument("--preset", default="small")
         p.add_argument("--set", action="append", default=[])
-        p.add_argument("--lane", type=int, default=0, help="index in the test split")
+        p.add_argument("--lane", type=int, default=0, help="index in the validation split")
         p.add_argument("--threads", type=int, default=1)
         p.add_argument("--per-sequence", type=int, default=4, help="ground frames per sequence (8 sequences)")
         p.add_argument("--work", default=f"/tmp/bench-nerf-{name}")
@@ -242,9 +266,13 @@ def main() -> None:
     r.add_argument("--views", nargs="+", default=["camera", "horizontal", "aerial"])
     r.add_argument("--samples", type=int, nargs="+", default=[0], help="samples per ray (0: n_inner)")
     sub.choices["fit"].add_argument("--aerial-stride", type=int, default=2, help="every k-th held-out view")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.cmd != "speed":  # before anything is imported, made or read
+        from skyeyes_bench.splits import screening_split
+
+        screening_split(args.split, f"bench/nerf.py {args.cmd}")
     {"speed": speed, "render": render, "fit": fit}[args.cmd](args)
 
 
 if __name__ == "__main__":
-    main()
+    screen.run_main(main, sys.argv[1:])

@@ -1,9 +1,16 @@
 """Benchmark of the Skyeyes reference method: training speed per module, seconds per generated
-frame, and quality (FVD, KVD, LPIPS) against training time at a few ACM checkpoints.
+frame, and quality (FVD, KVD, LPIPS) against training time at a few ACM checkpoints, on the
+validation split (settings are chosen here, never on test: STYLE.md #13; --split test exits 2).
 
     .venv/bin/python bench/skyeyes.py --preset smoke --acm-steps 50,100,200
     .venv/bin/python bench/skyeyes.py --preset smoke --no-eval       # speed only
     .venv/bin/python bench/skyeyes.py --preset smoke --methods skyeyes-no-vcm --set core.residual=false
+    .venv/bin/python bench/skyeyes.py --preset small --data DIR      # another dataset's validation split
+
+The data is --data (default: the SynthTown validation data of --preset, `skyeyes-bench data
+synthtown --preset P --split val`, made if absent) as a run on its validation split sees it: the
+methods train on its train split and render and score the validation scenes (the submissions
+and results say `split: "val"`).
 
 Stages are cached by content hash (`<cache>/reference/diffusion/`) and a longer ACM run
 resumes from the shorter one, so the checkpoints cost one ACM training in total. Prints a
@@ -20,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from reference import screen
+
 
 def _metric(res: dict, name: str):
     m = res.get("metrics", {}).get(name, {})
@@ -27,6 +36,8 @@ def _metric(res: dict, name: str):
 
 
 def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: int, progress: bool) -> dict:
+    """Train `cls` at `cfg` on `ds`'s train split, render its "test" scenes (the validation scenes of
+    a `screen.screen_data` view) into a submission in `workdir`, score it against `root`'s data."""
     from skyeyes_bench.submission import SubmissionWriter
 
     m = cls(cfg, workdir, seed=seed, progress=progress)
@@ -66,9 +77,13 @@ def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: in
     return row
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="smoke", help="method and SynthTown preset (smoke, small)")
+    ap.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
+                    "made if absent)")
+    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
+                    "validation data, STYLE.md #13)")
     ap.add_argument("--acm-steps", default="", help="comma-separated ACM step counts (default: the preset's)")
     ap.add_argument("--prior", default=None, help="prior method id (default: the preset's, sugar)")
     ap.add_argument("--methods", default="skyeyes,skyeyes-no-vcm", help="comma-separated method ids")
@@ -81,17 +96,18 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="write the rows as JSON here")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
+    from skyeyes_bench.splits import screening_split
+
+    screening_split(a.split, "bench/skyeyes.py")  # before anything is imported, made or read
 
     import torch
 
     from reference.methods import get_method_class
-    from skyeyes_bench.data.layout import open_dataset
-    from skyeyes_bench.data.synthtown import ensure_dataset
 
     if a.threads:
         torch.set_num_threads(a.threads)
-    root = ensure_dataset(a.preset, progress=not a.quiet)
-    ds = open_dataset(root)
+    ds = screen.screen_data(a.split, "bench/skyeyes.py", data=a.data, preset=a.preset)
+    root = ds.root
     rows = []
     for name in a.methods.split(","):
         cls = get_method_class(name)
@@ -109,7 +125,8 @@ def main(argv=None) -> int:
     keys = ["method", "overrides", "acm_steps", "train_s", "base_it_s", "acm_it_s", "vcm_it_s", "base_cpu_s_it", "acm_cpu_s_it",
             "vcm_cpu_s_it", "prior_s", "s_per_frame", "cpu_s_per_frame",
             "fid", "kid", "fvd", "kvd", "lpips", "psnr"]
-    print(f"# skyeyes bench: preset {a.preset}, {torch.get_num_threads()} threads, torch {torch.__version__}")
+    print(f"# skyeyes bench: preset {a.preset}, {ds.name} {ds.scored} split, {torch.get_num_threads()} threads, "
+          f"torch {torch.__version__}")
     print(" | ".join(keys))
     for r in rows:
         print(" | ".join("n/a" if r.get(k) is None else (f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]))
@@ -118,8 +135,7 @@ def main(argv=None) -> int:
         from skyeyes_bench import outputfiles
 
         outputfiles.write_json(a.out, rows)
-    return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    screen.run_main(main, sys.argv[1:])

@@ -146,6 +146,10 @@ class Method(abc.ABC):
     #: File in `scene_dir(scene)` that holds a fitted scene (`save_scene_model`); None: what
     #: `fit_scene_model` returns is not saved, the hook runs again in every run.
     scene_checkpoint: ClassVar[str | None] = None
+    #: What the method is to the board (`skyeyes_bench.leaderboard.kinds`): "paper" (the paper's
+    #: method), "ablation" (the paper's ablation), "baseline" (a baseline the paper compares
+    #: with), "floor", or "beyond" (not in the paper).
+    kind: ClassVar[str] = "beyond"
 
     def __init__(self, config: Any, workdir: Path, *, seed: int = 0, progress: bool = True):
         self.config = config
@@ -234,6 +238,12 @@ class Method(abc.ABC):
 
     def config_dict(self) -> dict:
         return dataclasses.asdict(self.config)
+
+    def components(self) -> list[str]:
+        """Every part the method runs, in words and in order (the board lists them with its
+        row); the method's own description by default."""
+        doc = (type(self).__doc__ or "").strip().split("\n\n")[0]
+        return [" ".join(doc.split())] if doc else []
 
     @property
     def device(self) -> str:

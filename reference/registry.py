@@ -12,6 +12,8 @@ METHODS: dict[str, str] = {
     "sugar": "reference.methods.sugar:SuGaR",
     "skyeyes": "reference.methods.skyeyes:Skyeyes",
     "skyeyes-no-vcm": "reference.methods.skyeyes:SkyeyesNoVCM",
+    "skyeyes-geo": "reference.methods.skyeyes_geo:SkyeyesGeo",
+    "skyeyes-geo-no-vcm": "reference.methods.skyeyes_geo:SkyeyesGeoNoVCM",
     "controlnet": "reference.methods.controlnet:ControlNetBaseline",
     "ip2p": "reference.methods.ip2p:InstructPix2Pix",
     "gvg": "reference.methods.gvg:GVG",

@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from reference.method import cache_key, code_sha
+from reference.method import cache_key, code_sha, json_sha
 from skyeyes_bench import imagefiles, inputfiles, outputfiles
 from skyeyes_bench.errors import UserError
 
@@ -158,35 +158,45 @@ def _score(sub_dir: Path, root: Path, out: Path, ray: str | None, progress: bool
 
 def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, overrides: list[str] | None = None,
         force: bool = False, progress: bool = True, device: str | None = None,
-        pretrained: str | None = None, jobs: int | None = None, ray: str | None = None) -> dict:
+        pretrained: str | None = None, jobs: int | None = None, ray: str | None = None, split: str = "test") -> dict:
     """The whole pipeline; returns the results dict (the module docstring lists the files). jobs:
     scene fits at once in worker processes (`reference.parallel`; None: every core for the CPU geometry
     methods, else 1). ray: None, or scene fits and scoring as Ray tasks at this address ("": a local
-    Ray; `_on_ray`). Neither changes the results."""
+    Ray; `_on_ray`). Neither changes the results. split: "test", or "val": the run fits, renders and
+    scores the validation split (`splits.scored_view`; without `data`, the preset's validation data)."""
     from reference.methods import get_method_class
     from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import format_summary
+    from skyeyes_bench.splits import check_split, scored_view
 
     _check_options(jobs, ray)
+    check_split(split)
     cls = get_method_class(method)
     config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
-    out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}"
+    out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}{'-val' if split == 'val' else ''}"
     config_d = dataclasses.asdict(config)
     check_out(out, {"method": method, "method_version": cls.version, "seed": seed, "config": config_d},
               force=force)  # before the dataset is generated
     if data is None:  # 1. Data
         from skyeyes_bench.data.synthtown import ensure_dataset
 
-        data = ensure_dataset(preset, progress=progress)
+        data = ensure_dataset(preset, progress=progress, split=split)
     root = Path(data)
     ds = open_dataset(root)
+    if split == "val":  # the validation scenes as its test split (`scored_view`); the protocol says where they are
+        from skyeyes_bench.protocol import current_for_data, load_protocol
+
+        ds = scored_view(ds, split, load_protocol(current_for_data(ds.protocol)))
     dsha, csha = dataset_sha(root, ds), code_sha(cls)
+    if split != "test":  # a run on another split of the same dataset is another run
+        dsha = json_sha([dsha, split])
     key = cache_key(method, cls.version, config_d, seed, dsha, csha)
     record = {"method": method, "method_version": cls.version, "preset": preset, "overrides": overrides, "seed": seed,
-              "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name,
+              "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name, "split": split,
               "manifest_sha256": dsha}, "code_sha256": csha, "repeat": f"skyeyes-bench reproduce --method {method} "
-              f"--preset {preset} --seed {seed} --data {root} " + " ".join(f"--set {o}" for o in overrides)}
+              f"--preset {preset} --seed {seed} --data {root} " + (f"--split {split} " if split != "test" else "")
+              + " ".join(f"--set {o}" for o in overrides)}
     check_out(out, record, force=force)  # before anything is written to --out
     # --out is apart from what the run reads; every write below checks again (`outputfiles.reading`)
     inputs = (root, config_d.get("pretrained"))
@@ -219,7 +229,9 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         # 4. Submission from the render cache.
         per_frame = [timings[f"{sc.name}/{f.file}"] for sc in scenes for s in sc.sequences.values() for f in s]
         sub_dir = out / "submission"
-        sub_config = {"preset": preset, "seed": seed, "cache_key": key, **config_d}
+        # what the board says of the row: the method's kind and every component it ran
+        sub_config = {"preset": preset, "seed": seed, "cache_key": key, **config_d, "kind": m.kind,
+                      "components": m.components()}
         _write_submission(sub_dir, ds, scenes, renders, method, cls.version, sub_config,
                           {"fit_s": fit_s, "render_s": float(sum(per_frame)), "per_frame_render_s": per_frame,
                            "cached_s": cached_s})

@@ -95,7 +95,7 @@ try:
     out["timings"] = {k: v for k, v in sub.get("timings", {}).items() if k != "per_frame_render_s"}
     out["hardware"] = sub.get("hardware")
     out["config"] = {k: sub.get("config", {}).get(k) for k in ("acm_steps", "acm_batch", "vcm_steps", "vcm_batch",
-                                                              "mixed_precision", "device", "vcm_noise", "vcm_noise_flow")}
+                                                              "mixed_precision", "device", "components")}
 except OSError as e:
     out["submission"] = f"missing: {e}"
 try:

@@ -18,4 +18,5 @@ from reference.common.diffusion.presets import baseline_presets
 
 class ControlNetBaseline(DiffusionMethod):
     name = "controlnet"
+    kind = "baseline"
     presets = baseline_presets(lambda k, v: dataclasses.replace(v, vcm=False, condition="aerial"))

@@ -17,4 +17,8 @@ PRESETS = SPLATTING_PRESETS
 
 class Gaussians3D(GaussianSplatting):
     name = "gaussians3d"
+    kind = "baseline"
+
+    def components(self) -> list[str]:
+        return ["3D Gaussian splatting fitted on the lane's aerial views", "rendered at the ground cameras", "colours mapped as learned on the train split"]
     presets = PRESETS

@@ -94,6 +94,7 @@ PRESETS = baseline_presets(lambda k, v: gvg_config(v, {"smoke": "smoke", "small"
 
 class GVG(DiffusionMethod):
     name = "gvg"
+    kind = "baseline"
     presets = PRESETS
     pretrained_conditioning = "concat"
 
@@ -112,6 +113,9 @@ class GVG(DiffusionMethod):
         mvs = get_method_class("mvs")
         config, _ = mvs.configure(self.config.prior_preset, values={"train_lanes": 0, "device": self.device})
         return mvs(config, self.workdir / "prior", seed=self.seed, progress=self.progress, geometry=True)
+
+    def condition_label(self) -> str:
+        return "condition: the mvs cloud's projected aerial texture, inverse depth and coverage mask"
 
     def make_condition(self) -> PriorRenders:
         """The prior's geometry renders as condition channels (colour, inverse depth, mask)."""

@@ -73,8 +73,12 @@ PRESETS = baseline_presets(lambda k, v: ip2p_config(v))
 
 class InstructPix2Pix(DiffusionMethod):
     name = "ip2p"
+    kind = "baseline"
     presets = PRESETS
     pretrained_conditioning = "concat"
+
+    def condition_label(self) -> str:
+        return f"condition: the nearest aerial view, with the instruction {INSTRUCTION!r}"
 
     def make_guidance(self) -> guidance.ImageTextGuidance:
         """IP2P's: conditions dropped in training, guided on image and text at sampling."""

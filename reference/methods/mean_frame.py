@@ -32,6 +32,10 @@ PRESETS = {"smoke": MeanFrameConfig(), "small": MeanFrameConfig(), "paper": Mean
 
 class MeanFrame(Method):
     name = "mean-frame"
+    kind = "floor"
+
+    def components(self) -> list[str]:
+        return ["every frame the per-pixel mean of the train split's ground frames"]
     version = "0.1"
     presets = PRESETS
 

@@ -60,8 +60,12 @@ class MVS(Method):
 
     name = "mvs"
     version = "0.1"
+    kind = "baseline"
     presets = PRESETS
     scene_checkpoint = "cloud.npz"
+
+    def components(self) -> list[str]:
+        return ["SfM and plane-sweep multi-view stereo on the lane's aerial views", "the fused cloud's discs rendered at the ground cameras", "colours mapped as learned on the train split"]
 
     def __init__(self, config: MVSMethodConfig, workdir, *, geometry: bool = False, **kw):
         super().__init__(config, workdir, **kw)

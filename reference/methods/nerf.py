@@ -114,8 +114,12 @@ class NeRF(Method):
 
     name = "nerf"
     version = "0.1"
+    kind = "baseline"
     presets = PRESETS
     scene_checkpoint = "model.pt"
+
+    def components(self) -> list[str]:
+        return ["Instant-NGP field fitted on the lane's aerial views", "rendered at the ground cameras", "colours mapped as learned on the train split"]
 
     def __init__(self, config: NeRFMethodConfig, workdir, **kw):
         super().__init__(config, workdir, **kw)

@@ -1,4 +1,6 @@
-"""Skyeyes (WACV 2025): Gaussian prior -> appearance control module -> view consistency module.
+"""Skyeyes (WACV 2025) as the paper describes it: SuGaR prior -> appearance control module (ACM)
+-> view consistency module (VCM), sampled from pure Gaussian noise. Nothing else: our additions
+run under their own name (`reference.methods.skyeyes_geo`).
 
 Stages (`reference.common.diffusion.stages`; each cached by content hash under
 `<cache>/reference/diffusion/`, so `skyeyes`, `skyeyes-no-vcm` and the baselines share what they
@@ -14,22 +16,27 @@ have in common):
    projections (UNet and ControlNet) are fine-tuned on 12-frame clips with first-frame
    conditioning. VCM adds no new parameters.
 
-Inference: frame 1 from the ACM, then clips of 12 frames conditioned on the last generated
-frame, autoregressively. `SkyeyesNoVCM` is the paper's ablation (ACM frame by frame).
+Inference (paper Fig. 2, supplement Sec. 2.2): frame 1 from the ACM, then clips of 12 frames
+conditioned on the last generated frame, autoregressively, every frame denoised from pure
+Gaussian noise. `SkyeyesNoVCM` is the paper's ablation: the same without the VCM (the ACM frame
+by frame), one difference.
 
-Both are the diffusion pipeline (`reference.common.diffusion.pipeline`) with its default parts:
-the prior's renders as the condition (`config.prior_method`, from the registry), no guidance;
-their presets are the family's (`reference.common.diffusion.presets`: Skyeyes' formulation and
-training budget), without the VCM for the ablation.
+What the CPU presets change from the paper (the formulation, the training budget) is in
+docs/skyeyes.md, "Deviations from the paper"; `PAPER_COMPONENTS` is the paper's list, which a
+test holds every preset to.
 """
 
 from __future__ import annotations
 
 from reference.common.diffusion.config import frame_by_frame
-from reference.common.diffusion.presets import PRESETS as FAMILY_PRESETS
 from reference.common.diffusion.pipeline import DiffusionMethod
+from reference.common.diffusion.presets import PRESETS as FAMILY_PRESETS
 
 PRESETS = FAMILY_PRESETS
+
+#: The paper's pipeline in the words of `DiffusionMethod.components` (Skyeyes Sec. 3, Fig. 2).
+PAPER_COMPONENTS = ("condition: the sugar prior's renders", "ACM", "VCM (12-frame clips after the first frame)",
+                    "pure Gaussian noise")
 
 
 class Skyeyes(DiffusionMethod):
@@ -37,6 +44,7 @@ class Skyeyes(DiffusionMethod):
     frames on from the last generated one."""
 
     name = "skyeyes"
+    kind = "paper"
     presets = PRESETS
 
 
@@ -44,4 +52,5 @@ class SkyeyesNoVCM(DiffusionMethod):
     """The paper's ablation: the appearance control module frame by frame (no VCM)."""
 
     name = "skyeyes-no-vcm"
+    kind = "ablation"
     presets = {k: frame_by_frame(v) for k, v in PRESETS.items()}

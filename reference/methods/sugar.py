@@ -56,6 +56,10 @@ PRESETS = {
 
 class SuGaR(GaussianSplatting):
     name = "sugar"
+    kind = "baseline"
+
+    def components(self) -> list[str]:
+        return ["SuGaR: surface-aligned 3D Gaussians fitted on the lane's aerial views", "rendered at the ground cameras", "colours mapped as learned on the train split"]
     presets = PRESETS
 
     def regularizer(self, scene):

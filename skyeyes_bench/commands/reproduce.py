@@ -19,8 +19,14 @@ def register(sub) -> None:
     p.add_argument("--method", required=True, help="reference method id (e.g. sugar, gaussians3d, skyeyes)")
     p.add_argument("--preset", default="smoke", help="method preset: smoke | small | paper (default: smoke)")
     p.add_argument("--data", default=None, metavar="DIR",
-                   help="dataset folder (default: the SynthTown dataset of the same preset, generated once)")
-    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: outputs/<method>-<preset>)")
+                   help="dataset folder (default: the SynthTown dataset of the same preset, generated once; with "
+                   "--split val its validation data)")
+    p.add_argument("--split", choices=("test", "val"), default="test",
+                   help="the scenes fitted, rendered and scored: test (default), or val, the validation split where "
+                   "settings are chosen (the protocol's val.toml: SynthTown's own validation towns; for CARLA and "
+                   "CitySample a part of the train towns, then left out of training); never ranked")
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: outputs/<method>-<preset>, "
+                   "with --split val outputs/<method>-<preset>-val)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config field of the preset (repeatable), e.g. --set iterations=200")
@@ -56,5 +62,5 @@ def run(args) -> int:
 
     reproduce.run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
                   force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
-                  pretrained=args.pretrained, jobs=args.jobs, ray=ray_address(args.ray, []))
+                  pretrained=args.pretrained, jobs=args.jobs, ray=ray_address(args.ray, []), split=args.split)
     return 0

@@ -12,7 +12,9 @@
   embedding), DDPM/DDIM schedulers, pixel codec.
 - `vcm`: the view consistency module as a diffusers attention processor.
 - `train`: denoising losses (epsilon or v) (frames, first-frame-conditioned clips), resumable training loop.
-- `sample`: DDIM sampling frame by frame and autoregressively clip by clip; `warp`: warped sampling.
+- `sample`: DDIM sampling frame by frame and autoregressively clip by clip.
+- `additions`: our steps beyond the paper (carried noise, prior anchor, street, sky), each a
+  component with its own config, run only by the members that name them (`skyeyes-geo`).
 - `figure`: a run's figure (aerial, condition, generated, ground truth).
 """
 

@@ -9,8 +9,8 @@ which the family's members differ most (`pipeline.DiffusionMethod.make_condition
 
 Both are parts of the method that fit on the test scenes at once (`Method.scene_parts`): their
 `fit_scenes` keeps the scenes' conditions, which `of_scene` hands to the method's per-scene fit.
-`PriorFits` is the part that keeps the prior's fitted scenes, whose depth moves frames
-(`vcm_warp`).
+`PriorFits` is the part that keeps the prior's fitted scenes, whose depth and Gaussians the
+additions read (`additions`: the street and the sky).
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ class PriorRenders(SceneConditions):
 
 
 class PriorFits:
-    """The prior's fitted scenes, for its depth (`vcm_warp`): fitted `jobs` at a time, those
+    """The prior's fitted scenes, for its depth and Gaussians (`additions`): fitted `jobs` at a time, those
     `PriorRenders` left unfitted (their renders came from the cache)."""
 
     def __init__(self, prior: Callable[[], "Method"]):

@@ -202,7 +202,7 @@ class DiffusionConfig:
     vcm_batch: int = 1
     vcm_lr: float = 2e-4
     # NOTE: Skyeyes Sec. 3.3: "a consecutive of 12 frames". 1: no VCM stage, the ACM frame by
-    # frame in sequence order (what `vcm_warp` alone does).
+    # frame in sequence order.
     clip_frames: int = 12
     # Which frames a frame attends to in the rewired self-attention (`vcm.KEYS`: "clip", every
     # frame of its clip, the paper's; "previous", its own and the previous frame's tokens).
@@ -210,50 +210,6 @@ class DiffusionConfig:
     # Local attention of each token over the previous frame's window x window neighbourhood after
     # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
     vcm_local: int = 0
-    # The clip's first frame (the frame already generated) enters the VCM moved into the next
-    # frame's view by the optical flow between their conditions, on that frame's condition
-    # (`warp.FlowAlign`), so the local attention finds its detail in its window; the VCM trains on
-    # pairs made so from the train split's frames (`stages.aligned_firsts`).
-    vcm_align: bool = False
-    # Warped sampling (`diffusion.warp`; 0: none): the clip's first frame, moved into each new
-    # frame by the prior's depth and the poses, holds the pixels it reaches for this many of the
-    # `sample_steps` DDIM steps. Sampling only (no stage key); needs a prior with depth (`sugar`).
-    vcm_warp: int = 0
-    # Low-pass transfer (`warp.lowpass_transfer`; 0: none): after sampling, each frame's low
-    # frequencies (a Gaussian of this std, in pixels at the model's resolution), where the
-    # previous output frame, moved into it by the optical flow between the two frames'
-    # conditions (`warp.flow_coords`), reaches, move by `vcm_lowpass_mix` towards that frame's;
-    # its detail stays its own. Sampling only (no stage key).
-    vcm_lowpass: float = 0.0
-    vcm_lowpass_mix: float = 1.0
-    # Prior anchor (`warp.prior_anchor`; 0: none): after sampling (and the low-pass transfer),
-    # each frame's low frequencies (a Gaussian of this std, in pixels at the model's resolution)
-    # move by `vcm_anchor_mix` towards those of its own condition, the prior's render, its colours
-    # mapped to the sequence's frames by affine fits on a `vcm_anchor_tiles` square grid of the
-    # screen (`warp.affine_colours`). Sampling only (no stage key).
-    vcm_anchor: float = 0.0
-    vcm_anchor_mix: float = 1.0
-    vcm_anchor_tiles: int = 4
-    # The street from one view (`warp.street_transfer`; 0: none): last, each frame's pixels of the
-    # street's plane (under the prior's Gaussians, `warp.prior_ground`) move this share of the way
-    # to the colour of the frame that sees that point `warp.STREET_VIEW_M` away. Sampling only;
-    # needs a Gaussian prior (its depth and Gaussians: `sugar`, `gaussians3d`).
-    vcm_street: float = 0.0
-    # The sky as one function of the direction (`warp.sky_fit`; 0: none): after the street, each
-    # frame's pixels where the prior sees nothing above the horizon move this share of the way to
-    # one smooth fit of the whole sequence's sky (a polynomial in the ray's direction: a direction
-    # at infinity looks the same from every pose). Sampling only; needs a Gaussian prior (its depth).
-    vcm_sky: float = 0.0
-    # Shared noise (`sample.frame_noise`; 0: every frame its own): each frame's starting noise is
-    # sqrt(vcm_noise) of one draw its sequence shares plus sqrt(1 - vcm_noise) of its own, still a
-    # standard normal per frame. `vcm_noise_sigma` > 0: only the noise's low frequencies are
-    # shared, below a Gaussian low-pass of that std in model-space pixels. Sampling only (no stage key).
-    vcm_noise: float = 0.0
-    vcm_noise_sigma: float = 0.0
-    # The shared part travels with the picture instead (`warp.carried_noise`): frame j's noise is
-    # sqrt(vcm_noise) of frame j - 1's, carried along the optical flow between the two frames'
-    # conditions, plus sqrt(1 - vcm_noise) of its own, where that flow reaches.
-    vcm_noise_flow: bool = False
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -297,8 +253,7 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_align", "vcm_warp", "vcm_lowpass", "vcm_lowpass_mix", "vcm_anchor",
-            "vcm_anchor_mix", "vcm_anchor_tiles", "vcm_street", "vcm_sky", "vcm_noise", "vcm_noise_sigma", "vcm_noise_flow")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -112,6 +112,10 @@ class Unguided:
         """The model the sampler calls."""
         return model
 
+    def labels(self) -> list[str]:
+        """The guidance in words, for a run's list of components (none: no guidance)."""
+        return []
+
 
 class ImageTextGuidance(Unguided):
     """InstructPix2Pix's guidance on image and text: conditions dropped in training (`draw_drops`,
@@ -143,3 +147,6 @@ class ImageTextGuidance(Unguided):
 
     def sampling_model(self, model: nn.Module) -> nn.Module:
         return GuidedModel(model, *self.scales)
+
+    def labels(self) -> list[str]:
+        return [f"classifier-free guidance on image and text (scales {self.scales[0]:g}, {self.scales[1]:g})"]

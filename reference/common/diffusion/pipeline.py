@@ -8,7 +8,8 @@ no-VCM ablation, controlnet, ip2p, gvg):
 - `fit_scenes`: the condition of every test ground frame (its part, `scene_parts`: a prior
   fitted per scene), kept per scene by the one hook, `fit_scene_model`;
 - `render_sequence`: DDIM from the ACM frame by frame, or with the VCM clip by clip
-  (`sample`), seeded per sequence.
+  (`sample`), seeded per sequence; then the steps after sampling its config turns on (`additions`:
+  none for the paper's Skyeyes).
 
 What a member chooses, in its own module:
 
@@ -18,6 +19,8 @@ What a member chooses, in its own module:
   by default what `config.condition` names, with `config.prior_method` from the registry);
 - the guidance part, `make_guidance` (`guidance.Unguided`, or IP2P's `ImageTextGuidance`);
 - whether a VCM runs: its config (`vcm`, `clip_frames`);
+- our additions (`additions.AdditionsConfig`: carried noise, prior anchor, street, sky), only
+  for the members that name them (`skyeyes-geo`);
 - `pretrained_conditioning`: how its condition enters a pretrained SD1.5 UNet.
 """
 
@@ -34,13 +37,14 @@ from reference.common.priors import frame_key
 from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
+from .additions import Additions, AdditionsConfig, SequenceView
 from .conditions import NearestAerial, PriorFits, PriorRenders, SceneConditions, registry_prior
 from .config import DiffusionConfig
 from .guidance import Unguided
 from .presets import GPU_TRAINING
 
-#: The priors made of Gaussians, whose depth (`warp.prior_depth`) and means (`warp.prior_ground`)
-#: the warped sampling, the street transfer and the sky fit use.
+#: The priors made of Gaussians, whose depth (`additions.view.prior_depth`) and means the street
+#: and the sky additions read.
 GAUSSIAN_PRIORS = ("sugar", "gaussians3d")
 
 if TYPE_CHECKING:
@@ -75,33 +79,15 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"({config.acm_steps}); the decay follows at least one constant-rate step")
     if config.clip_frames < 1:
         raise ValueError(f"clip_frames {config.clip_frames}: expected >= 1")
-    if not 0 <= config.vcm_warp <= config.sample_steps or (config.vcm_warp and not config.vcm):
-        raise ValueError(f"vcm_warp {config.vcm_warp}: expected 0 <= vcm_warp <= sample_steps "
-                         f"({config.sample_steps}), and the VCM on (vcm=true) when it is not 0")
-    if config.vcm_lowpass < 0 or not 0 < config.vcm_lowpass_mix <= 1 or \
-            (config.vcm_lowpass and not (config.vcm and config.condition == "prior")):
-        raise ValueError(f"vcm_lowpass {config.vcm_lowpass}, vcm_lowpass_mix {config.vcm_lowpass_mix}: expected "
-                         "vcm_lowpass >= 0 (pixels), 0 < vcm_lowpass_mix <= 1, and when vcm_lowpass is not 0 the "
-                         "VCM on (vcm=true) and a prior's renders as the condition (their flow moves frames)")
-    if config.vcm_anchor < 0 or not 0 < config.vcm_anchor_mix <= 1 or config.vcm_anchor_tiles < 1 or \
-            (config.vcm_anchor and not (config.vcm and config.condition == "prior")):
-        raise ValueError(f"vcm_anchor {config.vcm_anchor}, vcm_anchor_mix {config.vcm_anchor_mix}, vcm_anchor_tiles "
-                         f"{config.vcm_anchor_tiles}: expected vcm_anchor >= 0 (pixels), 0 < vcm_anchor_mix <= 1, "
-                         "vcm_anchor_tiles >= 1, and when vcm_anchor is not 0 the "
-                         "VCM on (vcm=true) and a prior's renders as the condition (the frames' anchor)")
-    for name in ("vcm_street", "vcm_sky"):
-        v = getattr(config, name)
-        if not 0.0 <= v <= 1.0 or \
-                (v and not (config.vcm and config.condition == "prior" and config.prior_method in GAUSSIAN_PRIORS)):
-            raise ValueError(f"{name} {v}: expected 0 <= {name} <= 1, and when it is not 0 the VCM on (vcm=true) "
-                             f"and the renders of a Gaussian prior ({', '.join(GAUSSIAN_PRIORS)}) as the condition "
-                             f"(its depth and Gaussians find the street and the sky), not {config.prior_method!r}")
-    if not 0.0 <= config.vcm_noise <= 1.0 or config.vcm_noise_sigma < 0 or (config.vcm_noise and not config.vcm) or \
-            (config.vcm_noise_flow and (config.vcm_noise_sigma or config.condition != "prior")):
-        raise ValueError(f"vcm_noise {config.vcm_noise}, vcm_noise_sigma {config.vcm_noise_sigma}, vcm_noise_flow "
-                         f"{config.vcm_noise_flow}: expected 0 <= vcm_noise <= 1, vcm_noise_sigma >= 0, the VCM on "
-                         "(vcm=true) when vcm_noise is not 0 (without the VCM: skyeyes-no-vcm, or vcm_noise=0), and with "
-                         "vcm_noise_flow no sigma and a prior's renders as the condition (their flow carries the noise)")
+    if isinstance(config, AdditionsConfig):
+        adds = Additions.of(config)
+        if adds.components and config.condition != "prior":
+            raise ValueError(f"{', '.join(adds.names)}: need a prior's renders as the condition (their flow, their "
+                             f"colours), not condition={config.condition!r}")
+        if adds.needs_gaussians and config.prior_method not in GAUSSIAN_PRIORS:
+            raise ValueError(f"{', '.join(c.name for c in adds.components if c.needs_gaussians)}: need the renders of a "
+                             f"Gaussian prior ({', '.join(GAUSSIAN_PRIORS)}; its depth and Gaussians find the street "
+                             f"and the sky), not {config.prior_method!r}")
     if config.compile not in COMPILE_MODES:
         raise ValueError(f"compile {config.compile!r}: expected one of {', '.join(map(repr, COMPILE_MODES))} "
                          "('' is eager)")
@@ -135,6 +121,7 @@ class DiffusionMethod(Method):
         self._prior = prior_method  # tests inject a stand-in; else built when first needed (`make_prior`)
         self.condition = self.make_condition()
         self.guidance = self.make_guidance()
+        self.additions = Additions.of(self.config)  # none for a config without them (the paper's)
         self.acm = None
         self.vcm = None
         self.training: dict[str, Any] = {}  # stage -> its summary (training.json)
@@ -160,6 +147,23 @@ class DiffusionMethod(Method):
     def config_dict(self) -> dict:
         return {**dataclasses.asdict(self.config), "method": self.name}
 
+    def components(self) -> list[str]:
+        """What the run does, in order: its condition, the ACM, the VCM if any, its starting noise,
+        then the steps after sampling (the board lists them with its row)."""
+        c = self.config
+        vcm = c.vcm and c.clip_frames > 1
+        parts = [self.condition_label(), *self.guidance.labels(), "ACM" if vcm else "ACM frame by frame"]
+        if vcm:
+            parts.append(f"VCM ({c.clip_frames}-frame clips after the first frame)")
+        parts.append(self.additions.noise.name if self.additions.noise else "pure Gaussian noise")
+        return parts + [step.name for step in self.additions.post]
+
+    def condition_label(self) -> str:
+        """The condition part in words (`components`)."""
+        if self.config.condition == "aerial":
+            return "condition: the nearest aerial view"
+        return f"condition: the {self.config.prior_method} prior's renders"
+
     # ---------------------------------------------------------------- the parts
     def make_condition(self) -> NearestAerial | PriorRenders:
         """The condition part: `config.condition` "aerial", the nearest aerial view; "prior", the
@@ -179,8 +183,8 @@ class DiffusionMethod(Method):
 
     @property
     def prior(self) -> Method:
-        """The method whose renders are the conditions (`PriorRenders`) and whose depth moves
-        frames (`vcm_warp`), made by `make_prior` when first needed."""
+        """The method whose renders are the conditions (`PriorRenders`) and whose depth and
+        Gaussians the additions read, made by `make_prior` when first needed."""
         if self._prior is None:
             self._prior = self.make_prior()
         return self._prior
@@ -207,8 +211,8 @@ class DiffusionMethod(Method):
         data = train_set(frames, [f.image() for _, f in frames], [conds[frame_key(s, f)] for s, f in frames],
                          lambda ims: to_model(ims, c.core.resolution), c.core, acc.device)
         stages = Stages(self, acc, data)
-        # 2. the base UNet (where there is one), 3. the ACM, 4. the VCM (1-frame clips: the ACM
-        # frame by frame, which `vcm_warp` alone holds together).
+        # 2. the base UNet (where there is one), 3. the ACM, 4. the VCM (none for 1-frame clips:
+        # the ACM frame by frame).
         model, base_id = stages.base()
         acm_id = stages.acm(model, base_id, self.guidance)
         self.acm = model
@@ -217,16 +221,13 @@ class DiffusionMethod(Method):
 
     def scene_parts(self) -> list[SceneConditions | PriorFits]:
         """Fitted on the test scenes at once, before each scene's own fit: the condition part
-        (a prior fitted per scene `jobs` at a time and rendered, `render_priors`), and with
-        `vcm_warp`, `vcm_street` or `vcm_sky` the prior's fitted scenes (its depth moves frames or
-        finds the street and the sky; cached renders fit none)."""
+        (a prior fitted per scene `jobs` at a time and rendered, `render_priors`), and where an
+        addition reads the prior's depth or Gaussians, the prior's fitted scenes (cached renders
+        fit none)."""
         if self.acm is None:
             raise RuntimeError(f"{self.name}: fit_train must run before fit_scene")
-        if not (self.config.vcm_warp or self.config.vcm_street or self.config.vcm_sky):
+        if not self.additions.needs_gaussians:
             return [self.condition]
-        if self.config.prior_method not in GAUSSIAN_PRIORS:
-            raise ValueError(f"vcm_warp, vcm_street, vcm_sky: the prior {self.config.prior_method!r} is not Gaussians "
-                             f"({', '.join(GAUSSIAN_PRIORS)}), whose depth moves the frames")
         return [self.condition, PriorFits(lambda: self.prior)]
 
     def fit_scene_model(self, scene: Scene, *, progress: bool) -> tuple[dict[str, np.ndarray], dict]:
@@ -245,24 +246,13 @@ class DiffusionMethod(Method):
         self.use_threads()
         cc = core.encode_cond(to_model(priors, cfg.resolution), cfg, self.device)
         seed = self.sequence_seed(sequence)
-        warp = self._warp_targets(scene, sequence, cc) if self.config.vcm_warp else None
-        x = core.from_diffused(self._generate(cc, seed, warp, priors), cc, cfg)
+        view = SequenceView(self.prior, scene, sequence, priors) if self.additions.components else None
+        # 1. sample (from each frame's own noise, or what the noise addition makes of it)
+        x = core.from_diffused(self._generate(cc, seed, view), cc, cfg)
         imgs = core.decode(x, cfg, self.device)  # [N, 3, res, res]
-        if self.config.vcm_lowpass:  # the frames' coarse part carried on along the conditions' flow
-            from .warp import flow_coords, lowpass_transfer
-
-            imgs = lowpass_transfer(imgs, flow_coords(_guides(priors, *imgs.shape[-2:])), self.config.vcm_lowpass,
-                                    self.config.vcm_lowpass_mix)
-        if self.config.vcm_anchor:  # the frames' coarse part moved towards their own renders of the prior
-            import torch
-
-            from .warp import prior_anchor
-
-            renders = torch.as_tensor(_guides(priors, *imgs.shape[-2:]), device=imgs.device).permute(0, 3, 1, 2)
-            imgs = prior_anchor(imgs, renders, self.config.vcm_anchor, self.config.vcm_anchor_mix,
-                                self.config.vcm_anchor_tiles)
-        if self.config.vcm_street or self.config.vcm_sky:  # the street from one view, the sky from one fit
-            imgs = self._street(scene, sequence, imgs)
+        # 2. the steps after sampling, in order (none for the paper's Skyeyes)
+        for step in self.additions.post:
+            imgs = step(imgs, view)
         out = []
         for f, img in zip(sequence.frames, imgs, strict=True):
             img = core.resize(img[None], f.height)[0] if (f.width == f.height) else \
@@ -281,73 +271,18 @@ class DiffusionMethod(Method):
         rendering order."""
         return self.seed * 1_000_003 + zlib.crc32(sequence.id.encode())
 
-    def _generate(self, conds, seed: int, warp, priors: list[np.ndarray]):
+    def _generate(self, conds, seed: int, view: SequenceView | None):
         """Model-space samples [N, C, h, w] for the conditions `conds` of a sequence's frames."""
         from . import sample
 
         c = self.config
         acm = self.guidance.sampling_model(self.acm)
-        noise = self._start_noise(sample.sample_shape(tuple(conds.shape), acm.cfg), seed, priors)
-        if c.vcm and (self.vcm is not None or c.vcm_warp):
-            align = None
-            if c.vcm_align and self.vcm is not None:
-                from .warp import FlowAlign, flow_coords
-
-                res = c.core.resolution
-                align = FlowAlign(conds, flow_coords(_guides(priors, res, res)), c.core)
+        # every frame's own draw (`sample.frame_noise`: the same in `skyeyes` and `skyeyes-no-vcm`)
+        noise = sample.frame_noise(seed, sample.sample_shape(tuple(conds.shape), acm.cfg))
+        if self.additions.noise is not None:
+            noise = self.additions.noise(noise, view)
+        if self.vcm is not None:
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
-                                          strength=c.sample_strength, warp=warp, hold=c.vcm_warp, noise=noise,
-                                          align=align)
+                                          strength=c.sample_strength, noise=noise)
         return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength,
                                     noise=noise)
-
-    def _start_noise(self, shape: tuple[int, ...], seed: int, priors: list[np.ndarray]) -> torch.Tensor:
-        """Every frame's starting noise [N, C, h, w]: its own draw (`sample.frame_noise`, the
-        same in `skyeyes` and `skyeyes-no-vcm`), with `vcm_noise` a share across frames, on the
-        screen (the sequence's one draw, `vcm_noise_sigma`: its low frequencies) or carried along
-        the optical flow between the frames' conditions (`vcm_noise_flow`: `warp.carried_noise`)."""
-        from . import sample
-        from .warp import DIS_MIN_PX, carried_noise, flow_coords, grid_coords
-
-        c = self.config
-        if not (c.vcm_noise and c.vcm_noise_flow):
-            return sample.frame_noise(seed, shape, share=c.vcm_noise, sigma=c.vcm_noise_sigma)
-        own = sample.frame_noise(seed, shape)
-        h, w = shape[-2:]
-        f = -(-DIS_MIN_PX // min(h, w))  # 1 on every preset's grid; more for grids DIS refuses
-        return carried_noise(own, grid_coords(flow_coords(_guides(priors, h * f, w * f)), f), c.vcm_noise)
-
-    def _street(self, scene: Scene, sequence: Sequence, imgs):
-        """`vcm_street`: the street of a sequence's decoded frames [N, 3, H, W] taken from one view
-        of each of its points (`warp.street_transfer`), by the prior's depth and Gaussians; then
-        `vcm_sky`: their sky from one fit of the sequence's (`warp.sky_fit`), by the prior's depth."""
-        from . import warp
-
-        c = self.config
-        zg = warp.prior_ground(self.prior, scene) if c.vcm_street else None  # None: no street to take
-        if zg is None and not c.vcm_sky:
-            return imgs  # nothing to do: no depths rendered
-        h, w = imgs.shape[-2:]
-        depths = [warp.prior_depth(self.prior, scene, f, w, h) for f in sequence.frames]
-        cams = [warp.scaled_camera(f.camera(), w, h) for f in sequence.frames]
-        if zg is not None:
-            imgs = warp.street_transfer(imgs, cams, depths, zg, mix=c.vcm_street)
-        return warp.sky_fit(imgs, cams, depths, mix=c.vcm_sky) if c.vcm_sky else imgs
-
-    def _warp_targets(self, scene: Scene, sequence: Sequence, cc):
-        """The warped-sampling targets of a sequence (`vcm_warp`): the prior's depth and the
-        poses at the model's resolution."""
-        from . import warp
-
-        res = self.config.core.resolution
-        depths = [warp.prior_depth(self.prior, scene, f, res, res) for f in sequence.frames]
-        cams = [warp.scaled_camera(f.camera(), res, res) for f in sequence.frames]
-        return warp.WarpTargets(cc, depths, cams, self.config.core)
-
-
-def _guides(priors: list[np.ndarray], h: int, w: int) -> np.ndarray:
-    """The prior's renders of a sequence's frames, colour only, resized to h x w: [N, h, w, 3] in
-    [0, 1], what `warp.flow_coords` computes the flow on (`vcm_lowpass`, `vcm_noise_flow`)."""
-    from . import core
-
-    return core.resize_hw(core.images_to_tensor(np.stack(priors)[..., :3]), h, w).permute(0, 2, 3, 1).numpy()

@@ -10,7 +10,7 @@ from .config import CoreConfig, DiffusionConfig, frame_by_frame
 
 PRESETS: dict[str, DiffusionConfig] = {
     # CI: whole `reproduce --preset smoke` (SynthTown smoke, 48x48) in a few minutes. CPU
-    # formulation (docs/skyeyes.md, "What was tried"): the prior concatenated to the UNet's
+    # formulation (docs/log/skyeyes-2026-11.md, "What was tried"): the prior concatenated to the UNet's
     # input, the residual from the prior diffused, EMA weights, min-SNR weighting.
     "smoke": DiffusionConfig(
         core=CoreConfig(resolution=48, patch=1, channels=(32, 64, 64), attention=(False, False, True),
@@ -18,47 +18,21 @@ PRESETS: dict[str, DiffusionConfig] = {
         prior_preset="smoke", base_steps=0, acm_steps=600, acm_batch=8, acm_lr=1e-3,
         vcm_steps=60, vcm_batch=1, sample_steps=10, ema_decay=0.995, snr_gamma=5.0),
     # CPU default (SynthTown small, 128x128 folded to 64x64x12: at 128 the fold is what keeps
-    # a step near the 64x64 cost).
-    # NOTE: measured here (2 shared cores, load ~4): a training step at batch 12 cost 8.0 CPU-s
-    # on whole 64x64x12 frames and 0.66 CPU-s on 32x32 crops, so `small` trains on crops, with
-    # coordinate channels: without them its whole-frame samples were a collage of crops.
-    # NOTE: ACM steps by measurement (docs/skyeyes.md, "What was tried"; load ~2, 0.276 s/step
-    # in fp32): held-out FID 295 / 242 / 220 / 201 at 3000 / 6000 / 9000 / 12000 constant-rate
-    # steps; decaying the rate over the last 3000 of 12000 steps bettered every metric by about
-    # what 1000 more constant steps give; the VCM changed nothing measurable at 300 steps and
-    # lowered the warp error at the paper's 3000. bf16 autocast (this machine's CPU has AMX)
-    # makes a step 0.28 -> 0.20 s and sampling 2x faster, which pays for both: 72 min from a clean
-    # clone with an empty cache, set-up and scoring included (docs/skyeyes.md, Results). On a CPU
-    # without native bf16, `--set mixed_precision=no` is faster.
+    # a step near the 64x64 cost). The paper's pipeline only: SuGaR prior, ACM, VCM on 12-frame
+    # clips, DDIM from pure Gaussian noise (our additions: `skyeyes-geo`). Its formulation and
+    # budget were chosen on the synthtown@1/@3 test split before the validation split existed
+    # (docs/skyeyes.md, "Deviations from the paper"; docs/log/skyeyes-2026-11.md): 32x32 crops
+    # with coordinate channels (a step on whole frames cost 12x a crop's; without the channels
+    # the samples were a collage of crops), 12000 ACM steps with the rate decayed over the last
+    # 3000 (every longer run tried was better), bf16 autocast (this CPU has AMX: a step 0.28 ->
+    # 0.20 s; without native bf16, `--set mixed_precision=no` is faster).
     "small": DiffusionConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
                         head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0,
                         coords=True),
         prior_preset="small", base_steps=0, acm_steps=12000, acm_anneal=3000, acm_batch=16, acm_lr=1e-3,
         train_crop=32, vcm_steps=3000, vcm_batch=1, sample_steps=10, ckpt_every=100, ema_decay=0.995,
-        snr_gamma=5.0, mixed_precision="bf16", vcm_noise=1.0, vcm_noise_flow=True, vcm_anchor=3.0,
-        vcm_anchor_mix=0.5, vcm_anchor_tiles=4, vcm_street=0.8, vcm_sky=1.0),
-    # NOTE: the street from one view (`vcm_street`, 0.8 of the way) and the sky from one fit of the
-    # sequence's (`vcm_sky`), after the anchor. On all 8 synthtown@3 scenes (docs/skyeyes.md, "The
-    # sky from one fit"), applied to the same sampled frames: warp error 0.0527 -> 0.0431 (no-VCM:
-    # 0.0928, -54%, the interval's end -51%), FID 190 -> 167, LPIPS 0.3746 -> 0.3699 (no-VCM
-    # 0.3728), SSIM and PSNR better; FVD 593 -> 616 credibly worse (no-VCM: 739). The street alone
-    # (anchor 0.6) cut the warp error to 0.0462 but cost LPIPS 0.002; the sky pays that back: the
-    # generated skies are washes and ghosts of buildings, the truth's a smooth gradient.
-    # NOTE: the prior anchor (`vcm_anchor`): after sampling, each frame's 3-px low-pass moves half
-    # way to its prior render's, the render's colours first mapped to the frames on a 4x4 grid.
-    # On all 8 synthtown@3 scenes in one cache (docs/skyeyes.md, "The prior anchor"): warp error
-    # 0.0652 -> 0.0527 on top of carried noise (no-VCM: 0.0928), PSNR +0.64, LPIPS 0.0023 better,
-    # FID/KID/FVD ties with it. At mix 0.7 the warp error was 0.0493, but FID credibly worse than
-    # no-VCM's by 6.
-    # NOTE: the paper's VCM wiring, every frame's starting noise carried along the flow between the
-    # prior's renders (`vcm_noise_flow`): measured here against no-VCM in one cache, the warp error
-    # 0.0652 against 0.0928 and FVD 582 against 739 (both credibly better), FID a tie, LPIPS 0.004
-    # credibly worse (docs/skyeyes.md, "The VCM"); the paper's wiring with independent noise
-    # lowered the warp error by 0.0005. `--set clip_frames=2 --set vcm_local=5 --set vcm_warp=9` (warped
-    # sampling) cut the warp error by 35% here (0.0605 against no-VCM's 0.0928) and bettered FVD
-    # (613 against 739), but was credibly worse on FID (+16) and LPIPS (+0.012) and rendered 12x
-    # slower (3902 s against 335 s): docs/skyeyes.md, "The VCM: what makes frames agree".
+        snr_gamma=5.0, mixed_precision="bf16"),
     # NOTE: Skyeyes Sec. 4.2: 512x512, ACM 30k iterations at batch 32, VCM 3k iterations at
     # batch 2 (12-frame clips). For GPU users with --pretrained (SD1.5: ControlNet branch,
     # epsilon objective; the base stage is skipped); without it, a ControlNet from scratch.

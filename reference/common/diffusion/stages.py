@@ -199,9 +199,7 @@ class Stages:
         key = {"acm": acm_id, "batch": c.vcm_batch, "lr": c.vcm_lr, "frames": f_clip, "layers": list(vcm.VCM_BLOCKS),
                # the paper's wiring keeps the keys its stages had before these existed
                **({"keys": c.vcm_keys} if c.vcm_keys != "clip" else {}),
-               **({"local": c.vcm_local} if c.vcm_local else {}),
-               **({"align": True} if c.vcm_align else {})}
-        moved = aligned_firsts(d, seqs, c.core) if c.vcm_align else None
+               **({"local": c.vcm_local} if c.vcm_local else {})}
 
         def vcm_loss(net, g, part):
             rows = []
@@ -210,10 +208,7 @@ class Stages:
                 s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g, device=g.device))
                 rows.append(q[s0:s0 + f_clip])
             idx = torch.tensor(rows, device=d.z0.device)  # [B, F]
-            z, k = d.z0[idx], d.cond[idx]
-            if moved is not None:  # the first frame as the sampler gives it (`warp.FlowAlign`)
-                z[:, 0], k[:, 0] = moved[idx[:, 1]], d.cond[idx[:, 1]]
-            z, k = train.crops(g, c.train_crop, z, k)
+            z, k = train.crops(g, c.train_crop, d.z0[idx], d.cond[idx])
             with vcm.clip_frames(vmodel, f_clip):
                 return train.clip_denoise_loss(net, self.sched, z, k, g, part=part, snr_gamma=self.gamma)
 
@@ -221,18 +216,3 @@ class Stages:
         core.trainable(vmodel, [])
         return vmodel
 
-
-def aligned_firsts(d: TrainSet, seqs: list[list[int]], cfg: core.CoreConfig) -> torch.Tensor:
-    """`vcm_align`'s training pairs: row j of the result [N, C, h, w] is the frame before j in its
-    sequence, moved into frame j's view by the optical flow between their conditions and put on
-    frame j's condition (`warp.FlowAlign`, what the sampler gives the VCM); rows that start a
-    sequence are zero (never drawn as a second frame)."""
-    from .warp import FlowAlign, flow_coords
-
-    guides = core.decode(d.cond[:, :d.z0.shape[1]].float().cpu(), cfg).permute(0, 2, 3, 1).numpy()
-    out = torch.zeros_like(d.z0)
-    for q in seqs:
-        align = FlowAlign(d.cond[q].cpu(), flow_coords(guides[q]), cfg)
-        for k in range(1, len(q)):
-            out[q[k]] = align(d.z0[q[k - 1]], k - 1, k).to(out.device)
-    return out

@@ -21,11 +21,13 @@ import diffusers  # noqa: F401  (a hard dependency of reference: a broken instal
 
 from builders.devices import stray_device  # noqa: E402
 from builders.skyeyes import SIZE, StandInGeometryPrior, StandInPrior, make_tiny_dataset, render_all  # noqa: E402
-from reference.common.diffusion.config import frame_by_frame  # noqa: E402
+from reference.common.diffusion.additions import AdditionsConfig, PriorAnchorConfig  # noqa: E402
+from reference.common.diffusion.config import DiffusionConfig, frame_by_frame  # noqa: E402
 from reference.methods.controlnet import ControlNetBaseline  # noqa: E402
 from reference.methods.gvg import GVG  # noqa: E402
 from reference.methods.ip2p import InstructPix2Pix  # noqa: E402
 from reference.methods.skyeyes import PRESETS, Skyeyes  # noqa: E402
+from reference.methods.skyeyes_geo import ADDITIONS, SkyeyesGeo  # noqa: E402
 from skyeyes_bench.data.layout import open_dataset  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -48,6 +50,11 @@ CONTROLNET_LIKE = dataclasses.replace(
 FLOW_LIKE = dataclasses.replace(frame_by_frame(SMALL_LIKE),
                                 core=dataclasses.replace(_SMALL_CORE, prediction="flow", flow_noise=0.5),
                                 sample_strength=0.6, acm_anneal=0)
+
+
+def _fields(cfg: DiffusionConfig) -> dict:
+    """The family's fields of `cfg` (what an `AdditionsConfig` adds its additions to)."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(DiffusionConfig)}
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +82,11 @@ def _both(cls, cfg, tiny, tmp_path, monkeypatch, prior_cls=StandInPrior):
 
 @pytest.mark.parametrize("name,cls,cfg", [
     ("small-like", Skyeyes, SMALL_LIKE),
-    ("small-like-anchored", Skyeyes, dataclasses.replace(SMALL_LIKE, vcm_anchor=2.0, vcm_anchor_mix=0.5, vcm_anchor_tiles=2)),
+    ("small-like-anchored", SkyeyesGeo, AdditionsConfig(**_fields(SMALL_LIKE),
+                                                        anchor=PriorAnchorConfig(mix=0.5, sigma_px=2.0, tiles=2))),
+    # every addition at `small`'s settings: the carried noise's flow, the stand-in prior's depth
+    # and Gaussians (the street, the sky)
+    ("small-like-geo", SkyeyesGeo, AdditionsConfig(**_fields(SMALL_LIKE), **ADDITIONS["small"])),
     ("controlnet-branch", Skyeyes, CONTROLNET_LIKE),
     ("flow-sdedit", Skyeyes, FLOW_LIKE),
     ("controlnet-baseline", ControlNetBaseline,

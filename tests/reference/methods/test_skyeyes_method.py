@@ -1,4 +1,5 @@
-"""Skyeyes / SkyeyesNoVCM / ControlNetBaseline end to end on a tiny hand-made dataset.
+"""Skyeyes / SkyeyesNoVCM / ControlNetBaseline (and SkyeyesGeoNoVCM's prior anchor) end to end on a
+tiny hand-made dataset.
 
 The prior here is a STAND-IN (test only): the ground-truth frame blurred and noised. The real
 method uses the SuGaR prior, fitted on aerial views only.
@@ -40,9 +41,9 @@ def tiny(tmp_path_factory) -> Path:
     return make_tiny_dataset(tmp_path_factory.mktemp("tiny") / "ds")
 
 
-def _run(cls, tiny, workdir, **kw):
+def _run(cls, tiny, workdir, config=TINY, **kw):
     ds = open_dataset(tiny)
-    cfg = dataclasses.replace(TINY, **kw) if kw else TINY
+    cfg = dataclasses.replace(config, **kw) if kw else config
     if cls is not Skyeyes:
         cfg = dataclasses.replace(cfg, vcm=False, condition="aerial" if cls is ControlNetBaseline else "prior")
     prior = StandInPrior(workdir / "prior")
@@ -345,47 +346,29 @@ def test_bf16_autocast_trains_and_samples_under_its_own_key(tiny, tmp_path):
         assert np.isfinite(b[seq_id]).all() and not np.array_equal(a[seq_id], b[seq_id])
 
 
-def test_lowpass_vcm_is_the_ablations_frames_with_their_coarse_part_carried_on(tiny, tmp_path):
-    """`vcm_lowpass` with 1-frame clips: no VCM stage, the ablation's frames (the same noise and
-    ACM), then `warp.lowpass_transfer` along the optical flow between the frames' conditions:
-    the first frame of each sequence is the ablation's, the rest differ from it."""
+def test_geo_ablation_with_only_the_anchor_is_the_ablations_frames_anchored_to_their_renders(tiny, tmp_path):
+    """`skyeyes-geo-no-vcm` with only the prior anchor on: no VCM stage, the frames of the paper's
+    ablation `skyeyes-no-vcm` (the same noise and ACM), then `prior_anchor` to the frames' own
+    conditions (the prior's renders): every frame differs from the ablation's, and by what the
+    anchor computes from the ablation's frames alone."""
     import torch
 
-    from reference.common.diffusion import warp
+    from reference.common.diffusion.additions import AdditionsConfig, PriorAnchorConfig
+    from reference.common.diffusion.additions.anchor import prior_anchor
+    from reference.common.diffusion.config import DiffusionConfig
     from reference.common.priors import frame_key
+    from reference.methods.skyeyes_geo import SkyeyesGeoNoVCM
 
     _, _, plain = _run(SkyeyesNoVCM, tiny, tmp_path / "plain")
-    m, _, carried = _run(Skyeyes, tiny, tmp_path / "carried", clip_frames=1, vcm_lowpass=2.0)
+    geo = AdditionsConfig(**{f.name: getattr(TINY, f.name) for f in dataclasses.fields(DiffusionConfig)},
+                          anchor=PriorAnchorConfig(mix=0.8, sigma_px=2.0, tiles=2))
+    m, _, anchored = _run(SkyeyesGeoNoVCM, tiny, tmp_path / "anchored", config=geo)
     assert m.vcm is None and "vcm" not in m.training
-    scene = open_dataset(tiny).split("test")[0]
-    conds = m.scene_model(scene)
-    for seq in scene.sequences.values():
-        guides = np.stack([conds[frame_key(scene, f)] for f in seq.frames])
-        want = warp.lowpass_transfer(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), warp.flow_coords(guides), 2.0)
-        np.testing.assert_allclose(carried[seq.id], want.permute(0, 2, 3, 1).numpy(), atol=1e-6)
-        np.testing.assert_array_equal(carried[seq.id][0], plain[seq.id][0])
-        assert np.abs(carried[seq.id][1:] - plain[seq.id][1:]).max() > 1e-3
-    with pytest.raises(ValueError, match="vcm_lowpass"):
-        ControlNetBaseline(dataclasses.replace(TINY, condition="aerial", vcm_lowpass=2.0), tmp_path / "x")
-
-
-def test_prior_anchor_vcm_is_the_ablations_frames_anchored_to_their_renders(tiny, tmp_path):
-    """`vcm_anchor` with 1-frame clips: the ablation's frames (the same noise and ACM), then
-    `warp.prior_anchor` to the frames' own conditions (the prior's renders): every frame differs
-    from the ablation's, and by what the anchor computes from the ablation's frames alone."""
-    import torch
-
-    from reference.common.diffusion import warp
-    from reference.common.priors import frame_key
-
-    _, _, plain = _run(SkyeyesNoVCM, tiny, tmp_path / "plain")
-    m, _, anchored = _run(Skyeyes, tiny, tmp_path / "anchored", clip_frames=1, vcm_anchor=2.0, vcm_anchor_mix=0.8,
-                            vcm_anchor_tiles=2)
-    assert m.vcm is None and "vcm" not in m.training
+    assert m.additions.names == ["prior anchor"]
     scene = open_dataset(tiny).split("test")[0]
     conds = m.scene_model(scene)
     for seq in scene.sequences.values():
         renders = torch.from_numpy(np.stack([conds[frame_key(scene, f)][..., :3] for f in seq.frames])).permute(0, 3, 1, 2)
-        want = warp.prior_anchor(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), renders, 2.0, 0.8, 2)
+        want = prior_anchor(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), renders, 2.0, 0.8, 2)
         np.testing.assert_allclose(anchored[seq.id], want.permute(0, 2, 3, 1).numpy(), atol=1e-6)
         assert (np.abs(anchored[seq.id] - plain[seq.id]).max(axis=(1, 2, 3)) > 1e-3).all()

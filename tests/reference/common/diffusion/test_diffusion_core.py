@@ -176,51 +176,6 @@ def test_frame_noise_is_the_frame_by_frame_draw():
         sample.ddim(m, c[:2], steps=4, noise=torch.zeros(3, 3, 8, 8))
 
 
-def test_shared_noise_keeps_each_frame_standard_normal_and_correlates_frames_by_share():
-    """`vcm_noise`: frame i's noise is sqrt(s) of the sequence's one draw plus sqrt(1 - s) of its
-    own `frame_noise` draw (the closed form, rebuilt here from the two generators), so its
-    correlation with any other frame is s and each frame stays N(0, 1); s = 1 is one noise for all."""
-    shape = (64, 2, 16, 16)
-    own = sample.frame_noise(9, shape)
-    common = torch.randn((1, *shape[1:]), generator=torch.Generator().manual_seed(9 + sample.SHARED_SALT))
-    for s in (0.3, 0.8):
-        z = sample.frame_noise(9, shape, share=s)
-        torch.testing.assert_close(z, s ** 0.5 * common + (1 - s) ** 0.5 * own)
-    # over many sequences (seeds), any two frames' noises at one pixel: variance 1, correlation 0.6
-    z = torch.stack([sample.frame_noise(seed, (3, 1, 4, 4), share=0.6) for seed in range(500)])
-    a, b = z[:, 0].flatten().numpy(), z[:, 2].flatten().numpy()
-    assert abs(a.var() - 1.0) < 0.1 and abs(b.var() - 1.0) < 0.1
-    assert abs(np.corrcoef(a, b)[0, 1] - 0.6) < 0.06
-    one = sample.frame_noise(9, shape, share=1.0)
-    assert torch.equal(one, common.expand(shape))
-    assert torch.equal(sample.frame_noise(9, shape, share=0.0), own)
-    with pytest.raises(ValueError, match="share"):
-        sample.frame_noise(9, shape, share=1.5)
-
-
-def test_low_frequency_shared_noise_is_white_with_the_gaussian_cross_spectrum():
-    """`vcm_noise_sigma`: at spatial frequency f two frames' noises share a fraction
-    s exp(-2 pi^2 sigma^2 |f|^2) of their power (their cross-spectrum over their spectrum), and each
-    frame's own spectrum stays flat (white, unit variance): checked over many sequences' draws
-    with numpy's FFT against the closed form."""
-    s, sigma, n = 0.9, 1.5, 16
-    spec, cross = np.zeros((n, n)), np.zeros((n, n))
-    for seed in range(300):
-        z = sample.frame_noise(seed, (2, 1, n, n), share=s, sigma=sigma).double().numpy()[:, 0]
-        f0, f1 = np.fft.fft2(z[0]), np.fft.fft2(z[1])
-        spec += (np.abs(f0) ** 2 + np.abs(f1) ** 2) / 2
-        cross += (f0 * np.conj(f1)).real
-    spec, cross = spec / 300 / n ** 2, cross / 300 / n ** 2
-    fy, fx = np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n), indexing="ij")
-    want = s * np.exp(-2 * np.pi ** 2 * sigma ** 2 * (fy ** 2 + fx ** 2))
-    assert abs(spec.mean() - 1.0) < 0.03 and np.abs(spec - 1.0).max() < 0.5  # flat: white noise
-    assert np.abs(cross - want).max() < 0.3
-    assert cross[0, 0] > 0.7 and abs(cross[n // 2, n // 2]) < 0.2  # shared at DC, not at Nyquist
-    # the frames' own part is what differs: at sigma 0 and share 1 they are one noise
-    z = sample.frame_noise(3, (3, 2, n, n), share=1.0, sigma=0.0)
-    assert torch.equal(z[0], z[2])
-
-
 def test_sequence_sampler_is_paired_with_the_frame_sampler():
     """With a VCM that ignores the clip (a per-frame model), the clip sampler gives every frame
     exactly the frame-by-frame sampler's output: frame i starts from the same noise in both, so

@@ -1,11 +1,15 @@
 """bench/flow_accuracy.py's geometry (the ways docs/skyeyes.md's "What moves the frames" measures),
-against closed forms: a flow made rigid with the poses, and the ground plane's depth."""
+against closed forms: a flow made rigid with the poses, and the ground plane's depth; and its
+command line: it reads the validation split only (`reference.screen`)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
-from builders.bench_scripts import load_bench
+from builders.bench_scripts import BENCH, load_bench
 
 from skyeyes_bench.cameras import Camera, intrinsics
 from skyeyes_bench.metrics.geometry import warp_coords
@@ -68,3 +72,22 @@ search removes) is put back by the median of its neighbours' depths."""
     bad[6, 24] += 4.0 * normal[6, 24] + 3.0 * radial[6, 24] / np.linalg.norm(radial[6, 24])  # along its line too
     uv, _ = fa.rigid_from_flow(bad, ok, cams[1], cams[0], median_px=3)
     assert np.hypot(*(uv[6, 24] - truth[6, 24])) < 0.1 * np.hypot(*(bad[6, 24] - truth[6, 24]))
+
+
+def _script(*args: str) -> subprocess.CompletedProcess:
+    """bench/flow_accuracy.py run as a user runs it (its own process, from the repository root)."""
+    return subprocess.run([sys.executable, str(BENCH / "flow_accuracy.py"), *args], capture_output=True, text=True,
+                          cwd=BENCH.parent, timeout=300)
+
+
+def test_flow_accuracy_refuses_the_test_split_in_one_line(tmp_path):
+    """Its flow's constants are chosen on what it measures, so `--split test` exits 2 with one line
+    (no traceback) before it opens any data; `--help` lists the screen's options and its own."""
+    r = _script("--split", "test", "--data", str(tmp_path / "absent"), "--priors", str(tmp_path), "--prior",
+                str(tmp_path))
+    assert r.returncode == 2, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "validation split" in r.stderr and "Traceback" not in r.stderr
+    h = _script("--help")
+    assert h.returncode == 0, h.stderr
+    for option in ("--split", "--data", "--scenes", "--priors", "--prior", "--ways", "--fb-px"):
+        assert option in h.stdout

@@ -8,9 +8,10 @@ PAGE defaults to leaderboard/index.html of this checkout. Checks: the page loads
 error (a missing image is one: "Failed to load resource"), every <img> decoded (naturalWidth >
 0), every sequence animation (`<img class="sequence">`) is an animated WebP of more than one
 frame (its file, opened with Pillow) and decoded in the browser, at least one table with rows (and
-a measured table with --expect-measured, a sequence animation with --expect-animation), and a
-click on a column heading sorts without an error. Writes a full-page screenshot (default: a
-temporary file; never commit it) and prints its path.
+a measured table with --expect-measured, a sequence animation with --expect-animation), every
+measured table has a Kind column with a value in every row and a "What each row runs" list that
+names every row of its table, and a click on a column heading sorts without an error. Writes a
+full-page screenshot (default: a temporary file; never commit it) and prints its path.
 
 Needs Debian's `chromium` and `chromium-driver` and the `selenium` package (the `dev` extra).
 When one is missing: exit 1 if CI=true (CI must run the check), else say so and exit 0.
@@ -80,6 +81,37 @@ def animation_problem(page: Path, src: str) -> str | None:
     return None
 
 
+def kind_problems(page: Path, drv) -> list[str]:
+    """What a reader cannot tell of a measured table's rows: a missing Kind column, a row without a
+    kind, a row that its table's "What each row runs" list (`ul.runs`, same `data-key`) does not name,
+    as the browser shows them (a cell's text, a list item's method)."""
+    tables = drv.execute_script(
+        "return Array.from(document.querySelectorAll('table.measured')).map(function (t, i) { "
+        "var key = t.dataset.key || '#' + i, list = Array.from(document.querySelectorAll('ul.runs')).filter("
+        "function (u) { return u.dataset.key === key; })[0]; "
+        "return [key, Array.from(t.tHead.rows[0].cells).map(function (c) { return c.textContent.trim(); }), "
+        "Array.from(t.tBodies[0].rows).map(function (r) { return Array.from(r.cells).map("
+        "function (c) { return c.textContent.trim(); }); }), "
+        "list ? Array.from(list.querySelectorAll('li b')).map(function (b) { return b.textContent.trim(); }) "
+        ": null]; })")
+    problems = []
+    for key, heads, rows, listed in tables:
+        if "Kind" not in heads:
+            problems.append(f"{page}: measured table {key} has no Kind column")
+        else:
+            col = heads.index("Kind")
+            problems += [f"{page}: measured table {key}: row {row[0] if row else i} has no kind" for i, row in
+                         enumerate(rows) if len(row) <= col or not row[col]]
+        if listed is None:
+            problems.append(f"{page}: measured table {key} has no \"What each row runs\" list (ul.runs)")
+            continue
+        methods = [row[0] for row in rows if row]
+        if sorted(listed) != sorted(methods):
+            problems.append(f"{page}: measured table {key}: its \"What each row runs\" list names "
+                            f"{', '.join(listed) or 'no row'}; expected one line per row ({', '.join(methods)})")
+    return problems
+
+
 def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, expect_animation: bool = False,
                timeout: float = 30.0) -> list[str]:
     """Problems found on `page` (empty: it passed); writes `screenshot`."""
@@ -117,9 +149,10 @@ def check_page(page: Path, screenshot: Path, *, expect_measured: bool = False, e
                 problems.append(f"{page}: table {i} has no rows")
         if expect_measured and not drv.find_elements(By.CSS_SELECTOR, "table.measured tbody tr"):
             problems.append(f"{page}: no measured table (expected one)")
+        problems += kind_problems(page, drv)
         heads = drv.find_elements(By.CSS_SELECTOR, "table.sortable th")
         if heads:
-            heads[min(2, len(heads) - 1)].click()  # sort by a metric column: the page's own script runs
+            heads[min(3, len(heads) - 1)].click()  # sort by a metric column: the page's own script runs
         for entry in drv.get_log("browser"):
             if entry.get("level") == "SEVERE":
                 problems.append(f"{page}: console error: {entry.get('message')}")

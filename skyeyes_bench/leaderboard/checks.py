@@ -20,6 +20,7 @@ from typing import Any
 from .. import fields, inputfiles, safe
 from ..errors import UserError
 from ..metricspec import METRICS
+from .kinds import KINDS
 
 #: Names that `leaderboard add` cannot file a result under: they are taken in `frames/<key>/`
 #: (the ground-truth row's tiles and the list of chosen frames).
@@ -38,6 +39,8 @@ MAX_STRIP_FRAMES = 32
 MAX_SEQUENCE_FRAMES = 64
 #: Most bootstrap resamples the marks' fallback rule draws (each a row of per-sequence values).
 MAX_RESAMPLES = 100_000
+#: Most components a results file may list for its method (`submission.config.components`).
+MAX_COMPONENTS = 64
 
 
 def _where(path, field: str) -> str:
@@ -100,6 +103,27 @@ def run_seconds(path, timings: Any, *, required: bool) -> tuple[float | None, fl
     return fit, ren
 
 
+def method_config(path, config: Any) -> None:
+    """What the board prints from `submission.config`, when recorded: "kind", one of `kinds.KINDS`
+    (the row's Kind column), and "components", a list of plain one-line strings (the row's line
+    under its table). A config without them is a legacy run's: `kinds` derives both."""
+    if not isinstance(config, dict):
+        return
+    kind = config.get("kind")
+    if kind is not None and (not isinstance(kind, str) or kind not in KINDS):
+        raise UserError(f"{_where(path, 'submission.config.kind')}: expected the row's kind, one of "
+                        f"{', '.join(KINDS)}, got {fields.short(kind)}")
+    comps = config.get("components")
+    if comps is None:
+        return
+    if not (isinstance(comps, list) and len(comps) <= MAX_COMPONENTS):
+        raise UserError(f"{_where(path, 'submission.config.components')}: expected a list of at most "
+                        f"{MAX_COMPONENTS} strings, each a part the method runs, got {fields.short(comps)}")
+    for i, c in enumerate(comps):
+        safe.plain_text(_where(path, f"submission.config.components[{i}]"), c, "a part the method runs", max_len=500,
+                        empty=False)
+
+
 def _rel_path(where: str, value: Any, what: str) -> None:
     if not (isinstance(value, str) and 0 < len(value) <= 1024 and all(
             safe.NAME.fullmatch(part) and ".." not in part for part in value.split("/"))):
@@ -127,6 +151,7 @@ def results_fields(doc: dict, path) -> None:
     if s.get("path") is not None:
         safe.plain_text(w("submission.path"), s["path"], "the submission folder that was scored", max_len=4096)
     hardware(path, "submission.hardware", s.get("hardware"))
+    method_config(path, s.get("config"))
     run_seconds(path, s.get("timings"), required=False)
     peak = s.get("peak_memory_mb")
     if peak is not None:

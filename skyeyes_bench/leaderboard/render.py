@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .. import stats
 from ..metricspec import sample_count_warning
+from .kinds import KINDS, label
 from .marks import rules_summary
 from .plots import plot_metrics, plot_name, strip_name, strip_rows
 from .sequence import FRAME_MS, sequence_name, sequence_rows, table_sequence
@@ -28,7 +29,10 @@ _INTRO = ("Values are `value [lower, upper]`, the interval the results carry (cl
           "marked each column. Run time = fit + render seconds as the submission reports them. Plots: each "
           "metric against run time (log scale), the Pareto front (methods no other beats on both) ringed and "
           "connected. Strips: the same fixed test frames for every method; under each, one fixed test sequence as "
-          "an animation, every method in step with the ground truth, so flicker is seen (docs/leaderboard.md).")
+          "an animation, every method in step with the ground truth, so flicker is seen (docs/leaderboard.md). "
+          "Kind: what a row is to the paper (" + "; ".join(f"{lab} = {what}" for lab, what in KINDS.values()) +
+          "). Under each table, what each row runs: the parts of its method and, for the diffusion rows, the "
+          "training budget.")
 
 
 #: Characters that Markdown (GitHub's) reads as markup in a table cell or a line of text: HTML
@@ -85,7 +89,7 @@ def arrow(m: str) -> str:
 
 
 def _measured_head(t: Table) -> list[str]:
-    return ["Method", "Version", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Run s (fit + render)",
+    return ["Method", "Kind", "Version", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Run s (fit + render)",
             "Hardware", "Peak MB"]
 
 
@@ -94,13 +98,21 @@ def _footnotes(t: Table) -> list[str]:
     if any(r.hardware_added for r in t.rows):
         out.append(f"{ADDED} hardware recorded by `skyeyes-bench leaderboard add` on the machine that filed the "
                    f"result (its results file did not record the machine that ran it).")
-    budgets: dict[str, list[str]] = {}  # one line per budget, naming the rows trained with it
+    return out
+
+
+#: The heading of the per-row list under each measured table (`runs`).
+RUNS_HEAD = "What each row runs:"
+
+
+def runs(t: Table, escape=lambda x: x) -> list[tuple[str, str]]:
+    """(method, the rest of its line) per row of `t`, in the table's order, text from inputs through
+    `escape`: "(kind label): component; component — training budget". One line per row, not a line
+    per budget, so rows that differ in a part (noise, a post-sampling step) are seen to differ."""
+    out = []
     for r in t.rows:
-        if r.budget:
-            budgets.setdefault(r.budget, []).append(r.method)
-    if budgets:
-        out.append("Training budget of the diffusion rows: " + "; ".join(
-            f"{', '.join(names)}: {b}" for b, names in budgets.items()) + ".")
+        text = f"({label(r.kind)}): " + ("; ".join(r.components) or "components not recorded")
+        out.append((escape(r.method), escape(text + (f" — {r.budget}" if r.budget else ""))))
     return out
 
 
@@ -152,7 +164,7 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
         head = _measured_head(t)
         out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for i, r in enumerate(t.rows):
-            cells = [md(r.method), md(r.version)]
+            cells = [md(r.method), md(label(r.kind)), md(r.version)]
             for m in t.metrics:
                 c = cell(t, i, m, md)
                 if i in t.best.get(m, []):
@@ -163,6 +175,7 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
         out.append("")
         for f in _footnotes(t):
             out += [f, ""]
+        out += [RUNS_HEAD, "", *[f"- **{method}** {text}" for method, text in runs(t, md)], ""]
         plots = [f"![{t.key}: {LABEL[m]} against run time]({plot_name(t, m)})" for m in plot_metrics(t)]
         out += [" ".join(plots) if plots else "No plot: no row records a run time.", ""]
         strip, note = _strip_notes(root, t, files, md)
@@ -227,7 +240,7 @@ body { font-family: system-ui, sans-serif; margin: 2em; color: #222; max-width: 
 table { border-collapse: collapse; margin: 0.5em 0 1.5em; }
 th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; white-space: nowrap; }
 th { background: #f2f2f2; cursor: pointer; }
-td:first-child, th:first-child { text-align: left; }
+td:first-child, th:first-child, td.kind, table.measured th:nth-child(2) { text-align: left; }
 td.best { font-weight: bold; }
 .reported { color: #555; }
 .note { color: #555; font-size: 0.9em; }
@@ -266,10 +279,11 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
     for t in measured:
         out += [f'<h3 id="{e(t.file_key)}">{e(t.title)}</h3>',
                 f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>",
-                '<div class="wide"><table class="sortable measured"><thead><tr>']
+                f'<div class="wide"><table class="sortable measured" data-key="{e(t.file_key)}"><thead><tr>']
         out.append("".join(f"<th>{e(h)}</th>" for h in _measured_head(t)) + "</tr></thead><tbody>")
         for i, r in enumerate(t.rows):
             cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>',
+                     f'<td class="kind" data-v="{e(label(r.kind))}">{e(label(r.kind))}</td>',
                      f'<td data-v="{e(r.version)}">{e(r.version)}</td>']
             for m in t.metrics:
                 best = i in t.best.get(m, [])
@@ -282,6 +296,8 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
             out.append("<tr>" + "".join(cells) + "</tr>")
         out.append("</tbody></table></div>")
         out += [f"<p class=note>{_md_code(f)}</p>" for f in _footnotes(t)]
+        out += [f"<p class=note>{e(RUNS_HEAD)}</p>", f'<ul class="runs note" data-key="{e(t.file_key)}">',
+                *[f'<li data-method="{method}"><b>{method}</b> {text}</li>' for method, text in runs(t, e)], "</ul>"]
         plots = [f'<img src="{e(plot_name(t, m))}" alt="{e(t.key)}: {e(LABEL[m])} against run time">'
                  for m in plot_metrics(t)]
         out.append(f'<div class="plots">{"".join(plots)}</div>' if plots else

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..metricspec import METRICS, sample_count_warning
+from .kinds import row_components, row_kind
 
 #: Column order, headings and printed decimals: the metric table's (`metricspec`).
 METRIC_ORDER = tuple(METRICS)
@@ -38,6 +39,8 @@ class Row:
     source: str = ""  # input file name
     reference: str = ""
     budget: str = ""  # a diffusion method's training budget, from its config ('' for the others)
+    kind: str = ""  # measured: a key of `kinds.KINDS` (what the row is to the paper)
+    components: list[str] = field(default_factory=list)  # measured: the parts its method runs (`kinds`)
 
     @property
     def name(self) -> str:
@@ -125,10 +128,12 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
     added = doc.get(ADD_KEY) or {}
     hw = s.get("hardware")
     hw_added = not format_hardware(hw) and bool(format_hardware(added.get("hardware")))
-    row = Row(method=str(s.get("method")), version=str(s.get("method_version") or ""), values={},
+    method, config = str(s.get("method")), s.get("config")
+    row = Row(method=method, version=str(s.get("method_version") or ""), values={},
               sequences=doc["sequences"], statistics=dict(doc.get("statistics") or {}), fit_s=fit, render_s=ren,
               run_s=(fit or 0.0) + (ren or 0.0) if fit is not None or ren is not None else None,
-              peak_mb=_number(s.get("peak_memory_mb")), source=name, budget=training_budget(s.get("config")),
+              peak_mb=_number(s.get("peak_memory_mb")), source=name, budget=training_budget(config),
+              kind=row_kind(method, config), components=row_components(method, config),
               hardware=format_hardware(added.get("hardware") if hw_added else hw), hardware_added=hw_added)
     for m in metrics:
         md = doc["metrics"].get(m) or {}

@@ -94,7 +94,8 @@ def test_generate_mark_and_check(board):
     sharp = next(ln for ln in md.splitlines() if ln.startswith("| sharp |"))
     # sharp is best on PSNR and SSIM, credibly (4 sequences, all better): bold, no dagger
     cells = sharp.split(" | ")
-    assert cells[2].startswith("**") and cells[3].startswith("**") and "†" not in cells[2]
+    assert cells[1] == "beyond the paper"  # Kind: a method id the paper does not have
+    assert cells[3].startswith("**") and cells[4].startswith("**") and "†" not in cells[3]
     assert "3.00 (1.00 + 2.00)" in sharp  # run time: fit 1 + render 2 as the submission reports
     assert "evaltest@1 — measured" in md and "Marks decided by: PSNR, SSIM" in md
     # reported rows live in their own section, never in the measured table
@@ -186,6 +187,10 @@ def _corrupt(doc, how):
         doc["metrics"]["psnr"]["replicates"] = "many"
     elif how == "changed protocol":
         doc["protocol"]["sha256"] = "0" * 64
+    elif how == "bad kind":
+        doc["submission"]["config"] = {"kind": "sota"}
+    elif how == "bad components":
+        doc["submission"]["config"] = {"components": "ACM, VCM"}
     return doc
 
 
@@ -194,6 +199,7 @@ def _corrupt(doc, how):
     ("unknown protocol", "'protocol.ref'"), ("no fit time", "'submission.timings.fit_s'"),
     ("no timings", "'submission.timings.fit_s'"), ("negative render time", "'submission.timings.render_s'"),
     ("bad replicates", "'metrics.psnr.replicates'"), ("changed protocol", "'protocol.sha256'"),
+    ("bad kind", "'submission.config.kind'"), ("bad components", "'submission.config.components'"),
     ("not json", None)])
 def test_add_refuses_a_bad_results_file_in_one_line(board, tmp_path, how, field):
     root, _ = board
@@ -302,8 +308,8 @@ def test_null_intervals_render_as_too_few_scenes(board, tmp_path):
     run_cli("leaderboard", "--root", str(lb))
     md = (lb / "README.md").read_text()
     row = next(ln for ln in md.splitlines() if ln.startswith("| blurry |")).split(" | ")
-    assert row[2].strip("*").endswith("(too few scenes (K=2))") and "[" not in row[2]
-    assert row[5].strip("*").endswith("(too few scenes)") and "[" not in row[5]
+    assert row[3].strip("*").endswith("(too few scenes (K=2))") and "[" not in row[3]
+    assert row[6].strip("*").endswith("(too few scenes)") and "[" not in row[6]
     assert "no interval (too few scenes)" in md
     assert (lb / "plots" / "evaltest@1-fid.png").is_file()
 
@@ -372,31 +378,60 @@ def test_differing_sample_counts_are_said_in_one_line(board, tmp_path):
     assert sum(line in ln for ln in md.splitlines()) == 1 and line in html
 
 
-def test_training_budgets_are_shown_grouped_under_the_table(board, tmp_path):
-    """Issue 36: the board says what each diffusion row trained on, one group per budget, so a
-    row trained on a smaller budget is seen; rows without ACM steps get no budget."""
+def test_each_row_says_its_kind_what_it_runs_and_its_budget(board, tmp_path):
+    """Issue 36 and after: the board says what each row is (a Kind column: the results' config
+    "kind", else the paper's kind of its method id) and, one line per row under its table, what
+    its method runs (config "components", else derived from a legacy config) and, for a
+    diffusion row, its training budget; rows without ACM steps get no budget."""
     from skyeyes_bench.leaderboard.tables import training_budget
 
-    lb = _fresh(board, tmp_path)
-    run_cli("leaderboard", "--root", str(lb))
-    assert "Training budget" not in (lb / "README.md").read_text()  # no diffusion config: no line
+    lb = _fresh(board, tmp_path, names=("sharp", "blurry", "blurry-twin"))
     cfgs = {"blurry": dict(acm_steps=12000, acm_anneal=3000, acm_batch=16, train_crop=32, mixed_precision="bf16",
                            vcm=True, vcm_steps=3000, vcm_batch=1),
             "blurry-twin": dict(acm_steps=3000, acm_anneal=0, acm_batch=16, train_crop=32, mixed_precision="no",
                                 vcm=False, vcm_steps=300, vcm_batch=1)}
-    for name, cfg in cfgs.items():
-        d = json.loads((lb / "results" / f"{name}.json").read_text())
-        d["submission"]["config"] = cfg
-        (lb / "results" / f"{name}.json").write_text(json.dumps(d))
     assert training_budget(cfgs["blurry"]) == ("ACM 12000 steps (rate decaying over the last 3000) at batch 16 on "
                                                "32-px crops, bf16, VCM 3000 steps at batch 1")
     assert training_budget(cfgs["blurry-twin"]) == "ACM 3000 steps at batch 16 on 32-px crops, fp32, no VCM"
     assert training_budget({"iterations": 500}) == training_budget(None) == ""
+    # blurry: the paper's method id, but its config says it is beyond the paper and what it runs;
+    # blurry-twin: the ablation's id with a legacy config; sharp: the floor's id, no config at all
+    edits = {"blurry": ("skyeyes", {**cfgs["blurry"], "kind": "beyond", "components": ["condition: a|b", "ACM"]}),
+             "blurry-twin": ("skyeyes-no-vcm", {**cfgs["blurry-twin"], "condition": "prior", "prior_method": "sugar"}),
+             "sharp": ("mean-frame", None)}
+    for name, (method, cfg) in edits.items():
+        d = json.loads((lb / "results" / f"{name}.json").read_text())
+        d["submission"].update(method=method, config=cfg)
+        (lb / "results" / f"{name}.json").write_text(json.dumps(d))
     run_cli("leaderboard", "--root", str(lb))
     md, page = (lb / "README.md").read_text(), (lb / "index.html").read_text()
-    (line,) = [ln for ln in md.splitlines() if ln.startswith("Training budget")]
-    assert "blurry: ACM 12000 steps" in line and "blurry-twin: ACM 3000 steps" in line
-    assert "blurry-twin: ACM 3000 steps at batch 16 on 32-px crops, fp32" in page
+    assert "Training budget of the diffusion rows" not in md
+    lines = md.splitlines()
+    (head,) = [i for i, ln in enumerate(lines) if ln.startswith("| Method | Kind | Version | PSNR ↑ |")]
+    rows = [ln.split(" | ")[:2] for ln in lines[head + 2:head + 5]]
+    assert rows == [["| mean-frame", "floor"], ["| skyeyes", "beyond the paper"],
+                    ["| skyeyes-no-vcm", "paper's ablation"]]
+    assert lines[head + 5] == ""
+    runs = lines[lines.index("What each row runs:") + 2:][:4]
+    assert runs == [  # the table's order (by method), Markdown in inputs escaped
+        "- **mean-frame** (floor): every frame the per-pixel mean of the train split's ground frames",
+        "- **skyeyes** (beyond the paper): condition: a\\|b; ACM — ACM 12000 steps (rate decaying over the last "
+        "3000) at batch 16 on 32-px crops, bf16, VCM 3000 steps at batch 1",
+        "- **skyeyes-no-vcm** (paper's ablation): condition: the sugar prior's renders; ACM frame by frame; pure "
+        "Gaussian noise — ACM 3000 steps at batch 16 on 32-px crops, fp32, no VCM",
+        ""]
+    assert '<td class="kind" data-v="paper&#x27;s ablation">paper&#x27;s ablation</td>' in page
+    assert ('<li data-method="skyeyes"><b>skyeyes</b> (beyond the paper): condition: a|b; ACM — ACM 12000 steps '
+            "(rate decaying over the last 3000) at batch 16 on 32-px crops, bf16, VCM 3000 steps at batch 1</li>"
+            ) in page
+    assert ('<li data-method="mean-frame"><b>mean-frame</b> (floor): every frame the per-pixel mean of the train '
+            'split&#x27;s ground frames</li>') in page
+    # a config kind the board does not know is refused in one line naming the field
+    d = json.loads((lb / "results" / "sharp.json").read_text())
+    d["submission"]["config"] = {"kind": "paper's"}
+    (lb / "results" / "sharp.json").write_text(json.dumps(d))
+    rc, out, err = run_cli("leaderboard", "--root", str(lb), check=2)
+    assert err.count("\n") == 1 and "sharp.json: field 'submission.config.kind': expected the row's kind" in err, err
 
 
 def test_board_marks_reflect_fd_inf_about_the_centres(tmp_path):

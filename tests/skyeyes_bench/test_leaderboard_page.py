@@ -1,6 +1,7 @@
 """The leaderboard page in a real headless browser (scripts/check-leaderboard-page.py): a board
 with measured rows, plots, a strip and the sequence animation loads without console errors, every
-image decodes and the animation has several frames.
+image decodes, the animation has several frames, and every measured row shows its kind and is named
+in the "What each row runs" list under its table.
 Slow tier: starts Chromium. Fails (never skips) when CI=true and Chromium is missing."""
 
 import importlib.util
@@ -61,6 +62,21 @@ def test_page_with_measured_rows_loads_in_chromium(tmp_path, monkeypatch):
     assert problems == [f"{root / 'index.html'}: animation strips/evaltest@1-sequence.webp is a WEBP of 1 frame; "
                         f"expected an animated WebP of the test sequence (more than one frame)"]
     animation.write_bytes(moving)
+    # the check can fail: a row without a kind, a row its "What each row runs" list does not name, a
+    # table without a Kind column or without the list
+    page = (root / "index.html").read_text()
+    assert page.count("<th>Kind</th>") == 1 and page.count('<li data-method="sharp">') == 1
+    (root / "index.html").write_text(page.replace('<td class="kind" data-v="beyond the paper">beyond the paper</td>', "<td></td>", 1)
+                                     .replace('<li data-method="sharp"><b>sharp</b>', "<li><b>blunt</b>"))
+    problems = mod.check_page(root / "index.html", shot)
+    assert problems == [f"{root / 'index.html'}: measured table evaltest@1: row blurry has no kind",
+                        f"{root / 'index.html'}: measured table evaltest@1: its \"What each row runs\" list names "
+                        f"blurry, blunt; expected one line per row (blurry, sharp)"]
+    (root / "index.html").write_text(page.replace("<th>Kind</th>", "<th>Sort</th>").replace('class="runs', 'class="'))
+    problems = mod.check_page(root / "index.html", shot)
+    where = f"{root / 'index.html'}: measured table evaltest@1"
+    assert problems == [f"{where} has no Kind column", f"{where} has no \"What each row runs\" list (ul.runs)"]
+    (root / "index.html").write_text(page)
     # the check can fail: a missing plot is a console error and an image of naturalWidth 0
     next((root / "plots").glob("*.png")).unlink()
     problems = mod.check_page(root / "index.html", shot, expect_measured=True)

@@ -87,3 +87,42 @@ def test_warp_refuses_a_test_split_submission(tmp_path, monkeypatch):
     assert str(sub / "submission.json") in lines[0] and "dataset.split" in lines[0]
     assert "validation split" in lines[0]
     assert not r.stdout
+
+
+def _additions_script():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_additions", BENCH / "additions.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_an_additions_setting_is_its_steps_in_the_pipelines_order_with_the_rest_off():
+    """A setting turns on only the steps it names, whatever `skyeyes-geo`'s preset holds, and in
+    the order the pipeline runs them (anchor, street, sky) however it is written."""
+    mod = _additions_script()
+    assert mod.setting_additions("small", "") == []
+    steps = mod.setting_additions("small", "sky.mix=1 anchor.mix=0.3")
+    assert [s.name for s in steps] == ["prior anchor", "sky from one fit"]
+    assert steps[0].cfg.mix == 0.3 and steps[1].cfg.mix == 1
+    names = [s.name for s in mod.setting_additions("small", "street.mix=0.8 street.view_m=8 anchor.mix=0.5 sky.mix=1")]
+    assert names == ["prior anchor", "street from one view", "sky from one fit"]
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"dataset": {"split": "test"}}, "dataset.split"),
+    ({"config": {"anchor": {"mix": 0.5}}}, "steps after sampling were on"),
+])
+def test_the_additions_screen_takes_only_a_val_run_with_its_steps_off(tmp_path, change, field):
+    from skyeyes_bench.errors import UserError
+
+    mod = _additions_script()
+    run = _fake_run(tmp_path)
+    cfg = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**cfg, **change}))
+    with pytest.raises(UserError, match=field.replace(".", r"\.")):
+        mod.run_inputs(run)
+    (run / "config.json").write_text(json.dumps(cfg))
+    sub, scenes, _ = mod.run_inputs(run)
+    assert sub == run / "submission" and scenes == run / "work" / "key" / "method" / "prior" / "scenes"

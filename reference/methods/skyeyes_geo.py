@@ -1,13 +1,12 @@
-"""`skyeyes-geo`: the paper's Skyeyes plus four steps of ours that steady the sequence with the
+"""`skyeyes-geo`: the paper's Skyeyes plus steps of ours that steady the sequence with the
 scene's geometry, none of them in the paper and none learned (`reference.common.diffusion.
 additions`): each frame's starting noise carried along the prior renders' optical flow, the prior
-anchor, the street from one view, and the sky from one fit. `skyeyes-geo-no-vcm` is its matched
-ablation: the same four steps on the ACM frame by frame (no VCM), so the pair shows what the
-paper's learned VCM adds on top of them; `skyeyes` against `skyeyes-geo` shows what the four add
-to the paper's method.
-
-The steps' settings were chosen on the validation split (`--split val`, bench/additions.py;
-docs/skyeyes.md, "Our additions").
+anchor, the street from one view, and the sky from one fit, each turned on by its config's `mix`
+or `share`. At `small` the validation split chose the first two (`ADDITIONS`); the street and the
+sky are there to turn on (`--set street.mix=0.8`). `skyeyes-geo-no-vcm` is its matched ablation:
+the same steps on the ACM frame by frame (no VCM), so the pair shows what the paper's learned VCM
+adds on top of them; `skyeyes` against `skyeyes-geo` shows what the steps add to the paper's
+method.
 """
 
 from __future__ import annotations
@@ -20,16 +19,16 @@ from reference.common.diffusion.config import DiffusionConfig, frame_by_frame
 from reference.common.diffusion.pipeline import DiffusionMethod
 from reference.common.diffusion.presets import PRESETS as FAMILY_PRESETS
 
-#: The additions at each preset. NOTE: chosen on synthtown-v2-small-val (8 lanes of the
-#: validation town, `reproduce --split val` and bench/additions.py; docs/skyeyes.md, "Our
-#: additions", and docs/log/skyeyes-2026-11.md). `smoke` runs them all, to test the path.
+#: The additions at each preset. NOTE: `small`'s chosen on synthtown-v2-small-val (8 lanes of the
+#: validation town) by `reproduce --split val` and bench/additions.py: the setting with the lowest
+#: warp error among those no worse than none of the steps on FID, FVD and LPIPS (docs/skyeyes.md,
+#: "Our additions"). `paper` takes `small`'s (never screened at 512). `smoke` runs all four, to
+#: test the path.
 ADDITIONS = {
     "smoke": dict(noise=CarriedNoiseConfig(share=1.0), anchor=PriorAnchorConfig(mix=0.5),
                   street=StreetConfig(mix=0.8), sky=SkyConfig(mix=1.0)),
-    "small": dict(noise=CarriedNoiseConfig(share=1.0), anchor=PriorAnchorConfig(mix=0.5),
-                  street=StreetConfig(mix=0.8), sky=SkyConfig(mix=1.0)),
-    "paper": dict(noise=CarriedNoiseConfig(share=1.0), anchor=PriorAnchorConfig(mix=0.5),
-                  street=StreetConfig(mix=0.8), sky=SkyConfig(mix=1.0)),
+    "small": dict(noise=CarriedNoiseConfig(share=1.0), anchor=PriorAnchorConfig(mix=0.3)),
+    "paper": dict(noise=CarriedNoiseConfig(share=1.0), anchor=PriorAnchorConfig(mix=0.3)),
 }
 
 
@@ -43,7 +42,7 @@ PRESETS = {k: with_additions(v, k) for k, v in FAMILY_PRESETS.items()}
 
 
 class SkyeyesGeo(DiffusionMethod):
-    """Skyeyes plus our four geometric steps (module docstring)."""
+    """Skyeyes plus our geometric steps (module docstring)."""
 
     name = "skyeyes-geo"
     kind = "beyond"
@@ -51,7 +50,7 @@ class SkyeyesGeo(DiffusionMethod):
 
 
 class SkyeyesGeoNoVCM(DiffusionMethod):
-    """`skyeyes-geo` without the VCM: the same four steps on the ACM frame by frame."""
+    """`skyeyes-geo` without the VCM: the same steps on the ACM frame by frame."""
 
     name = "skyeyes-geo-no-vcm"
     kind = "beyond"

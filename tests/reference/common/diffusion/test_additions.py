@@ -123,7 +123,10 @@ def test_the_papers_skyeyes_runs_the_papers_components_and_nothing_of_ours(prese
         assert getattr(geo, f.name) == getattr(cfg, f.name), f.name
     g = SkyeyesGeo(geo, tmp_path / "geo", prior_method=StandInPrior(tmp_path / "prior"), progress=False)
     assert g.components()[:3] == list(PAPER_COMPONENTS[:3])
-    assert g.components()[3:] == ["carried noise", "prior anchor", "street from one view", "sky from one fit"]
+    # the validation split chose carried noise and the anchor at `small` (docs/skyeyes.md); smoke runs all four
+    ours = {"smoke": ["carried noise", "prior anchor", "street from one view", "sky from one fit"],
+            "small": ["carried noise", "prior anchor"], "paper": ["carried noise", "prior anchor"]}[preset]
+    assert g.components()[3:] == ours
 
 
 # --------------------------------------------------------------------------- carried noise

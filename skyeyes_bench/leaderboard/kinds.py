@@ -55,11 +55,20 @@ def label(kind: str) -> str:
     return KINDS[kind][0]
 
 
+#: Components of ours a legacy row of a paper method id may have run: such a row is "beyond".
+_OURS = ("carried noise", *(words for _, words in _LEGACY_STEPS))
+
+
 def row_kind(method: str, config) -> str:
     """The row's kind: the config's "kind" (checked by `checks.results_fields`) when recorded, else
-    the paper's kind of `method`, else "beyond"."""
+    the paper's kind of `method`, else "beyond"; a legacy row that ran any of our additions under a
+    paper method id (the synthtown@3 `skyeyes` rows filed before the method was split) is "beyond"."""
     recorded = config.get("kind") if isinstance(config, dict) else None
-    return recorded if recorded is not None else METHOD_KINDS.get(method, "beyond")
+    if recorded is not None:
+        return recorded
+    if any(step in _OURS for step in legacy_components(method, config)):
+        return "beyond"
+    return METHOD_KINDS.get(method, "beyond")
 
 
 def row_components(method: str, config) -> list[str]:

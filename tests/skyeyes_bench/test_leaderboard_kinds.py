@@ -36,6 +36,17 @@ def test_kind_of_a_legacy_row_is_its_method_ids(method, kind):
     assert row_kind(method, {"preset": "small"}) == row_kind(method, None) == kind
 
 
+def test_a_legacy_row_of_the_papers_method_with_our_steps_is_beyond_the_paper():
+    """The committed synthtown@3 `skyeyes` row ran carried noise and three steps after sampling
+    (legacy fields): not the paper's method, whatever its id; without them it is the paper's."""
+    method, cfg = _config("skyeyes")
+    assert "kind" not in cfg and row_kind(method, cfg) == "beyond"
+    plain = {k: v for k, v in cfg.items() if k not in ("vcm_noise_flow", "vcm_anchor", "vcm_street", "vcm_sky")}
+    assert row_kind(method, plain) == "paper"
+    assert row_kind(method, {**plain, "vcm_sky": 1}) == "beyond"
+    assert row_kind(method, {**plain, "vcm_noise_flow": True, "vcm_noise": 1}) == "beyond"
+
+
 def test_kind_labels_are_short():
     assert [label(k) for k in ("paper", "ablation", "baseline", "floor", "beyond")] == [
         "paper", "paper's ablation", "paper baseline", "floor", "beyond the paper"]

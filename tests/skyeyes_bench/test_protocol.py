@@ -164,7 +164,7 @@ def test_repository_protocols_load():
         base = {"psnr", "ssim", "lpips", "fid", "kid", "fvd", "kvd"}
         # the versions that score an earlier one's data with the depth-based metrics too, and then FID∞ / FVD∞
         inf = p.ref in ("synthtown@4", "carla-town04@3", "citysample-region5@3")
-        depth = inf or p.ref in ("synthtown@3", "carla-town04@2", "citysample-region5@2")
+        depth = inf or p.ref in ("synthtown@3", "carla-town04@2", "citysample-region5@2", "synthtown-stiff@1")
         want = (base | set(SEQUENCE_METRICS) if depth else base) | ({"fid_inf", "fvd_inf"} if inf else set())
         assert set(p.metric_names) == want
     assert (carla.data.width, carla.data.height) == (512, 512) == (city.data.width, city.data.height)

@@ -65,17 +65,20 @@ def ray_address(value: str | None, folders: list[str]) -> str | None:
 
 
 def evaluate_batch(jobs: list[Job], *, ray: str | None = None, shards: int | None = None, device: str | None = "cpu",
-                   force: bool = False, progress: bool = True) -> list[Outcome]:
+                   force: bool = False, progress: bool = True, allow_missing: bool = True) -> list[Outcome]:
     """Score each job: `ray` None: in turn with `evaluate.evaluate`; else as shard tasks on the Ray
-    at that address ("": a local one; `ray_exec.evaluate_many`). shards: per submission on Ray."""
+    at that address ("": a local one; `ray_exec.evaluate_many`). shards: per submission on Ray.
+    allow_missing: as `evaluate.evaluate`'s (False: a job whose protocol asks for a metric that
+    cannot be computed fails with that one line)."""
     if shards is not None and shards < 1:
         raise UserError(f"--shards {shards}: expected a number of shards >= 1")
     if ray is None:
-        return [_here(job, device, force, progress) for job in jobs]
+        return [_here(job, device, force, progress, allow_missing) for job in jobs]
     from . import ray_exec
 
     with ray_exec.session(ray or None):
-        got = ray_exec.evaluate_many(jobs, shards=shards, device=device, force=force, progress=progress)
+        got = ray_exec.evaluate_many(jobs, shards=shards, device=device, force=force, progress=progress,
+                                     allow_missing=allow_missing)
     return [Outcome(job, **g) for job, g in zip(jobs, got)]
 
 
@@ -89,11 +92,11 @@ def combined_exit(codes: list[int]) -> int:
     return 0 if not codes else 1 if 1 in codes else max(codes)
 
 
-def _here(job: Job, device, force: bool, progress: bool) -> Outcome:
+def _here(job: Job, device, force: bool, progress: bool, allow_missing: bool = True) -> Outcome:
     from .evaluate import evaluate
 
     try:
         return Outcome(job, results=evaluate(job.sub, data=job.data, out=job.out, force=force, progress=progress,
-                                             protocol=job.protocol, device=device))
+                                             protocol=job.protocol, device=device, allow_missing=allow_missing))
     except UserError as e:
         return Outcome(job, error=one_line(e), exit_code=e.exit_code)

@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from typing import Callable
+
 from .bayes import hdi, student_t_posterior
 from .metricspec import METRICS, sample_count_warning
 from .registry import load_entry_point
@@ -139,6 +141,12 @@ def _comparable(a: dict, b: dict, current_sha256: str | None = None) -> list[str
     return why
 
 
+#: Seconds before `compare_results(progress=True)` draws its bar (on a terminal only): a comparison of
+#: results with many frame metrics runs emcee for each (half a minute on 2 cores), a small one is done
+#: before a bar would be worth reading.
+PROGRESS_DELAY_S = 2.0
+
+
 #: What `compare` reports (also in its JSON as `estimand`).
 COMPARE_ESTIMAND = ("A and B: each metric's value exactly as `evaluate` reports it (per-frame metrics: the mean over "
                     "all frames; set metrics: computed on all features); advantage: the difference of those two "
@@ -212,7 +220,10 @@ def _check_comparable(a: dict, b: dict, names: tuple[str, str], count_note: str 
     why = _comparable(a, b)
     if why:
         raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
-    protocol = load_protocol(a["protocol"]["ref"])
+    try:
+        protocol = load_protocol(a["protocol"]["ref"])
+    except UserError as e:  # an id or version this installation lacks: say which file names it
+        raise UserError(f"{names[0]}: field 'protocol.ref': {e}") from None
     why = _comparable(a, b, protocol.sha256) or [p for p in [_frames_problem(a, b, names)] if p]
     if why:  # e.g. a submission scored in part: its counts are said too
         raise UserError("cannot compare: " + "; ".join(why + ([count_note] if count_note else [])))
@@ -233,25 +244,33 @@ def _paired_frame_samples(a: dict, b: dict, name: str, order: list[tuple[str, st
     return lambda c: (samples(fa, wa, c), samples(fb, wb, c))
 
 
-def _set_replicates(name: str, a: dict, b: dict, feats_a: dict | None, feats_b: dict | None, protocol,
+def _set_replicates(name: str, a: dict, b: dict, sidecars: Callable[[], tuple], protocol,
                     cl_of_seq: np.ndarray, k: int, counts: np.ndarray) -> tuple | None:
     """Paired replicates (A, B) of the set metric `name` and the centres of both intervals (None
     where unknown): the results' stored replicates when made the way this comparison resamples
     (the centres from the features for an older file without them), else resampled from the
-    features sidecars; None when there are neither."""
+    features sidecars; None when there are neither. `sidecars()` gives the features of A and B
+    (each None where absent); it is called only here, when they are needed."""
     st, unit = protocol.statistics, protocol.statistics.cluster
     ma, mb = a["metrics"][name], b["metrics"][name]
     ra, rb = _usable_replicates(a, ma, st, unit, k), _usable_replicates(b, mb, st, unit, k)
     ex = ma["extractor"]
-    have = feats_a is not None and feats_b is not None and ex in feats_a and ex in feats_b
+
+    def have() -> tuple | None:
+        fa, fb = sidecars()
+        return (fa, fb) if fa is not None and fb is not None and ex in fa and ex in fb else None
+
     if ra is not None and rb is not None:
         reps = tuple(np.array([np.nan if v is None else v for v in x], np.float64) for x in (ra, rb))
         centres = (ma.get("interval_centre"), mb.get("interval_centre"))
-        if None in centres and have:  # an older file without it: from the features
-            centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in (feats_a, feats_b))
+        has_centre = name in METRICS and bool(METRICS[name].centre)  # else `_set_centre` gives None anyway
+        if None in centres and has_centre and (feats := have()):  # an older file without it: from the features
+            centres = tuple(_set_centre(name, f[ex], protocol, st.seed) for f in feats)
         return reps, centres
-    if not have:
+    feats = have()
+    if feats is None:
         return None
+    feats_a, feats_b = feats
     reps = []
     for f in (feats_a[ex], feats_b[ex]):
         cl = cl_of_seq[np.asarray(f["seq"], np.int64)]
@@ -278,7 +297,8 @@ def _add_interval(r: dict, name: str, adv: float, reps, centres: tuple, level: f
 
 
 def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict | None = None,
-                    *, emcee_steps: int | None = None, names: tuple[str, str] = ("A", "B")) -> dict:
+                    *, emcee_steps: int | None = None, names: tuple[str, str] = ("A", "B"),
+                    sidecars: Callable[[], tuple] | None = None, progress: bool = False) -> dict:
     """Paired comparison of two results of the same protocol and ground truth, metric by metric.
 
     One estimand for A, B and A - B (`COMPARE_ESTIMAND`): A and B are the values `evaluate`
@@ -291,6 +311,10 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     says what it describes).
 
     `names`: how messages name A and B (`compare` passes the two files).
+    `sidecars`: instead of `feats_a`, `feats_b`, a function giving both (each None where absent),
+    called at most once and only when a set metric has no usable stored replicates (results
+    written by this version carry them, so their sidecars are never read).
+    `progress`: a progress bar on stderr, drawn only on a terminal and after `PROGRESS_DELAY_S`.
 
     Raises:
         UserError: the results are not comparable (the message says why).
@@ -314,44 +338,63 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
            "metrics": {}}
     if count_note:  # the same frames and protocol leave no way to this today; a guard, said once
         out["warnings"] = [count_note]
-    for name, ma in a["metrics"].items():
-        mb = b["metrics"].get(name)
-        if ma.get("reference") or (name in METRICS and METRICS[name].reference):
-            out["metrics"][name] = {"status": "skipped", "a": ma.get("value"), "note": f"{name} is a property of the "
-                                    "ground truth (the same for A and B): reported, not compared"}
-            continue
-        if mb is None or ma["status"] != "ok" or mb["status"] != "ok":
-            out["metrics"][name] = {"status": "skipped", "note": f"{name} unavailable in "
-                                    f"{'A' if ma['status'] != 'ok' else 'B'}"}
-            continue
-        va, vb = float(ma["value"]), float(mb["value"])
-        adv = float(advantage(np.array([va]), np.array([vb]), name)[0])
-        r: dict = {"status": "ok", "metric": name, "kind": ma["kind"], "higher_is_better": higher_is_better(name),
-                   "a": va, "b": vb, "advantage": adv, "level": st.interval, "bootstrap_interval": None,
-                   "p_a_better_bootstrap": None}
-        reps = None
-        centres = (None, None)  # set metrics with random subsets (FD∞): their intervals' centres
-        if ma["kind"] == "frame":
-            samples = _paired_frame_samples(a, b, name, order, cl_of_seq)
-            d = advantage(*samples(np.eye(k)), name)
-            r["bayes"] = bayes_summary(d, unit=unit, walkers=st.emcee_walkers, steps=steps, burn=burn, seed=st.seed)
-            if counts is not None:
-                reps = samples(counts)
-        else:
-            r["bayes"] = {"fitted": False, "p_a_better": None, "hdi": None,
-                          "note": f"set metric: no per-{unit} values; paired resampling only"}
-            if counts is not None:
-                got = _set_replicates(name, a, b, feats_a, feats_b, protocol, cl_of_seq, k, counts)
-                if got is None:
-                    out["metrics"][name] = {"status": "skipped", "a": va, "b": vb, "advantage": adv,
-                                            "note": "no replicates of the same resampling in the results and no "
-                                                    "features sidecars: set metrics are compared by resampling"}
-                    continue
-                reps, centres = got
-        if few:
-            r["interval_note"] = few
-        else:
-            _add_interval(r, name, adv, reps, centres, st.interval, k)
-        r["advantage_mean"] = adv  # the name older readers use; the same number
-        out["metrics"][name] = r
+    loaded: list[tuple] = []  # the sidecars, read once on first need
+
+    def features() -> tuple:
+        if not loaded:
+            loaded.append(sidecars() if sidecars is not None else (feats_a, feats_b))
+        return loaded[0]
+
+    from .results import progress_bar
+
+    bar = progress_bar(progress, total=len(a["metrics"]), desc="compare", unit="metric", delay=PROGRESS_DELAY_S)
+    with bar:
+        for name, ma in a["metrics"].items():
+            _compare_metric(out, name, ma, a, b, features, protocol, st, unit, k, few, counts, order, cl_of_seq,
+                            steps, burn)
+            bar.update(1)
     return out
+
+
+def _compare_metric(out: dict, name: str, ma: dict, a: dict, b: dict, features, protocol, st, unit: str, k: int,
+                    few, counts, order, cl_of_seq, steps: int, burn: int) -> None:
+    """Into `out["metrics"][name]`: the comparison of metric `name` (`compare_results`)."""
+    mb = b["metrics"].get(name)
+    if ma.get("reference") or (name in METRICS and METRICS[name].reference):
+        out["metrics"][name] = {"status": "skipped", "a": ma.get("value"), "note": f"{name} is a property of the "
+                                "ground truth (the same for A and B): reported, not compared"}
+        return
+    if mb is None or ma["status"] != "ok" or mb["status"] != "ok":
+        out["metrics"][name] = {"status": "skipped", "note": f"{name} unavailable in "
+                                f"{'A' if ma['status'] != 'ok' else 'B'}"}
+        return
+    va, vb = float(ma["value"]), float(mb["value"])
+    adv = float(advantage(np.array([va]), np.array([vb]), name)[0])
+    r: dict = {"status": "ok", "metric": name, "kind": ma["kind"], "higher_is_better": higher_is_better(name),
+               "a": va, "b": vb, "advantage": adv, "level": st.interval, "bootstrap_interval": None,
+               "p_a_better_bootstrap": None}
+    reps = None
+    centres = (None, None)  # set metrics with random subsets (FD∞): their intervals' centres
+    if ma["kind"] == "frame":
+        samples = _paired_frame_samples(a, b, name, order, cl_of_seq)
+        d = advantage(*samples(np.eye(k)), name)
+        r["bayes"] = bayes_summary(d, unit=unit, walkers=st.emcee_walkers, steps=steps, burn=burn, seed=st.seed)
+        if counts is not None:
+            reps = samples(counts)
+    else:
+        r["bayes"] = {"fitted": False, "p_a_better": None, "hdi": None,
+                      "note": f"set metric: no per-{unit} values; paired resampling only"}
+        if counts is not None:
+            got = _set_replicates(name, a, b, features, protocol, cl_of_seq, k, counts)
+            if got is None:
+                out["metrics"][name] = {"status": "skipped", "a": va, "b": vb, "advantage": adv,
+                                        "note": "no replicates of the same resampling in the results and no "
+                                                "features sidecars: set metrics are compared by resampling"}
+                return
+            reps, centres = got
+    if few:
+        r["interval_note"] = few
+    else:
+        _add_interval(r, name, adv, reps, centres, st.interval, k)
+    r["advantage_mean"] = adv  # the name older readers use; the same number
+    out["metrics"][name] = r

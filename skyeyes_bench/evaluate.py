@@ -1,6 +1,10 @@
 """Score a submission: validate, per-frame metrics, features; then `summary.finalize` adds the
 set metrics and statistics and writes the results file.
 
+The module is callable: `skyeyes_bench.evaluate("sub/", ...)` is `skyeyes_bench.api.evaluate`,
+the public entry point (strict about missing metrics, no progress bars, writes nothing unless
+`out=` is given; docs/evaluate.md, "Python API"). Below, the internal function it calls:
+
 ```
 results = evaluate("sub/", data=None, out="results.json")          # whole test split
 part = evaluate("sub/", out="part-0.json", shard=(0, 4))          # sequences 0, 4, 8, ...
@@ -15,7 +19,9 @@ format (and `read_results`, ...) from `results`, `finalize` from `summary` and `
 from __future__ import annotations
 
 import contextlib
+import sys
 import time
+import types
 from pathlib import Path
 from typing import Any
 
@@ -99,7 +105,13 @@ def open_inputs(sub: Path, data=None, protocol: str | None = None, split: str | 
     held = manifest["dataset"].get("split", "test")
     if split is not None and check_split(split) != held:
         raise UserError(f"{sub}/submission.json: field 'dataset.split' is {held!r}, --split asks for {split!r}")
-    proto = load_protocol(protocol or manifest["protocol"])
+    if protocol is not None:
+        proto = load_protocol(protocol)
+    else:
+        try:
+            proto = load_protocol(manifest["protocol"])
+        except UserError as e:  # an unknown id or version: say which file names it
+            raise UserError(f"{sub / 'submission.json'}: field 'protocol': {e}") from None
     return manifest, proto, scored_view(open_dataset(resolve_data(manifest, proto, data)), held, proto)
 
 
@@ -118,8 +130,11 @@ def _frame_batches(items: list, size: int):
 
 def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = False,
              progress: bool = True, protocol: str | None = None, device: str | None = "cpu",
-             split: str | None = None) -> dict[str, Any]:
+             split: str | None = None, allow_missing: bool = True) -> dict[str, Any]:
     """Score a submission folder against its protocol.
+
+    (The public entry point is `skyeyes_bench.evaluate(...)`, `api.evaluate`: the same call with
+    `allow_missing=False` and no progress bars by default.)
 
     Args:
         submission_dir: folder with `submission.json` and the frames.
@@ -140,10 +155,16 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
         split: the split the submission must hold, "test" or "val" (None: whichever it holds, as
             its submission.json says); a validation submission is scored on the validation scenes
             and its results say `dataset.split: "val"` (never ranked).
+        allow_missing: a metric the protocol asks for that cannot be computed here (missing
+            weights, a dataset without depth) is reported `"unavailable"` in the results (True), or
+            refuses the run with `MissingMetrics` (False; `evaluate` on the command line unless
+            `--allow-missing`): before any scoring where that is known up front
+            (`missing_metrics`), else before anything is written.
     Returns:
         The results dict (or the partial dict for a shard).
     Raises:
         ValidationError: every problem of the submission, before anything is computed or written.
+        MissingMetrics: with allow_missing=False, a required metric that cannot be computed.
         UserError: a device this machine lacks (before any work).
     """
     dev = _scoring_device(device)  # before any work: `--device cuda` without CUDA is one line, exit 2
@@ -153,7 +174,7 @@ def evaluate(submission_dir, data=None, out=None, shard=None, force: bool = Fals
     if out is not None:  # before any work: a refused output never costs a scoring run
         check_out(out, force, [sub])
     with contextlib.ExitStack() as held:  # the output's lock, taken once the dataset is known
-        return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held, split)
+        return _evaluate(sub, data, out, shard, force, progress, protocol, dev, held, split, allow_missing)
 
 
 def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
@@ -165,7 +186,7 @@ def check_out(out: Path, force: bool, inputs: list[Path]) -> None:
 
 
 def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: bool, protocol, dev,
-              held: contextlib.ExitStack, split: str | None = None) -> dict[str, Any]:
+              held: contextlib.ExitStack, split: str | None = None, allow_missing: bool = True) -> dict[str, Any]:
     from .metrics.extractors import on_device
 
     timing: dict[str, float] = {}
@@ -187,6 +208,10 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         problems = validate_submission(sub, ds, protocol, manifest, frames=frames, progress=progress)
         if problems:
             raise ValidationError(f"submission {sub}", problems)
+        if not allow_missing:  # before any scoring: what is known to be missing costs no run
+            missing = missing_metrics(protocol, ds, sorted({s for s, _ in frames}))
+            if missing:
+                raise MissingMetrics(protocol.ref, missing)
     # Each submitted frame is hashed once: for this part's records and for the whole-submission digest.
     sub_sha = {frame_relpath(sc, f): _sha_or_missing(sub / frame_relpath(sc, f)) for sc, f in expected_frames(ds)}
     doc: dict[str, Any] = {
@@ -213,6 +238,11 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
     doc.update(frames=records, unavailable=unavailable, extractors=extractors)
     if shard is None:
         doc = finalize(doc, features, timing=timing, progress=progress)
+    if not allow_missing:  # what only the scoring found (too few clips, ...): nothing is written
+        gone = {n: m for n, m in doc.get("metrics", {}).items() if m["status"] != "ok"} if shard is None else unavailable
+        if gone:
+            raise MissingMetrics(protocol.ref, {n: {"reason": m.get("reason", ""), "fix": m.get("fix", "")}
+                                                for n, m in gone.items()})
     timing["total_s"] = round(time.perf_counter() - t_start, 4)
     doc["timing_s"] = timing
     if out is not None:
@@ -220,6 +250,59 @@ def _evaluate(sub: Path, data, out: Path | None, shard, force: bool, progress: b
         with outputfiles.reading(sub, ds.root):
             write_results(out, doc, features)
     return doc
+
+
+class MissingMetrics(UserError):
+    """Metrics the protocol asks for that cannot be computed here, and `allow_missing` is off.
+
+    Attributes:
+        missing: {metric name: {"reason", "fix"}}, as the results would report them.
+    """
+
+    def __init__(self, ref: str, missing: dict[str, dict]):
+        self.missing = dict(missing)
+        names = list(self.missing)
+        first = self.missing[names[0]]
+        why = first.get("reason") or "unavailable"
+        fix = f"; fix: {first['fix']}" if first.get("fix") else ""
+        super().__init__(f"protocol {ref} requires {', '.join(names)}, which cannot be computed here "
+                         f"({names[0]}: {why}{fix}); pass --allow-missing (allow_missing=True in Python) to "
+                         f"score the other metrics and report {'these' if len(names) > 1 else 'it'} unavailable")
+
+
+def missing_metrics(protocol, ds, scenes: list[str]) -> dict[str, dict]:
+    """The metrics of `protocol` known before any scoring not to be computable on the `scenes` of
+    `ds`: an extractor whose weight files are missing or wrong, a depth layer the dataset lacks.
+    {name: {"reason", "fix"}}, the words the results would report them with."""
+    from .metrics import MetricUnavailable
+    from .metrics.extractors import get_extractor
+
+    out: dict[str, dict] = {}
+    for m in protocol.metrics:
+        if m.extractor:
+            try:
+                get_extractor(m.extractor).require()  # the weights' sha256, memoised: no network is loaded
+            except MetricUnavailable as e:
+                out[m.name] = {"reason": e.reason, "fix": e.fix}
+    depth = [m.name for m in protocol.metrics if m.name in SEQUENCE_METRICS and m.name not in out]
+    out.update(_missing_depth(ds, scenes, depth))
+    return out
+
+
+def _missing_depth(ds, scenes: list[str], names: list[str]) -> dict[str, dict]:
+    """{name: {"reason", "fix"}} for each depth-based metric of `names` whose depth layers some of
+    `scenes` lack."""
+    out: dict[str, dict] = {}
+    for name in names:
+        missing = [f"{s}/{v}_depth/" for s in scenes for v in metric_def(name).depth
+                   if not ds.scenes[s].layers()[f"{v}_depth"]]
+        if missing:
+            out[name] = {
+                "reason": f"the dataset has no depth layer {missing[0]}" + (
+                    f" (and {len(missing) - 1} more)" if len(missing) > 1 else "") + f": {name} needs it",
+                "fix": "score a dataset with ground and aerial depth (SynthTown writes it; importers write it when "
+                       "the capture has depth)"}
+    return out
 
 
 def _scoring_device(device):
@@ -303,15 +386,9 @@ def _sequence_metrics(sub: Path, ds, frames, protocol, records: list[dict], unav
         groups.setdefault(metric_def(m.name).per_sequence, []).append(m)
     scenes = sorted({s for s, _ in frames})
     for entry, ms in list(groups.items()):
-        missing = [f"{s}/{v}_depth/" for s in scenes for v in metric_def(ms[0].name).depth
-                   if not ds.scenes[s].layers()[f"{v}_depth"]]
-        if missing:
-            for m in ms:
-                unavailable[m.name] = {
-                    "reason": f"the dataset has no depth layer {missing[0]}" + (
-                        f" (and {len(missing) - 1} more)" if len(missing) > 1 else "") + f": {m.name} needs it",
-                    "fix": "score a dataset with ground and aerial depth (SynthTown writes it; importers write it when "
-                           "the capture has depth)"}
+        gone = _missing_depth(ds, scenes, [m.name for m in ms])
+        if gone:
+            unavailable.update(gone)
             del groups[entry]
     if not groups:
         return
@@ -425,3 +502,20 @@ def _features(sub: Path, frames, protocol, seq_index, unavailable, timing, progr
             extractors[ex_id]["status"] = "ok"
             features[ex_id] = {"sub": np.asarray(fs), "gt": np.asarray(fg), "seq": seq}
     return features, extractors
+
+
+# --------------------------------------------------------------------------- the module, callable
+
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as `api.evaluate`. `skyeyes_bench.evaluate` names both this module and
+    the public function (importing a submodule sets the package's attribute to it, whatever
+    `skyeyes_bench.__init__` offered), so the module answers the call itself."""
+
+    def __call__(self, submission, data=None, **kwargs):
+        from .api import evaluate as public
+
+        return public(submission, data, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -185,7 +185,7 @@ def part_name(shard: tuple[int, int]) -> str:
 
 
 def _score_shard(sub: str, data: str, shard: tuple[int, int], protocol: str, device: str,
-                 env: dict) -> dict:
+                 env: dict, allow_missing: bool = True) -> dict:
     """Task: `evaluate --shard` into a temporary folder; the part's JSON and sidecar as bytes, or
     {"error", "exit_code"} for a user error."""
     from .evaluate import evaluate
@@ -195,7 +195,8 @@ def _score_shard(sub: str, data: str, shard: tuple[int, int], protocol: str, dev
         out = Path(tmp) / part_name(shard)
         t0 = time.perf_counter()
         try:
-            evaluate(sub, data=data, out=out, shard=shard, progress=False, protocol=protocol, device=device)
+            evaluate(sub, data=data, out=out, shard=shard, progress=False, protocol=protocol, device=device,
+                     allow_missing=allow_missing)  # checked on the worker: its weights are the ones that count
         except UserError as e:
             return {"error": one_line(e), "exit_code": e.exit_code}
         got = {"json": out.read_bytes(), "features": features_path(out).read_bytes(),
@@ -245,7 +246,7 @@ def _merge(job, got: dict, parts: dict[int, dict], n: int, force: bool) -> None:
 
 
 def evaluate_many(jobs: list, *, shards: int | None = None, device: str | None = "cpu", force: bool = False,
-                  progress: bool = True) -> list[dict]:
+                  progress: bool = True, allow_missing: bool = True) -> list[dict]:
     """Score every job's submission (`batch.Job`: sub, out, data, protocol) as shard tasks in the
     running Ray (`session`); merge each into its `out` as soon as its shards are in. shards: per
     submission (default: one per task the cluster runs at once, at most one per test sequence).
@@ -268,7 +269,7 @@ def evaluate_many(jobs: list, *, shards: int | None = None, device: str | None =
             continue
         counts[i] = n = max(1, min(n_seq, shards or slots(gpus > 0)))
         for k in range(n):
-            pending[task.remote(sub, data, (k, n), ref, dev, env)] = (i, k)
+            pending[task.remote(sub, data, (k, n), ref, dev, env, allow_missing)] = (i, k)
     parts: dict[int, dict[int, dict]] = {}
     with progress_bar(progress, total=len(pending), desc="shards", unit="shard") as bar:
         while pending:

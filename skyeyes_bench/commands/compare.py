@@ -13,10 +13,13 @@ def register(sub) -> None:
                        "(their difference, > 0: A better), its interval from paired half-sampling of the "
                        "protocol's clusters (scenes; the same clusters for A and B), and for per-frame metrics a "
                        "Bayesian Student-t model (emcee) of per-cluster differences giving P(A better) and a "
-                       "95%% HDI. Below 5 clusters: no interval and no P(better) ('too few scenes').")
+                       "95% HDI. Below 5 clusters: no interval and no P(better) ('too few scenes'). Set metrics "
+                       "use the replicates stored in the results; the .features.npz sidecars are read only for "
+                       "older results without them (absent: those metrics are skipped, and said so). A progress "
+                       "bar appears on a terminal when it takes more than 2 s.")
     p.add_argument("a", metavar="A.json", help="results of method A")
     p.add_argument("b", metavar="B.json", help="results of method B")
-    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--json", action="store_true", help="print the comparison JSON instead of the summary")
     p.add_argument("--out", metavar="FILE", help="also write the comparison JSON here")
     p.set_defaults(run=run)
 
@@ -52,27 +55,11 @@ def _abd(a: float, b: float, adv: float, higher: bool) -> tuple[str, str, str]:
 
 
 def run(args) -> int:
-    from .. import outputfiles
-    from ..evaluate import read_results
-    from ..comparison import compare_results
+    from ..api import compare
 
-    if args.out:  # before any work; compare's output is replaced freely, but never an input
-        outputfiles.check_output(args.out, force=True, inputs=[args.a, args.b], inputs_are="the results being compared")
-    a, fa = read_results(args.a, features=False)
-    b, fb = read_results(args.b, features=False)
-    sets = any(m.get("kind") == "set" and m["status"] == "ok" for m in a["metrics"].values())
-    if sets:  # set metrics need the features sidecars; without them they are skipped, and said so
-        try:
-            _, fa = read_results(args.a, features=True)
-            _, fb = read_results(args.b, features=True)
-        except Exception as e:  # noqa: BLE001 - report and continue with per-frame metrics
-            print(f"skyeyes-bench: warning: {e}", file=sys.stderr)
-            fa = fb = None
-    res = compare_results(a, b, fa, fb, names=(args.a, args.b))
+    res = compare(args.a, args.b, out=args.out, progress=True)  # a bar only on a terminal, after 2 s
     for w in res.get("warnings", []):
         print(f"skyeyes-bench: warning: {w}", file=sys.stderr)
-    if args.out:
-        outputfiles.write_json(args.out, res)
     if args.json:
         print(json.dumps(res, indent=2))
         return 0

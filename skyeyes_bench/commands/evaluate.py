@@ -13,7 +13,10 @@ def register(sub) -> None:
                        description="Validate a submission (every problem listed, exit 2, nothing written), "
                        "then compute the metrics its protocol asks for with intervals from half-sampling of "
                        "the protocol's clusters (scenes; none below 5) and write results JSON (with each "
-                       "metric's replicates) plus a .features.npz sidecar.")
+                       "metric's replicates) plus a .features.npz sidecar. A metric the protocol requires that "
+                       "cannot be computed here (missing weights: `skyeyes-bench weights fetch`; a dataset "
+                       "without depth) is exit 2 with one line naming it, before any scoring where that is "
+                       "known up front, unless --allow-missing.")
     p.add_argument("submissions", nargs="*", metavar="SUBMISSION",
                    help="submission folder (holds submission.json); several are scored one after another (or "
                    "together with --ray), each into SUBMISSION.results.json, and one that fails is reported in one "
@@ -42,9 +45,13 @@ def register(sub) -> None:
                    "rounding (TF32 off), so scores may differ in the last digits; the device is recorded in the "
                    "results (extractors.<id>.device) and shards scored on different devices do not merge. With "
                    "--ray: auto gives each shard task a GPU where the cluster has any (else the CPU); cuda needs one")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="partial scores: write the results with the metrics that cannot be computed here marked "
+                   "\"unavailable\" (with the reason and the fix) and exit 0 (default: exit 2 naming them)")
     p.add_argument("--force", action="store_true", help="replace an existing results file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary")
+    p.add_argument("--json", action="store_true", help="print the results JSON instead of a summary (with "
+                   "--shard: the partial results)")
     p.set_defaults(run=run)
 
 
@@ -69,7 +76,8 @@ def _one(args, sub: str) -> int:
     shard = parse_shard(args.shard)
     out = args.out or default_out(sub, shard)
     res = evaluate(sub, data=args.data, out=out, shard=shard, force=args.force,
-                   progress=not args.quiet, protocol=args.protocol, device=args.device, split=args.split)
+                   progress=not args.quiet, protocol=args.protocol, device=args.device, split=args.split,
+                   allow_missing=args.allow_missing)
     if args.json:
         print(json.dumps(res, indent=2))
     elif shard:
@@ -99,7 +107,7 @@ def _many(args, subs: list[str], ray: str | None) -> int:
     jobs = [Job(Path(s), Path(args.out) if args.out else default_out(s), data=args.data, protocol=args.protocol)
             for s in subs]
     outcomes = evaluate_batch(jobs, ray=ray, shards=args.shards, device=args.device, force=args.force,
-                              progress=not args.quiet)
+                              progress=not args.quiet, allow_missing=args.allow_missing)
     for o in outcomes:
         if o.error is not None:
             print(f"skyeyes-bench: error: {o.job.sub}: {o.error}", file=sys.stderr)

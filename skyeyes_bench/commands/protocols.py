@@ -10,7 +10,9 @@ def register(sub) -> None:
                        description="Versioned evaluation protocols (protocols/<id>/v<N>.toml).")
     p.set_defaults(run=run, group_parser=p)
     ps = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
-    ps.add_parser("list", help="one 'id@N<TAB>title' line per protocol version")
+    q = ps.add_parser("list", help="one 'id@N<TAB>title' line per protocol version")
+    q.add_argument("--json", action="store_true", help="print JSON instead: [{\"ref\", \"title\", \"sha256\", "
+                   "\"file\"}, ...]")
     q = ps.add_parser("show", help="print a resolved protocol with its sha256",
                       description="Print the resolved protocol (TOML-like) with its canonical sha256.")
     q.add_argument("ref", metavar="ID[@N]", help="protocol id, optionally with @version (default: latest)")
@@ -24,14 +26,23 @@ def run(args) -> int:
 def _list(args) -> int:
     from ..protocol import list_protocols
 
-    for p in list_protocols():
+    protocols = list_protocols()
+    if args.json:
+        print(_json([{"ref": p.ref, "title": p.title, "sha256": p.sha256, "file": p.path} for p in protocols]))
+        return 0
+    for p in protocols:
         print(f"{p.ref}\t{p.title}")
     return 0
 
 
+def _json(doc) -> str:
+    """JSON as people read it: "FID∞", not "FID\\u221e" (still valid JSON, UTF-8)."""
+    return json.dumps(doc, indent=2, ensure_ascii=False)
+
+
 def _toml_value(v) -> str:
-    if isinstance(v, str):
-        return json.dumps(v)
+    if isinstance(v, str):  # a TOML basic string; TOML is UTF-8, so "∞" stays "∞"
+        return json.dumps(v, ensure_ascii=False)
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (list, tuple)):
@@ -49,7 +60,7 @@ def _show(args) -> int:
     d = p.to_dict()
     val = dataclasses.asdict(p.val) if p.val is not None else None
     if args.json:
-        print(json.dumps({"ref": p.ref, "sha256": p.sha256, "file": p.path, **d, "val": val}, indent=2))
+        print(_json({"ref": p.ref, "sha256": p.sha256, "file": p.path, **d, "val": val}))
         return 0
     print(f"# {p.ref}  sha256 {p.sha256}\n# file: {p.path}")
     for k in ("id", "version", "title", "description", "reference"):

@@ -103,9 +103,9 @@ def test_existing_results_need_force(tiny, scored, tmp_path):
     blur = scored[1]["b1"]
     out = tmp_path / "r.json"
     out.write_text("{}")
-    rc, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
     assert "already exists; pass --force" in err and out.read_text() == "{}"
-    run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", "--force")
+    run_cli("evaluate", "--allow-missing", str(blur), "--data", str(tiny), "--out", str(out), "--quiet", "--force")
     assert json.loads(out.read_text())["format"] == "skyeyes-bench/results@1"
     assert features_path(out).is_file()
 
@@ -115,7 +115,7 @@ def test_shards_merge_to_the_unsharded_numbers(tiny, scored, tmp_path):
     parts = []
     for i in (1, 0, 2):  # order does not matter; 3 shards over 4 sequences
         p = tmp_path / f"part{i}.json"
-        run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(p), "--shard", f"{i}/3", "--quiet")
+        run_cli("evaluate", "--allow-missing", str(blur), "--data", str(tiny), "--out", str(p), "--shard", f"{i}/3", "--quiet")
         parts.append(str(p))
     rc, out, err = run_cli("merge", *parts[:2], "--out", str(tmp_path / "m.json"), "--quiet", check=2)
     assert "shards 2/3 missing" in err
@@ -179,7 +179,7 @@ def test_smoke_end_to_end(synthtown_smoke, tmp_path):
     sub = tmp_path / "gt"
     run_cli("submission", "template", "--data", str(synthtown_smoke), "--out", str(sub), "--from-ground-truth")
     out = tmp_path / "gt.json"
-    rc, text, err = run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(out), "--quiet")
+    rc, text, err = run_cli("evaluate", "--allow-missing", str(sub), "--data", str(synthtown_smoke), "--out", str(out), "--quiet")
     res, _ = read_results(out)
     assert res["protocol"]["ref"] == "synthtown@1"
     assert res["metrics"]["psnr"]["value"] == math.inf
@@ -233,7 +233,7 @@ def test_protocol_resize_must_match_the_extractor():
 def test_progress_bars_only_on_a_terminal(tiny, scored, tmp_path, tty):
     """Without --quiet, bars are drawn only when stderr is a terminal: logs stay readable."""
     blur = scored[1]["b1"]
-    _, _, err = run_cli("evaluate", str(blur), "--data", str(tiny), "--out", str(tmp_path / "r.json"), tty=tty)
+    _, _, err = run_cli("evaluate", "--allow-missing", str(blur), "--data", str(tiny), "--out", str(tmp_path / "r.json"), tty=tty)
     assert ("per-frame metrics" in err) == tty, err
 
 

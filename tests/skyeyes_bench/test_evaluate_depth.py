@@ -145,10 +145,10 @@ def test_old_submission_rescored_with_a_later_protocol(depth_scored, synthtown_s
     for name in SEQUENCE_METRICS:
         assert again["metrics"][name].get("value") == res["grey"]["metrics"][name].get("value")
     # the CLI spelling; and a protocol that scores other data is refused in one line
-    rc, out, err = run_cli("evaluate", str(old), "--data", str(synthtown_smoke), "--protocol", "synthtown@9",
+    rc, out, err = run_cli("evaluate", "--allow-missing", str(old), "--data", str(synthtown_smoke), "--protocol", "synthtown@9",
                            "--out", str(tmp_path / "r.json"))
     assert "psnr_seen" in out and "warp_floor" in out and "of the ground truth: not a score" in out
-    rc, out, err = run_cli("evaluate", str(old), "--data", str(synthtown_smoke), "--protocol", "synthtown@2",
+    rc, out, err = run_cli("evaluate", "--allow-missing", str(old), "--data", str(synthtown_smoke), "--protocol", "synthtown@2",
                            "--out", str(tmp_path / "r2.json"), check=2)
     assert "field 'protocol' is 'synthtown@1', the evaluation uses 'synthtown@2'" in err
 
@@ -175,13 +175,13 @@ def test_submission_scored_with_an_earlier_version_of_the_same_data(depth_scored
         # a changed protocol file is caught against the version the submission names
         man.update(protocol_sha256="0" * 64)
         (later / "submission.json").write_text(json.dumps(man))
-        rc, out, err = run_cli("evaluate", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@9",
+        rc, out, err = run_cli("evaluate", "--allow-missing", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@9",
                                "--out", str(tmp_path / "r.json"), check=2)
         assert "'protocol_sha256' does not match protocol synthtown@10" in err
         # a version that scores other data (synthtown@2: synthtown-v2-small) refuses it
         man.update(protocol_sha256=load_protocol("synthtown@10").sha256)
         (later / "submission.json").write_text(json.dumps(man))
-        rc, out, err = run_cli("evaluate", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@2",
+        rc, out, err = run_cli("evaluate", "--allow-missing", str(later), "--data", str(synthtown_smoke), "--protocol", "synthtown@2",
                                "--out", str(tmp_path / "r2.json"), check=2)
         assert "field 'protocol' is 'synthtown@10', the evaluation uses 'synthtown@2'" in err
     finally:

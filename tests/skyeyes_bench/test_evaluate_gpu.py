@@ -60,7 +60,7 @@ def _same_scores(a: dict, b: dict) -> None:
 def test_device_cuda_without_cuda_is_one_line_exit_2(tmp_path):
     """Refused before any work: even the submission folder (absent here) is not looked at."""
     out = tmp_path / "r.json"
-    rc, text, err = run_cli("evaluate", str(tmp_path / "absent"), "--device", "cuda", "--out", str(out), check=2)
+    rc, text, err = run_cli("evaluate", "--allow-missing", str(tmp_path / "absent"), "--device", "cuda", "--out", str(out), check=2)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "--device cuda" in lines[0] and "CUDA" in lines[0], err
     assert "Traceback" not in err and text == "" and not out.exists()
@@ -68,7 +68,7 @@ def test_device_cuda_without_cuda_is_one_line_exit_2(tmp_path):
 
 @pytest.mark.parametrize("dev", ["nonsense", "meta", "tpu"])
 def test_device_that_computes_nothing_here_is_exit_2(tmp_path, dev):
-    rc, _, err = run_cli("evaluate", str(tmp_path / "absent"), "--device", dev, check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(tmp_path / "absent"), "--device", dev, check=2)
     assert len(err.strip().splitlines()) == 1 and "--device" in err and "Traceback" not in err, err
 
 
@@ -80,7 +80,7 @@ def test_device_cpu_equals_the_default_and_is_recorded(small, tmp_path):
     for name, extra in (("default", ()), ("cpu", ("--device", "cpu"))):
         _cold_features()
         out = tmp_path / f"{name}.json"
-        run_cli("evaluate", str(sub), "--data", str(root), "--out", str(out), "--quiet", *extra)
+        run_cli("evaluate", "--allow-missing", str(sub), "--data", str(root), "--out", str(out), "--quiet", *extra)
         doc, f = read_results(out, features=True)
         docs.append(doc)
         feats.append(f)
@@ -133,7 +133,7 @@ def test_merge_refuses_shards_from_different_devices(small, tmp_path):
     parts = []
     for i in (0, 1):
         p = tmp_path / f"part{i}.json"
-        run_cli("evaluate", str(sub), "--data", str(root), "--out", str(p), "--shard", f"{i}/2", "--quiet")
+        run_cli("evaluate", "--allow-missing", str(sub), "--data", str(root), "--out", str(p), "--shard", f"{i}/2", "--quiet")
         parts.append(p)
     whole = evaluate(sub, data=root, progress=False)
     shutil.copy(parts[1], tmp_path / "part1.orig")
@@ -158,7 +158,7 @@ def test_results_without_device_still_load_and_compare(small, tmp_path):
     """Results files written before `--device` (no `extractors.<id>.device`) load and compare."""
     root, sub, tmp, _ = small
     out = tmp_path / "r.json"
-    run_cli("evaluate", str(sub), "--data", str(root), "--out", str(out), "--quiet")
+    run_cli("evaluate", "--allow-missing", str(sub), "--data", str(root), "--out", str(out), "--quiet")
     doc = json.loads(out.read_text())
     for info in doc["extractors"].values():
         info.pop("device", None)
@@ -244,7 +244,7 @@ def test_smoke_evaluation_on_cuda_matches_cpu(synthtown_smoke, tmp_path):
     res = {}
     for dev in ("cpu", "cuda"):
         out = tmp_path / f"{dev}.json"
-        run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(out), "--quiet", "--device", dev)
+        run_cli("evaluate", "--allow-missing", str(sub), "--data", str(synthtown_smoke), "--out", str(out), "--quiet", "--device", dev)
         res[dev], _ = read_results(out)
     cpu, gpu = res["cpu"], res["cuda"]
     assert {i["device"] for i in gpu["extractors"].values() if "kind" in i} == {"cuda"}

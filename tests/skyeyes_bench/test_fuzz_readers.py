@@ -108,7 +108,7 @@ def _fuzz(world, tmp_path, target: str, argv, copy: str | None = None):
 
 
 def test_fuzz_submission_manifest(world, tmp_path):
-    _fuzz(world, tmp_path, "sub/submission.json", ["evaluate", "{w}/sub", "--data", "{w}/ds", "--quiet"])
+    _fuzz(world, tmp_path, "sub/submission.json", ["evaluate", "--allow-missing", "{w}/sub", "--data", "{w}/ds", "--quiet"])
 
 
 def test_fuzz_dataset_json(world, tmp_path):

@@ -114,7 +114,7 @@ def _set(key, value):
 
 
 def _ev(w, *extra):
-    return ["evaluate", str(w / "sub"), "--data", str(w / "ds"), "--quiet", *extra]
+    return ["evaluate", "--allow-missing", str(w / "sub"), "--data", str(w / "ds"), "--quiet", *extra]
 
 
 def _check(w):

@@ -53,7 +53,7 @@ def world(tmp_path_factory):
         make_dataset(w / "ds", scenes=2, seqs=1, frames=4)
         run_cli("submission", "template", "--data", str(w / "ds"), "--out", str(w / "sub"), "--from-ground-truth")
         for i in (0, 1):
-            run_cli("evaluate", str(w / "sub"), "--data", str(w / "ds"), "--shard", f"{i}/2",
+            run_cli("evaluate", "--allow-missing", str(w / "sub"), "--data", str(w / "ds"), "--shard", f"{i}/2",
                     "--out", str(w / f"p{i}.json"), "--quiet")
         make_carla(w / "carla")
         make_matrixcity(w / "mc", depth=True)
@@ -109,7 +109,7 @@ def _scene_copy(w: Path, tmp: Path) -> Path:
 # --------------------------------------------------------------------------- 1. never an input, --force by kind
 
 _T = ["submission", "template", "--data"]
-_EV = ["evaluate", "{w}/sub", "--data", "{w}/ds", "--quiet"]
+_EV = ["evaluate", "--allow-missing", "{w}/sub", "--data", "{w}/ds", "--quiet"]
 CASES = {
     # submission template --out: the dataset, its parent, inside it, a link to it; --force only over a submission
     "template-out-is-dataset": ([*_T, "{w}/ds", "--out", "{w}/ds", "--force"], "ds: is the dataset"),
@@ -166,13 +166,13 @@ def test_force_replaces_an_earlier_output_of_the_same_kind(w, tmp_path):
     for _ in range(2):
         run_cli(*_T, str(w / "ds"), "--out", str(sub), "--force")
         run_cli("data", "import-carla", str(w / "carla"), str(ds), "--no-progress", "--force")
-        run_cli("evaluate", str(w / "sub"), "--data", str(w / "ds"), "--out", str(res), "--quiet", "--force")
+        run_cli("evaluate", "--allow-missing", str(w / "sub"), "--data", str(w / "ds"), "--out", str(res), "--quiet", "--force")
     assert (sub / "submission.json").is_file() and (ds / "dataset.json").is_file()
     # a sidecar without arrays (every set metric unavailable) is an empty zip: still recognised
     (tmp_path / "e.features.npz").write_bytes(outputunit.npz_bytes({}))
     assert FEATURES_OUTPUT.recognises(tmp_path / "e.features.npz")
     (tmp_path / "s.features.npz").write_text("my notes\n")
-    refused(tmp_path, ["evaluate", str(w / "sub"), "--data", str(w / "ds"), "--out", str(tmp_path / "s.json"),
+    refused(tmp_path, ["evaluate", "--allow-missing", str(w / "sub"), "--data", str(w / "ds"), "--out", str(tmp_path / "s.json"),
                        "--quiet", "--force"], "s.features.npz: exists and is not a features sidecar")
 
 
@@ -201,7 +201,7 @@ def _env(world: Path) -> dict:
 
 
 def _evaluate_argv(w: Path, out: Path, *extra: str) -> list[str]:
-    return ["evaluate", str(w / "sub"), "--data", str(w / "ds"), "--out", str(out), "--quiet", *extra]
+    return ["evaluate", "--allow-missing", str(w / "sub"), "--data", str(w / "ds"), "--out", str(out), "--quiet", *extra]
 
 
 def _unit(out: Path) -> tuple[dict, bytes]:

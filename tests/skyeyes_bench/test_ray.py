@@ -66,7 +66,7 @@ def use_cache(monkeypatch, cache, weights=LPIPS_FILES) -> None:
 def one_process(sub, data, out, monkeypatch, cache, weights=LPIPS_FILES) -> dict:
     """The single-process result (the path without Ray), scored with a cache of its own."""
     use_cache(monkeypatch, cache, weights)
-    run_cli("evaluate", str(sub), "--data", str(data), "--out", str(out), "--quiet")
+    run_cli("evaluate", "--allow-missing", str(sub), "--data", str(data), "--out", str(out), "--quiet")
     return scores(out)
 
 
@@ -76,7 +76,7 @@ def test_evaluate_on_ray_equals_one_process(local_ray, tiny, tmp_path, monkeypat
     want = [one_process(s, data, tmp_path / f"{s.name}.one.json", monkeypatch, tmp_path / "c1") for s in subs]
     use_cache(monkeypatch, tmp_path / "c2")
     # two submissions at once, 4 shards each (over 6 sequences: uneven shards)
-    _, out, _ = run_cli("evaluate", *map(str, subs), "--data", str(data), "--ray", "--shards", "4", "--quiet")
+    _, out, _ = run_cli("evaluate", "--allow-missing", *map(str, subs), "--data", str(data), "--ray", "--shards", "4", "--quiet")
     assert out.count("wrote ") == 2
     for s, w in zip(subs, want):
         got = scores(s.with_name(f"{s.name}.results.json"))
@@ -91,7 +91,7 @@ def test_smoke_submission_on_ray_equals_one_process(local_ray, synthtown_smoke, 
     sub = blurred_submission(open_dataset(synthtown_smoke), tmp_path / "blur", sigma=1.0)
     want = one_process(sub, synthtown_smoke, tmp_path / "one.json", monkeypatch, tmp_path / "c1")
     use_cache(monkeypatch, tmp_path / "c2")
-    run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(tmp_path / "ray.json"), "--quiet",
+    run_cli("evaluate", "--allow-missing", str(sub), "--data", str(synthtown_smoke), "--out", str(tmp_path / "ray.json"), "--quiet",
             "--ray")
     got = scores(tmp_path / "ray.json")
     assert got == want
@@ -124,7 +124,7 @@ def test_a_worker_killed_during_an_evaluation_is_retried(local_ray, tiny, tmp_pa
     marker = tmp_path / "killed"
     use_cache(monkeypatch, tmp_path / "c2")
     monkeypatch.setenv(CRASH_ENV, str(marker))
-    run_cli("evaluate", str(subs[0]), "--data", str(data), "--out", str(tmp_path / "ray.json"), "--ray", "--quiet")
+    run_cli("evaluate", "--allow-missing", str(subs[0]), "--data", str(data), "--out", str(tmp_path / "ray.json"), "--ray", "--quiet")
     assert marker.is_file()  # a worker did die mid-task
     assert scores(tmp_path / "ray.json") == want
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c1", "c2", "killed", "one.features.npz", "one.json",
@@ -141,7 +141,7 @@ def test_a_failing_submission_is_one_line_and_the_others_land(local_ray, tiny, t
     next(bad.rglob("*.png")).write_bytes(b"not a png")
     good = tmp_path / "good"
     shutil.copytree(subs[1], good)
-    rc, out, err = run_cli("evaluate", str(bad), str(good), "--data", str(data), "--ray", "--quiet", check=2)
+    rc, out, err = run_cli("evaluate", "--allow-missing", str(bad), str(good), "--data", str(data), "--ray", "--quiet", check=2)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"skyeyes-bench: error: {bad}: ") and "PNG" in lines[0], err
     assert (tmp_path / "good.results.json").is_file() and not (tmp_path / "bad.results.json").exists()
@@ -180,7 +180,7 @@ def test_ray_address_is_checked_and_a_folder_after_ray_is_a_submission(tmp_path)
         assert ray_address(address, []) == address
     with pytest.raises(UserError, match="expected a Ray address"):
         ray_address(str(tmp_path / "nowhere"), [])
-    _, _, err = run_cli("evaluate", str(tmp_path), "--shards", "2", check=2)
+    _, _, err = run_cli("evaluate", "--allow-missing", str(tmp_path), "--shards", "2", check=2)
     assert "--shards N: only with --ray" in err
 
 
@@ -231,7 +231,7 @@ def test_smoke_on_ray_with_every_real_network_equals_one_process_on_one_thread(l
     want = one_process(sub, synthtown_smoke, tmp_path / "one.json", monkeypatch, tmp_path / "c1", files)
     monkeypatch.delenv("OMP_NUM_THREADS")
     use_cache(monkeypatch, tmp_path / "c2", files)
-    run_cli("evaluate", str(sub), "--data", str(synthtown_smoke), "--out", str(tmp_path / "ray.json"), "--quiet",
+    run_cli("evaluate", "--allow-missing", str(sub), "--data", str(synthtown_smoke), "--out", str(tmp_path / "ray.json"), "--quiet",
             "--ray", "--shards", "8")
     got = scores(tmp_path / "ray.json")
     assert all(m["status"] == "ok" for m in got["metrics"].values()), got["metrics"]

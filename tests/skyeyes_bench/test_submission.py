@@ -104,7 +104,7 @@ def test_every_malformed_case_listed_at_once_and_nothing_written(tiny, proto, tm
     _png_with_size(fr[6], 100_000, 100_000)  # decompression bomb
     fr[7].write_bytes(b"GIF89a not a png")  # not a PNG
     out = tmp_path / "res.json"
-    rc, _, err = run_cli("evaluate", str(sub), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(sub), "--data", str(tiny), "--out", str(out), "--quiet", check=2)
     assert "8 problems" in err
     assert "1 expected frame(s) missing: test-0-lane00/ground/000000.png" in err
     assert "999999.png: extra file" in err
@@ -123,16 +123,16 @@ def test_protocol_and_manifest_mismatch(tiny, proto, tmp_path):
     m = json.loads((sub / "submission.json").read_text())
     m["protocol"] = "synthtown@1"
     (sub / "submission.json").write_text(json.dumps(m))
-    rc, _, err = run_cli("evaluate", str(sub), "--data", str(tiny), "--quiet", check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(sub), "--data", str(tiny), "--quiet", check=2)
     assert "dataset is for protocol 'evaltest@1', the submission for 'synthtown@1'" in err
     m["protocol"] = "evaltest@1"
     m["protocol_sha256"] = "0" * 64
     (sub / "submission.json").write_text(json.dumps(m))
-    rc, _, err = run_cli("evaluate", str(sub), "--data", str(tiny), "--quiet", check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(sub), "--data", str(tiny), "--quiet", check=2)
     assert "field 'protocol_sha256' does not match" in err
     del m["method"]
     (sub / "submission.json").write_text(json.dumps(m))
-    rc, _, err = run_cli("evaluate", str(sub), "--data", str(tiny), "--quiet", check=2)
+    rc, _, err = run_cli("evaluate", "--allow-missing", str(sub), "--data", str(tiny), "--quiet", check=2)
     assert "field 'method': missing (expected the method's name" in err
     assert not list(tmp_path.glob("*.results.json"))
 

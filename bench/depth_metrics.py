@@ -28,10 +28,7 @@ from skyeyes_bench.metrics.geometry import seen_mask, warp_coords, warp_error
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
-                    "made if absent)")
-    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
-                    "validation data, STYLE.md #13)")
+    screen.split_options(ap)
     ap.add_argument("--preset", default="small", help="the SynthTown preset of the default data (default small)")
     ap.add_argument("--scene", default=None, help="a validation scene (default: the first)")
     ap.add_argument("--tols", default="0.005,0.01,0.02,0.05")

@@ -221,10 +221,7 @@ def main(argv=None) -> None:
     f = sub.add_parser("fit")
     f.add_argument("--preset", default="smoke")
     f.add_argument("--method", default="gaussians3d")
-    f.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
-                   "made if absent)")
-    f.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
-                   "validation data, STYLE.md #13)")
+    screen.split_options(f)
     f.add_argument("--seconds", type=float, default=None, help="stop reporting after this many training seconds")
     f.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     f.set_defaults(fn=cmd_fit)

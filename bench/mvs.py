@@ -146,10 +146,8 @@ def main(argv=None) -> None:
         return
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--presets", nargs="+", default=["smoke", "small"])
-    ap.add_argument("--data", default=None, help="dataset folder (one preset; default: each preset's SynthTown "
-                    "validation data, made if absent)")
-    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen "
-                    "on validation data, STYLE.md #13)")
+    screen.split_options(ap, "dataset folder (one preset; default: each preset's SynthTown validation data, "
+                         "made if absent)")
     ap.add_argument("--lanes", type=int, default=0, help="validation lanes per preset (0: all)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--threads", type=int, default=2)

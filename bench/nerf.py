@@ -251,10 +251,7 @@ def main(argv=None) -> None:
     s.add_argument("--set", action="append", default=[])
     for name in ("render", "fit"):
         p = sub.add_parser(name)
-        p.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of "
-                       "--preset, made if absent)")
-        p.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are "
-                       "chosen on validation data, STYLE.md #13)")
+        screen.split_options(p)
         p.add_argument("--preset", default="small")
         p.add_argument("--set", action="append", default=[])
         p.add_argument("--lane", type=int, default=0, help="index in the validation split")

@@ -80,10 +80,7 @@ def run_one(cls, cfg, ds, root: Path, workdir: Path, *, evaluate: bool, seed: in
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="smoke", help="method and SynthTown preset (smoke, small)")
-    ap.add_argument("--data", default=None, help="dataset folder (default: the SynthTown validation data of --preset, "
-                    "made if absent)")
-    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
-                    "validation data, STYLE.md #13)")
+    screen.split_options(ap)
     ap.add_argument("--acm-steps", default="", help="comma-separated ACM step counts (default: the preset's)")
     ap.add_argument("--prior", default=None, help="prior method id (default: the preset's, sugar)")
     ap.add_argument("--methods", default="skyeyes,skyeyes-no-vcm", help="comma-separated method ids")

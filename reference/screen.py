@@ -30,14 +30,21 @@ from skyeyes_bench.errors import UserError
 TOL = 0.01
 
 
+def split_options(ap, data_help: str = "dataset folder (default: the SynthTown validation data of --preset, "
+                  "made if absent)") -> None:
+    """The two options every screen takes, for `screen_data`: --data (a dataset folder) and --split
+    (val; test is refused there)."""
+    ap.add_argument("--data", type=Path, help=data_help)
+    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
+                    "validation data, STYLE.md #13)")
+
+
 def screen_parser(doc: str) -> argparse.ArgumentParser:
     """The options of a screen: the dataset (default: `--preset`'s validation data, made if absent),
     the split (val; test is refused), which scenes and sequences, a work folder."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, help="dataset folder (default: the SynthTown validation data of --preset, "
-                    "made if absent: `skyeyes-bench data synthtown --preset P --split val`)")
-    ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
-                    "validation data, STYLE.md #13)")
+    split_options(ap, "dataset folder (default: the SynthTown validation data of --preset, made if absent: "
+                  "`skyeyes-bench data synthtown --preset P --split val`)")
     ap.add_argument("--preset", default="small", help="the method's preset (default small)")
     ap.add_argument("--scenes", type=int, default=0, help="the first N scenes of the split (0: all)")
     ap.add_argument("--skip", type=int, default=0, help="start at this scene of the split")

@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.linalg
 from builders import weights as real_weights
-from builders.evaluation import ROOT, blurred_submission, make_dataset, protocol_env, scores
+from builders.evaluation import ROOT, blurred_submission, make_dataset, protocol_env, scipy_fid, scores
 from conftest import run_cli
 
 import skyeyes_bench as sb
@@ -117,12 +116,6 @@ def test_folder_metrics_equal_evaluate_on_the_same_frames(world, tmp_path):
     assert got["fid"] > 0 and got["fvd"] > 0
 
 
-def _frechet(x, y):
-    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
-    return float(((x.mean(0) - y.mean(0)) ** 2).sum() + np.trace(s1) + np.trace(s2)
-                 - 2 * np.trace(scipy.linalg.sqrtm(s1 @ s2).real))
-
-
 def _mmd2_unbiased(x, y):
     """Unbiased MMD^2, kernel (x.y / d + 1)^3, over whole sets (Binkowski et al. 2018, eq. 4)."""
     d = x.shape[1]
@@ -143,7 +136,7 @@ def test_folder_metrics_against_independent_computations(world, tmp_path):
     got = sb.folder_metrics(gen, ref, ["fid", "kid"], protocol="evaltest@1")
     x = extract_image_features("random-image-64", sorted(gen.rglob("*.png")), progress=False)
     y = extract_image_features("random-image-64", sorted(ref.rglob("*.png")), progress=False)
-    assert got["fid"] == pytest.approx(_frechet(x, y), rel=1e-6)
+    assert got["fid"] == pytest.approx(scipy_fid(x, y), rel=1e-6)
     # evaltest's KID: subsets of 100 rows of 96 -> every subset is the whole set, in some order
     assert got["kid"] == pytest.approx(_mmd2_unbiased(x, y), rel=1e-9)
     same = sb.folder_metrics(ref, ref, ["fid", "kid", "fvd"], protocol="evaltest@1")

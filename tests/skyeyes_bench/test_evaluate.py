@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.linalg
 from conftest import run_cli
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env, scores
+from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env, scipy_fid, scores
 
 from skyeyes_bench import comparison, imagefiles
 from skyeyes_bench.data.layout import open_dataset
@@ -38,12 +37,6 @@ def scored(tmp_path_factory, tiny):
                 "b2": blurred_submission(ds, tmp / "b2", sigma=1.5)}
         res = {k: evaluate(v, data=tiny, out=tmp / f"{k}.json", progress=False) for k, v in subs.items()}
         yield ds, subs, res, tmp
-
-
-def _fid(x, y):
-    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
-    return float(((x.mean(0) - y.mean(0)) ** 2).sum() + np.trace(s1) + np.trace(s2)
-                 - 2 * np.trace(scipy.linalg.sqrtm(s1 @ s2).real))
 
 
 def test_perfect_and_blurred(scored):
@@ -75,10 +68,10 @@ def test_perfect_and_blurred(scored):
     _, feats = read_results(tmp_path / "b2.json", features=True)
     x = feats["random-image-64"]
     assert x["sub"].shape == (96, 64)
-    assert mb["fid"]["value"] == pytest.approx(_fid(x["sub"], x["gt"]), rel=1e-5)
+    assert mb["fid"]["value"] == pytest.approx(scipy_fid(x["sub"], x["gt"]), rel=1e-5)
     v = feats["random-video-64"]
     assert v["sub"].shape == (24, 64)  # 6 sequences x 16 frames / clips of 4 every 4
-    assert mb["fvd"]["value"] == pytest.approx(_fid(v["sub"], v["gt"]), rel=1e-5)
+    assert mb["fvd"]["value"] == pytest.approx(scipy_fid(v["sub"], v["gt"]), rel=1e-5)
     # intervals contain their own value (set metrics too); replicates: R of them, rounded
     st = rb["statistics"]
     assert st["cluster"] == "sequence" and st["clusters"] == 6 and st["interval"] == "half-sampling"
@@ -271,7 +264,7 @@ def test_scene_clusters_group_frames_by_lane(scene_scored):
         assert res["metrics"]["ssim"]["replicates"][r] == pytest.approx(want, rel=1e-5)
         x = feats["random-image-64"]
         rows = np.array([res["dataset"]["sequences"][q].split("/")[0] in chosen for q in x["seq"]])
-        assert res["metrics"]["fid"]["replicates"][r] == pytest.approx(_fid(x["sub"][rows], x["gt"][rows]), rel=1e-4)
+        assert res["metrics"]["fid"]["replicates"][r] == pytest.approx(scipy_fid(x["sub"][rows], x["gt"][rows]), rel=1e-4)
     for m, v in res["metrics"].items():
         if v["status"] == "ok":
             assert v["interval"][0] <= v["value"] <= v["interval"][1], m

@@ -9,8 +9,7 @@ import math
 
 import numpy as np
 import pytest
-import scipy.linalg
-from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env
+from builders.evaluation import SCENE_PROTOCOL, blurred_submission, make_dataset, protocol_env, scipy_fid
 from conftest import run_cli
 
 from skyeyes_bench import stats
@@ -39,12 +38,6 @@ def _protocol():
     import tomllib
 
     return tomllib.loads(ORACLE_PROTOCOL)
-
-
-def _fid(x, y):
-    s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
-    return float(((x.mean(0) - y.mean(0)) ** 2).sum() + np.trace(s1) + np.trace(s2)
-                 - 2 * np.trace(scipy.linalg.sqrtm(s1 @ s2).real))
 
 
 def _mmd_loops(x, y):
@@ -124,7 +117,7 @@ def test_set_metrics_and_their_replicates_by_brute_force(oracle, name, extractor
     spec = _protocol()["metrics"][name]
     value = res["metrics"][name]["value"]
     if name in ("fid", "fvd"):
-        assert value == pytest.approx(_fid(x, y), rel=1e-6)
+        assert value == pytest.approx(scipy_fid(x, y), rel=1e-6)
     else:
         want = _kid_with_subsets(x, y, spec["subset_size"], spec["num_subsets"], _protocol()["statistics"]["seed"])
         assert value == pytest.approx(want, rel=1e-9, abs=1e-12)
@@ -134,7 +127,7 @@ def test_set_metrics_and_their_replicates_by_brute_force(oracle, name, extractor
     for r, chosen in enumerate(_replicate_scenes(res)):
         if chosen not in cache:
             rows = np.isin(scenes, list(chosen))
-            cache[chosen] = _fid(x[rows], y[rows]) if name in ("fid", "fvd") else _mmd_loops(x[rows], y[rows])
+            cache[chosen] = scipy_fid(x[rows], y[rows]) if name in ("fid", "fvd") else _mmd_loops(x[rows], y[rows])
         assert res["metrics"][name]["replicates"][r] == pytest.approx(cache[chosen], rel=1e-5, abs=1e-9), (name, r)
     assert len(cache) == math.comb(K_SCENES, K_SCENES // 2)
 
@@ -168,7 +161,7 @@ def test_compare_paired_interval_from_brute_force_replicates(oracle):
             vals = {}
             for chosen in set(draws):
                 rows = np.isin(scenes, list(chosen))
-                vals[chosen] = _fid(x[rows], y[rows]) if name == "fvd" else _mmd_loops(x[rows], y[rows])
+                vals[chosen] = scipy_fid(x[rows], y[rows]) if name == "fvd" else _mmd_loops(x[rows], y[rows])
             per.append(np.array([vals[c] for c in draws]))
         adv = b["metrics"][name]["value"] - a["metrics"][name]["value"]
         r = cmp["metrics"][name]

@@ -281,7 +281,7 @@ class DiffusionMethod(Method):
         noise = sample.frame_noise(seed, sample.sample_shape(tuple(conds.shape), acm.cfg))
         if self.additions.noise is not None:
             noise = self.additions.noise(noise, view)
-        if self.vcm is not None:
+        if c.vcm and self.vcm is not None:  # the config decides: a fitted VCM can be switched off
             return sample.sample_sequence(acm, self.vcm, conds, steps=c.sample_steps, seed=seed, clip=c.clip_frames,
                                           strength=c.sample_strength, noise=noise)
         return sample.sample_frames(acm, conds, steps=c.sample_steps, seed=seed, strength=c.sample_strength,

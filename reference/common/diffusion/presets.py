@@ -21,11 +21,11 @@ PRESETS: dict[str, DiffusionConfig] = {
     # a step near the 64x64 cost). The paper's pipeline only: SuGaR prior, ACM, VCM on 12-frame
     # clips, DDIM from pure Gaussian noise (our additions: `skyeyes-geo`). Its formulation and
     # budget were chosen on the synthtown@1/@3 test split before the validation split existed
-    # (docs/skyeyes.md, "Deviations from the paper"; docs/log/skyeyes-2026-11.md): 32x32 crops
-    # with coordinate channels (a step on whole frames cost 12x a crop's; without the channels
-    # the samples were a collage of crops), 12000 ACM steps with the rate decayed over the last
-    # 3000 (every longer run tried was better), bf16 autocast (this CPU has AMX: a step 0.28 ->
-    # 0.20 s; without native bf16, `--set mixed_precision=no` is faster).
+    # (docs/skyeyes.md, "Deviations from the paper"; figures: docs/log/runs-2026.md, "presets.py
+    # comments"): 32x32 crops with coordinate channels (a crop's step is far cheaper than a whole
+    # frame's; without the channels the samples were a collage of crops), 12000 ACM steps with
+    # the rate decayed over the last 3000 (longer runs were better), bf16 autocast (faster on a
+    # CPU with native bf16; without it, `--set mixed_precision=no` is faster).
     "small": DiffusionConfig(
         core=CoreConfig(resolution=128, patch=2, channels=(32, 64, 128), attention=(False, False, True),
                         head_dim=32, embed_dim=64, conditioning="concat", residual=True, residual_scale=2.0,
@@ -51,14 +51,11 @@ PRESETS: dict[str, DiffusionConfig] = {
 
 #: A preset's training where the diffusion stages run on CUDA (`--device cuda`, or "auto" on a
 #: machine with a GPU), unless `--set` names the field: the same frames seen, in half the steps at
-#: twice the batch. NOTE: on one H200 a `small` ACM step cost 0.051 s at batch 16 (launch
-#: overhead: the model is far too small to fill a GPU; ../MEASURED.md, b99d601), so steps, not
-#: batch, set a GPU run's time: 12000 steps alone are ~10 min there. Measured on this CPU at
-#: `smoke` (docs/gpu.md, against the preset's 600 steps at batch 8, FID 324.5): 300 steps at
-#: batch 16 FID 344.9 (LPIPS +0.023 worse), 150 at batch 32 FID 404.2, the same with the rates
-#: doubled FID 404.8, each credibly worse: fewer steps cost quality even at equal frames seen,
-#: so the trade is the mildest one. Whether `small` at this shape is credibly worse than its
-#: CPU row is for a GPU run to show (docs/gpu.md); the CPU presets stay as they are.
+#: twice the batch. A GPU step of this model costs about the same at any batch (launch overhead:
+#: it is far too small to fill a GPU), so steps, not batch, set a GPU run's time; fewer steps
+#: cost quality even at equal frames seen, so this is the mildest trade (docs/gpu.md, "Steps
+#: against batch"; figures: docs/log/runs-2026.md, "presets.py comments"). The CPU presets stay
+#: as they are.
 GPU_TRAINING = {"small": dict(acm_steps=6000, acm_anneal=1500, acm_batch=32, vcm_steps=1500, vcm_batch=2)}
 
 

@@ -1,7 +1,7 @@
 """Screen the settings of our additions' steps after sampling (the prior anchor, the street from
 one view, the sky from one fit: `reference.common.diffusion.additions`) on the validation split:
 each setting applied to the same sampled frames of a `reproduce --split val` run, scored against
-their truth. Settings are chosen here, never on test (STYLE.md #13): --split test exits 2.
+their truth. Settings are chosen here, never on test (docs/evaluate.md, "The split"): --split test exits 2.
 
     skyeyes-bench reproduce --method skyeyes-geo --preset small --split val \\
         --set anchor.mix=0 --set street.mix=0 --set sky.mix=0 --out runs/geo-noise-val

@@ -1,7 +1,7 @@
 """Cost and behaviour of the depth-based metrics' geometry (docs/metrics.md): seen masks of every
 ground frame of one lane against all its aerial views, the warps of consecutive frames, the
 unseen share per depth tolerance, and the ground truth's warp floor, on a validation lane (a
-tolerance is chosen here, never on test: STYLE.md #13; --split test exits 2).
+tolerance is chosen here, never on test: docs/evaluate.md, "The split"; --split test exits 2).
 
     nice -n 19 .venv/bin/python bench/depth_metrics.py [--preset small] [--data DIR] [--scene val-0-lane00] [--tols 0.005,0.01,0.02,0.05]
 

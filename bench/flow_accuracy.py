@@ -1,6 +1,6 @@
 """How well each way a method can move frame j - 1 into frame j agrees with the ground truth's
 own correspondence (its depth and the poses, the warp metric's `warp_coords`), on the validation
-lanes of a dataset with ground depth (`reference.screen`: `--split test` is refused, STYLE.md #13).
+lanes of a dataset with ground depth (`reference.screen`: `--split test` is refused, docs/evaluate.md, "The split").
 The carried noise moves each frame's starting noise by the flow between the prior's renders
 (`additions.view.flow_coords`), the street from one view by the ground plane under the prior's
 Gaussians (`additions.street`); each is only as good as the way it moves by.

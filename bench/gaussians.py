@@ -6,7 +6,7 @@
     python bench/gaussians.py fit --preset small   # held-out aerial / ground PSNR vs seconds
     python bench/gaussians.py fit --preset small --data DIR   # another dataset's validation split
 
-`fit` chooses schedules, so it runs on the validation split (STYLE.md #13; --split test exits 2):
+`fit` chooses schedules, so it runs on the validation split (docs/evaluate.md, "The split"; --split test exits 2):
 the first validation lane of --data (default: the SynthTown validation data of --preset,
 `skyeyes-bench data synthtown --preset P --split val`, made if absent), the colours learned on
 what a run on that split trains on.

@@ -1,5 +1,5 @@
 """Depth accuracy and run time of the `mvs` stereo against SynthTown's true aerial depth, on the
-validation lanes (settings are chosen here, never on test: STYLE.md #13; --split test exits 2).
+validation lanes (settings are chosen here, never on test: docs/evaluate.md, "The split"; --split test exits 2).
 
     python bench/mvs.py                      # presets smoke and small, every validation lane
     python bench/mvs.py --presets small --set planes=128 --lanes 1

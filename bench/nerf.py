@@ -9,7 +9,7 @@
                                                 # PSNR, ground PSNR / LPIPS against training seconds
     python bench/nerf.py fit --data DIR --preset small   # another dataset's validation split
 
-`render` and `fit` choose settings, so they run on the validation split (STYLE.md #13; --split
+`render` and `fit` choose settings, so they run on the validation split (docs/evaluate.md, "The split"; --split
 test exits 2): validation lane 0 (`--lane`) of --data (default: the SynthTown validation data of
 --preset, `skyeyes-bench data synthtown --preset P --split val`, made if absent), the appearance
 learned on what a run on that split trains on; `render` keeps its fit in `--work` and reuses it.

@@ -1,6 +1,6 @@
 """Benchmark of the Skyeyes reference method: training speed per module, seconds per generated
 frame, and quality (FVD, KVD, LPIPS) against training time at a few ACM checkpoints, on the
-validation split (settings are chosen here, never on test: STYLE.md #13; --split test exits 2).
+validation split (settings are chosen here, never on test: docs/evaluate.md, "The split"; --split test exits 2).
 
     .venv/bin/python bench/skyeyes.py --preset smoke --acm-steps 50,100,200
     .venv/bin/python bench/skyeyes.py --preset smoke --no-eval       # speed only

@@ -4,7 +4,7 @@ preset left there; where they are missing they are trained first, as `reproduce`
 `small` takes hours here), and each setting's frames are scored on the warp error, PSNR, LPIPS and
 the FID of those frames against the same sequences' truth (comparable between settings here, not
 with a protocol's FID), the warp error and LPIPS paired per sequence against the first setting's.
-Settings are chosen here, never on test (STYLE.md #13): --split test exits 2.
+Settings are chosen here, never on test (docs/evaluate.md, "The split"): --split test exits 2.
 
     .venv/bin/python bench/vcm_screen.py --scenes 2 "" "vcm_steps=6000" "clip_frames=4"
     .venv/bin/python bench/vcm_screen.py --method skyeyes-geo --scenes 2 "" "noise.share=0.5"

@@ -1,7 +1,7 @@
 """The warp error of validation-split submissions on any dataset with ground depth, paired against
 the first one: the research loop of the view consistency module at `smoke`, whose protocol
 (synthtown@1) has no warp metric (docs/skyeyes.md, "What was tried"). Settings are compared here,
-so the runs are on the validation split (`reproduce --split val`), never on test (STYLE.md #13):
+so the runs are on the validation split (`reproduce --split val`), never on test (docs/evaluate.md, "The split"):
 a submission whose submission.json says split "test" exits 2.
 
     .venv/bin/python bench/warp.py RUN [RUN ...]

@@ -1,6 +1,6 @@
 """What every script that screens settings shares (bench/additions.py, bench/vcm_screen.py, and
 the method benches): the data it runs on, which is the validation split and never test
-(`screening_split`, STYLE.md #13), and how a setting's frames are scored against their truth.
+(`screening_split`; docs/evaluate.md, "The split"), and how a setting's frames are scored against their truth.
 
 ```
 ap = screen_parser(__doc__)            # --data, --split (val), --preset, --scenes, --sequences, --workdir
@@ -36,7 +36,7 @@ def split_options(ap, data_help: str = "dataset folder (default: the SynthTown v
     (val; test is refused there)."""
     ap.add_argument("--data", type=Path, help=data_help)
     ap.add_argument("--split", default="val", help="the split screened: val (test is refused: settings are chosen on "
-                    "validation data, STYLE.md #13)")
+                    "validation data, docs/evaluate.md, 'The split')")
 
 
 def screen_parser(doc: str) -> argparse.ArgumentParser:

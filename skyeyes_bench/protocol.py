@@ -93,7 +93,7 @@ class StatsSpec:
 class ValSpec:
     """The validation split of every version of a protocol (`protocols/<id>/val.toml`): where a
     method's settings are chosen, never ranked. Not part of a version's sha256: it changes no
-    test score (STYLE.md #13: tune on validation, report on test)."""
+    test score (tune on validation, report on test: docs/evaluate.md, "The split")."""
 
     towns: tuple[str, ...]  # the towns / regions whose lanes make it
     # "own": towns of their own, in a dataset of their own beside the test data (SynthTown:

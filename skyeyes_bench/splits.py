@@ -1,5 +1,5 @@
 """The three splits of a protocol: train (fitted on), val (settings chosen on), test (reported on,
-ranked). STYLE.md #13: tune on validation, report on test.
+ranked). Tune on validation, report on test (docs/evaluate.md, "The split").
 
 A run on the validation split sees its dataset through `scored_view`: "train" is what it fits on
 and "test" the validation scenes it scores, so every stage after it (fit, render, submission,

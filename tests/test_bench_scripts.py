@@ -1,7 +1,7 @@
 """The scripts of bench/ as a user runs them (a process each, the project's python, in the
 repository): every one answers --help, and every one that screens settings refuses the test
-split in one line that names the validation split, with exit 2 (STYLE.md #13: tune on
-validation, report on test). bench/warp.py, which compares submissions, refuses a submission
+split in one line that names the validation split, with exit 2 (tune on validation,
+report on test: docs/evaluate.md, "The split"). bench/warp.py, which compares submissions, refuses a submission
 on the test split."""
 
 import json

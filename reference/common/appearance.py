@@ -1,8 +1,8 @@
 """What carries from aerial colours to ground colours, learned on the train split.
 
 SynthTown's aerial views look through 50-80 m of haze, its ground views through a few metres,
-so a street lifted from the aerial views is paler and bluer than the ground truth (MEASURED.md:
-a colour map fitted on the train lanes adds ~2 dB PSNR to a true-depth reconstruction). A
+so a street lifted from the aerial views is paler and bluer than the ground truth (docs/reproduce.md,
+"Method `mvs`": a colour map fitted on the train lanes adds ~2 dB PSNR to a true-depth reconstruction). A
 reconstruction method may learn that map on the train split (`Method.fit_train`) and apply it to
 every render; it changes colours only, never where things are.
 

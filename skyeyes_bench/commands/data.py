@@ -15,7 +15,7 @@ _PRESETS = ("smoke", "small", "small-v1", "small-stiff", "paper")
 
 def register(sub) -> None:
     p = sub.add_parser("data", help="check, generate and import datasets (canonical layout)",
-                       description="Datasets in the canonical layout of DESIGN.md.")
+                       description="Datasets in the canonical layout of docs/formats.md.")
     p.set_defaults(run=run, group_parser=p)
     ds = p.add_subparsers(title="actions", dest="action", metavar="ACTION")
     _add_check(ds)

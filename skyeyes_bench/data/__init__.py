@@ -1,4 +1,4 @@
-"""The canonical dataset layout (see DESIGN.md) and the tools that write it.
+"""The canonical dataset layout (docs/formats.md) and the tools that write it.
 
 Names load lazily: importing a submodule (e.g. `skyeyes_bench.data.synthtown.presets`) must not
 pull in numpy or OpenImageIO.

@@ -46,7 +46,7 @@ _PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$")
 
 
 def layer_file(file: str, layer: str) -> str:
-    """`ground/000012.png` -> `ground_depth/000012.exr` (same stem, DESIGN.md)."""
+    """`ground/000012.png` -> `ground_depth/000012.exr` (same stem, docs/formats.md)."""
     folder, _, name = file.rpartition("/")
     return f"{folder}_{layer}/{Path(name).stem}{_LAYER_EXT[layer]}"
 
@@ -427,7 +427,7 @@ def validate_dataset(root: str | os.PathLike, *, check_files: bool = True, check
     if not root.is_dir():
         return None, [f"{root}: not a folder"]
     if not dfile.is_file():
-        return None, [f"{dfile}: missing (not a dataset folder; expected the canonical layout of DESIGN.md)"]
+        return None, [f"{dfile}: missing (not a dataset folder; expected the canonical layout of docs/formats.md)"]
     try:
         raw = inputfiles.read_json(dfile, root=root)
     except UserError as e:

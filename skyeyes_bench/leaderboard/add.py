@@ -87,7 +87,7 @@ def check_results(path: Path) -> dict:
     split = doc["dataset"].get("split", "test")
     if split != "test":
         _fail(path, "dataset.split", f"is {split!r}: results on the validation split are for choosing settings and "
-              "are never ranked; file the test split's (STYLE.md #13)")
+              "are never ranked; file the test split's (docs/evaluate.md, 'The split')")
     ref = doc["protocol"]["ref"]
     try:
         proto = load_protocol(ref)

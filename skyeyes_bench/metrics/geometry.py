@@ -1,6 +1,6 @@
 """Depth-and-pose geometry of the seen/unseen and warp-consistency metrics (docs/metrics.md).
 
-Pure numpy on arrays and `cameras.Camera`s (DESIGN.md conventions: OpenCV camera axes, `c2w`
+Pure numpy on arrays and `cameras.Camera`s (docs/formats.md conventions: OpenCV camera axes, `c2w`
 camera-to-world, planar depth in metres, pixel (i, j) centred at (j + 0.5, i + 0.5)).
 
 **Depth values.** A ground-truth depth is *valid* if it is finite and > 0 (a surface point) or

@@ -72,7 +72,7 @@ class WeightFile:
         return f"skyeyes-bench weights add /path/to/{self.name}  ({self.note})"
 
 
-# NOTE: sha256 of the Inception and I3D files as given in DESIGN.md (verified on download here);
+# NOTE: sha256 of the Inception and I3D files (prefixes: docs/metrics.md, "Extractors"), verified on download;
 # the LPIPS v0.1 linear heads' sha256 were measured on the files inside lpips-0.1.4's wheel.
 WEIGHT_FILES: dict[str, WeightFile] = {
     w.name: w

@@ -1,6 +1,6 @@
 """CARLA capture folders -> canonical layout (format: docs/formats.md).
 
-Poses go to the right-handed world (CARLA y negated, DESIGN.md); depth-camera PNGs are decoded
+Poses go to the right-handed world (CARLA y negated, docs/formats.md); depth-camera PNGs are decoded
 to float32 metres.
 """
 

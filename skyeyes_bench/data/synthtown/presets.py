@@ -1,4 +1,4 @@
-"""Named SynthTown configurations (STYLE.md #7: a preset is a named config, saved with the run).
+"""Named SynthTown configurations (a preset is a named config, saved with the run).
 
 Kept free of numpy so that the CLI can list presets without importing the renderer.
 """

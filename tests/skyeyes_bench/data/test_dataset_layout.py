@@ -109,7 +109,7 @@ def test_depth_exr_round_trip_through_file(tmp_path):
     d[5, 7], d[0, 0], d[-1, -1] = np.inf, 0.0, 1e-6
     imagefiles.write_depth(tmp_path / "d.exr", d)
     back = imagefiles.read_depth(tmp_path / "d.exr")
-    np.testing.assert_array_equal(back, d)  # exact, not scrambled (see DESIGN.md's pitfall)
+    np.testing.assert_array_equal(back, d)  # exact, not scrambled (OpenImageIO scrambles a 1-channel image given as [H, W])
     # read independently of our reader: OpenImageIO directly
     import OpenImageIO as oiio
 

@@ -297,3 +297,90 @@ def test_writer_is_atomic(tmp_path):
             w.finish(splits={"test": ["a-lane00"]})  # closes the scene itself
     assert (out / "dataset.json").read_text() == before
     assert sorted(os.listdir(tmp_path)) == ["ds"]
+
+
+# --------------------------------------------------------------------------- layer files hold what their names say
+
+
+def _write_oiio(path: Path, pixels: np.ndarray, fmt: str, like: str) -> None:
+    """`pixels` [H, W, C] written by OpenImageIO in the format of the extension `like`, whatever
+    `path`'s own extension says (the file is written under a name with `like`, then renamed)."""
+    import OpenImageIO as oiio
+
+    tmp = path.with_name("written" + like)
+    h, w, c = pixels.shape
+    out = oiio.ImageOutput.create(str(tmp))
+    assert out.open(str(tmp), oiio.ImageSpec(w, h, c, fmt)) and out.write_image(np.ascontiguousarray(pixels))
+    out.close()
+    tmp.replace(path)
+
+
+# Each writes `p` (a depth file, ground_depth/000002.exr, 16x12) as something else: (how, what the one line says)
+_NOT_DEPTH = {
+    # metres as millimetres in a 16-bit PNG: OpenImageIO reads any format whatever the name, and
+    # gave 0.0153 "metres" for 1000 mm
+    "png16": (lambda p: _write_oiio(p, np.full((H, W, 1), 1000, np.uint16), "uint16", ".png"),
+              "holds a PNG image, not the OpenEXR its name says"),
+    "npy": (lambda p: p.write_bytes(_npy_bytes(np.ones((H, W), np.float32))),
+            "holds a NumPy .npy array, not the OpenEXR its name says"),
+    "rgb-exr": (lambda p: _write_oiio(p, np.ones((H, W, 3), np.float32), "float", ".exr"),
+                "holds 3 channels of float"),
+    "half-exr": (lambda p: _write_oiio(p, np.ones((H, W, 1), np.float32), "half", ".exr"),
+                 "holds 1 channel of half"),
+}
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("case", sorted(_NOT_DEPTH))
+def test_depth_file_must_be_what_its_name_says(ds_root, case):
+    """docs/formats.md: a depth file is an EXR of 1 float32 channel (planar metres, inf = sky).
+    Anything else under that name is refused in one line naming the file, what it holds and what
+    was expected, by `data check`, `data check --quick` (headers only) and the reader evaluate uses."""
+    write, says = _NOT_DEPTH[case]
+    p = ds_root / "test-0-lane00" / "ground_depth" / "000002.exr"
+    write(p)
+    expected = "expected an OpenEXR file of 1 float32 channel (planar depth in metres, inf = sky)"
+    for quick in ((), ("--quick",)):
+        rc, out, err = run_cli("data", "check", str(ds_root), *quick, check=2)
+        assert out == "" and err.count("\n") == 1, err
+        assert err.startswith(f"skyeyes-bench: error: {p}: {says}") and expected in err, err
+    frame = open_dataset(ds_root, check_files=False).scenes["test-0-lane00"].ground[2]
+    with pytest.raises(UserError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        frame.depth()
+
+
+def test_semantics_file_must_be_an_8_bit_png(ds_root):
+    """docs/formats.md: semantics are 8-bit labels in a PNG; a float EXR or a 16-bit PNG under that
+    name would be converted to 0..255 labels silently."""
+    scene = ds_root / "test-0-lane00"
+    (scene / "ground_semantics").mkdir()
+    for i in range(6):
+        imagefiles.write_labels(scene / "ground_semantics" / f"{i:06d}.png", np.full((H, W), i, np.uint8))
+    assert _problems(ds_root) == []
+    p = scene / "ground_semantics" / "000004.png"
+    _write_oiio(p, np.full((H, W, 1), 3.0, np.float32), "float", ".exr")
+    rc, out, err = run_cli("data", "check", str(ds_root), check=2)
+    assert err.count("\n") == 1 and err.startswith(f"skyeyes-bench: error: {p}: holds an OpenEXR image, not the PNG its name says")
+    assert "expected an 8-bit PNG of labels" in err, err
+    _write_oiio(p, np.full((H, W, 1), 3, np.uint16), "uint16", ".png")
+    rc, out, err = run_cli("data", "check", str(ds_root), "--quick", check=2)
+    assert err.strip() == f"skyeyes-bench: error: {p}: holds 1 channel of uint16, expected an 8-bit PNG of labels"
+
+
+def test_invalid_depth_values_are_data_not_errors(ds_root):
+    """docs/metrics.md ("Depth values"): 0, negative, NaN and -inf are invalid pixels (never seen,
+    never part of a warp), +inf is sky; so a depth file holding them is a valid dataset."""
+    p = ds_root / "test-0-lane00" / "ground_depth" / "000002.exr"
+    d = _depth(2)
+    d[1, :4] = [0.0, -3.0, np.nan, -np.inf]
+    imagefiles.write_depth(p, d)
+    run_cli("data", "check", str(ds_root))
+    back = open_dataset(ds_root).scenes["test-0-lane00"].ground[2].depth()
+    np.testing.assert_array_equal(back, d)

@@ -10,6 +10,10 @@ their own in a dataset of their own (SynthTown's `<dataset>-val`, made with `dat
 
 A tool that screens settings (bench/, any search) calls `screening_split`, which refuses the test
 split in one line.
+
+What a dataset's splits must hold to be scored is one rule (`scored_scenes`), which `scored_view`
+(evaluate, submission template) and `check_scorable` (data check) both apply: a dataset that
+`data check` passes is never refused by `evaluate` for its splits.
 """
 
 from __future__ import annotations
@@ -36,10 +40,11 @@ def scored_view(ds, split: str, protocol=None):
     `protocol.val` declares (scene meta "town"; source "train")."""
     check_split(split)
     if split == "test":
+        scored_scenes(ds, "test")
         return ds
     train = ds.splits.get("train", ())
     if "val" in ds.splits:
-        val = ds.splits["val"]
+        val = scored_scenes(ds, "val")
     else:
         spec = getattr(protocol, "val", None)
         if spec is None or spec.source != "train":
@@ -53,6 +58,29 @@ def scored_view(ds, split: str, protocol=None):
                             f"towns {', '.join(spec.towns)} of protocol {protocol.ref} (scene.json field 'meta.town')")
     return dataclasses.replace(ds, splits={"train": tuple(s for s in train if s not in val), "test": tuple(val)},
                                scored="val")
+
+
+def scored_scenes(ds, split: str) -> tuple[str, ...]:
+    """The scenes of dataset `ds`'s split `split` ("test", or a dataset's own "val"); a one-line
+    UserError naming dataset.json and the field when the split is missing or lists no scene:
+    there would be nothing to score."""
+    members = ds.splits.get(split)
+    if members:
+        return tuple(members)
+    what = "is empty" if split in ds.splits else f"is missing (splits: {', '.join(ds.splits) or 'none'})"
+    run = "evaluate scores and ranks" if split == "test" else "a run on the validation split scores"
+    raise UserError(f"{ds.root}/dataset.json: field 'splits.{split}' {what}; expected the list of the {split} "
+                    f"scenes, which {run}")
+
+
+def check_scorable(ds) -> str:
+    """The split dataset `ds` is made to be scored on, checked as `scored_view` checks it for
+    evaluate (what `data check` applies): "test"; "val" for validation data of its own (a 'val'
+    split and no 'test' one: SynthTown's `<dataset>-val`). A validation split that a protocol
+    declares in its train towns (CARLA, CitySample) is checked where a run asks for it."""
+    split = "val" if "val" in ds.splits and "test" not in ds.splits else "test"
+    scored_view(ds, split)
+    return split
 
 
 def screening_split(split: str, what: str) -> str:

@@ -181,8 +181,10 @@ def run(args) -> int:
 
 def _check(args) -> int:
     from ..data.layout import open_dataset
+    from ..splits import check_scorable
 
     ds = open_dataset(args.root, check_pixels=not args.quick, progress=not args.quick and sys.stderr.isatty())
+    check_scorable(ds)  # the split evaluate scores: what it refuses for, refused here
     s = ds.summary()
     if args.json:
         print(json.dumps(s, indent=2))

@@ -11,7 +11,7 @@ import pytest
 from skyeyes_bench.data.layout import Dataset, Scene
 from skyeyes_bench.errors import UserError
 from skyeyes_bench.protocol import ValSpec, load_protocol
-from skyeyes_bench.splits import check_split, scored_view, screening_split
+from skyeyes_bench.splits import check_scorable, check_split, scored_view, screening_split
 
 
 def _dataset(splits: dict, towns: dict | None = None, root=Path("/data/ds")) -> Dataset:
@@ -139,3 +139,90 @@ def test_a_view_is_a_dataset_of_its_own():
     v = scored_view(ds, "val")
     same = {f.name for f in dataclasses.fields(Dataset)} - {"splits", "scored"}
     assert all(getattr(v, k) is getattr(ds, k) for k in same)
+
+
+# --------------------------------------------------------------------------- data check and evaluate agree
+
+
+@pytest.mark.parametrize("splits, says", [
+    ({"train": ["a"]}, "field 'splits.test' is missing (splits: train)"),
+    ({"train": ["a"], "test": []}, "field 'splits.test' is empty"),
+])
+def test_the_scored_split_must_hold_scenes(splits, says):
+    ds = _dataset({**splits, "other": ["b"]})
+    for call in (lambda: scored_view(ds, "test"), lambda: check_scorable(ds)):
+        with pytest.raises(UserError) as e:
+            call()
+        msg = str(e.value)
+        assert "\n" not in msg and msg.startswith(f"/data/ds/dataset.json: {says.replace('train', 'train, other')}"), msg
+    # validation data of its own: its 'val' split is what it is scored on, and must hold scenes too
+    with pytest.raises(UserError, match="field 'splits.val' is empty"):
+        check_scorable(_dataset({"train": ["a"], "val": []}))
+    assert check_scorable(_dataset({"train": ["a"], "val": ["b"]})) == "val"
+    assert check_scorable(_dataset(CARLA_SPLITS, CARLA)) == "test"
+
+
+@pytest.fixture
+def evaltiny(tmp_path, monkeypatch):
+    """(a tiny dataset of the test protocol, a complete submission of its test split made before any edit)."""
+    from builders.evaluation import install_test_protocol, make_dataset
+    from conftest import run_cli
+
+    install_test_protocol(tmp_path, monkeypatch)
+    root = make_dataset(tmp_path / "ds", scenes=2, seqs=1, frames=4)
+    run_cli("submission", "template", "--data", str(root), "--out", str(tmp_path / "sub"), "--from-ground-truth")
+    return root, tmp_path / "sub"
+
+
+def _set_splits(root: Path, splits: dict) -> None:
+    import json
+
+    doc = json.loads((root / "dataset.json").read_text())
+    doc["splits"] = splits
+    (root / "dataset.json").write_text(json.dumps(doc))
+
+
+_TEST = ["test-0-lane00", "test-0-lane01"]
+
+
+@pytest.mark.parametrize("splits, says", [
+    ({"train": ["train-0-lane00"]}, "field 'splits.test' is missing (splits: train)"),
+    ({"train": ["train-0-lane00"], "eval": _TEST}, "field 'splits.test' is missing (splits: train, eval)"),
+    ({"train": ["train-0-lane00"], "test": []}, "field 'splits.test' is empty"),
+])
+def test_data_check_refuses_what_evaluate_refuses_for_its_splits(evaltiny, splits, says):
+    """A dataset without a test split to score: `data check` exits 2 with the one line `evaluate`
+    gives for it (before, data check said OK and evaluate refused)."""
+    from conftest import run_cli
+
+    root, sub = evaltiny
+    _set_splits(root, splits)
+    rc, out, err = run_cli("data", "check", str(root), check=2)
+    assert out == "" and err.count("\n") == 1 and err.startswith(f"skyeyes-bench: error: {root / 'dataset.json'}: {says}"), err
+    rc, out, err_eval = run_cli("evaluate", str(sub), "--data", str(root), check=2)
+    assert err_eval == err
+    rc, out, err_tpl = run_cli("submission", "template", "--data", str(root), "--out", str(root.parent / "tpl"), check=2)
+    assert err_tpl == err and not (root.parent / "tpl").exists()
+
+
+@pytest.mark.parametrize("splits, split", [
+    ({"train": ["train-0-lane00"], "test": _TEST}, "test"),
+    ({"train": ["train-0-lane00"], "test": _TEST[:1], "val": _TEST[1:]}, "test"),
+    ({"train": ["train-0-lane00"], "val": _TEST}, "val"),  # validation data of its own (SynthTown's <dataset>-val)
+])
+def test_what_data_check_passes_evaluate_accepts(evaltiny, splits, split):
+    """The split `data check` says a dataset is scored on passes evaluate's own reading of it
+    (`evaluate.open_inputs`: the dataset seen as the split the submission holds)."""
+    from conftest import run_cli
+
+    from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.evaluate import open_inputs
+
+    root, _ = evaltiny
+    _set_splits(root, splits)
+    run_cli("data", "check", str(root))
+    assert check_scorable(open_dataset(root)) == split
+    sub = root.parent / f"sub-{split}"
+    run_cli("submission", "template", "--data", str(root), "--out", str(sub), "--split", split)
+    manifest, proto, ds = open_inputs(sub, root)
+    assert ds.scored == split and [s.name for s in ds.split("test")] == list(splits[split])

@@ -42,6 +42,35 @@ SUBMISSION_OUTPUT = outputfiles.OutputKind("a submission folder", folder=True, m
 _TIMING_KEYS = ("fit_s", "render_s", "per_frame_render_s", "cached_s")
 
 
+def check_submission_out(out_dir, *, overwrite: bool, ds) -> None:
+    """Refuse, in one line and before any work, a submission folder `out_dir` that may not be
+    written: inside another submission (a parent folder holding a submission.json, found on the
+    path as given and with its symlinks resolved: the new files would spoil that submission, whose
+    evaluation then finds them), or what `outputfiles.check_output` refuses (the dataset, an existing
+    folder without `overwrite`, anything but an earlier submission with it)."""
+    out = Path(out_dir)
+    if (parent := _enclosing_submission(out)) is not None:
+        raise UserError(f"{out}: lies inside the submission {parent} (it holds {SUBMISSION_FILE}); writing "
+                        "there would spoil that submission, so choose a folder outside it")
+    outputfiles.check_output(out, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root], inputs_are="the dataset")
+
+
+def _enclosing_submission(out: Path) -> Path | None:
+    """The nearest folder above `out` that holds a submission.json, symlinks resolved (then as
+    given), or None."""
+    try:
+        resolved = list(out.resolve().parents)
+    except (OSError, RuntimeError):  # a symlink loop: check_output says so in one line
+        resolved = []
+    for parent in (*resolved, *Path(os.path.abspath(out)).parents):
+        try:
+            if (parent / SUBMISSION_FILE).exists():
+                return parent
+        except OSError:  # an unreadable folder holds nothing we can spoil
+            continue
+    return None
+
+
 def expected_frames(ds) -> list[tuple[str, Any]]:
     """(scene name, ground Frame) for every ground camera of every test scene, in dataset order."""
     return [(scene.name, f) for scene in ds.split(SPLIT) for f in scene.ground]
@@ -150,8 +179,7 @@ class SubmissionWriter(outputfiles.AtomicFolderWriter):
     def __init__(self, out_dir, *, dataset, method: str, method_version: str = "", config: dict | None = None,
                  overwrite: bool = False):
         fields.name("method name", method, "the method's name")
-        outputfiles.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[dataset.root],
-                                 inputs_are="the dataset")
+        check_submission_out(out_dir, overwrite=overwrite, ds=dataset)
         super().__init__(out_dir, overwrite=overwrite, inputs=[dataset.root])
         self.ds = dataset
         self.method, self.method_version, self.config = method, str(method_version), dict(config or {})
@@ -427,7 +455,7 @@ def write_template(ds, out_dir, *, from_ground_truth: bool = False, overwrite: b
             w.finish(timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": [0.0] * len(frames)},
                      peak_memory_mb=0.0)
         return Path(out_dir)
-    outputfiles.check_output(out_dir, force=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root], inputs_are="the dataset")
+    check_submission_out(out_dir, overwrite=overwrite, ds=ds)
     with outputfiles.atomic_dir(out_dir, overwrite=overwrite, kind=SUBMISSION_OUTPUT, inputs=[ds.root]) as tmp:
         manifest = make_manifest(ds, method="my-method", method_version="0.0", config={"example": True},
                                  timings={"fit_s": 0.0, "render_s": 0.0, "per_frame_render_s": []},

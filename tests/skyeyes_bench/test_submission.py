@@ -6,6 +6,7 @@ import os
 import shutil
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,3 +144,47 @@ def test_missing_dataset_names_the_command(tmp_path, monkeypatch):
 
     with pytest.raises(UserError, match=r"skyeyes-bench data synthtown --preset small"):
         resolve_data({"dataset": {"name": "synthtown-small"}}, load_protocol("synthtown@1"), None)
+
+
+def _tree(root):
+    """{relative path: bytes, a link's target, or None for a folder} of everything under `root` (links not followed)."""
+    out = {}
+    for folder, dirs, files in os.walk(root):
+        for name in dirs + files:
+            p = Path(folder) / name
+            out[str(p.relative_to(root))] = (os.readlink(p) if p.is_symlink() else None if p.is_dir() else p.read_bytes())
+    return out
+
+
+@pytest.mark.parametrize("where", ["sub/new", "sub/test-0-lane00/ground/new", "link/new", "sub/test-0-lane00"])
+@pytest.mark.parametrize("extra", [(), ("--force",), ("--from-ground-truth",), ("--force", "--from-ground-truth")])
+def test_template_out_inside_another_submission_is_refused(tiny, proto, tmp_path, where, extra):
+    """--out in a folder of which a parent holds a submission.json would spoil that submission (evaluate
+    then finds extra files in it): one line naming it, exit 2, nothing written, with or without --force."""
+    sub = tmp_path / "sub"
+    run_cli("submission", "template", "--data", str(tiny), "--out", str(sub), "--from-ground-truth")
+    (tmp_path / "link").symlink_to(sub)
+    before = _tree(tmp_path)
+    out = tmp_path / where
+    rc, stdout, err = run_cli("submission", "template", "--data", str(tiny), "--out", str(out), *extra, check=2)
+    assert stdout == "" and err.count("\n") == 1, err
+    assert err.startswith(f"skyeyes-bench: error: {out}: lies inside the submission {sub} "), err
+    assert _tree(tmp_path) == before
+    # the same for a method writing its submission
+    with pytest.raises(UserError, match=f"lies inside the submission {sub} "):
+        SubmissionWriter(out, dataset=open_dataset(tiny), method="m", overwrite="--force" in extra)
+    assert _tree(tmp_path) == before
+
+
+def test_template_out_beside_or_over_a_submission(tiny, proto, tmp_path):
+    """A sibling of a submission is fine; the submission itself is replaced only with --force (and
+    only because it is a submission), as before."""
+    sub = tmp_path / "sub"
+    run_cli("submission", "template", "--data", str(tiny), "--out", str(sub), "--from-ground-truth")
+    run_cli("submission", "template", "--data", str(tiny), "--out", str(tmp_path / "sub2"))
+    before = _tree(sub)
+    rc, _, err = run_cli("submission", "template", "--data", str(tiny), "--out", str(sub), check=2)
+    assert err.strip() == f"skyeyes-bench: error: {sub}: already exists; pass --force to replace it"
+    assert _tree(sub) == before
+    run_cli("submission", "template", "--data", str(tiny), "--out", str(sub), "--force")
+    assert sorted(p.name for p in sub.iterdir()) == ["EXPECTED_FRAMES.txt", "submission.json"]

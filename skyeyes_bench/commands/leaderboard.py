@@ -20,7 +20,8 @@ def register(sub) -> None:
                        "from papers, never ranked with measured rows). With --check, write nothing and exit 1 "
                        "if the files on disk are stale. `leaderboard add RESULTS.json` files a result first.")
     p.add_argument("--root", metavar="DIR", help="leaderboard folder (default: leaderboard/ of this checkout)")
-    p.add_argument("--check", action="store_true", help="exit 1 if the files differ from what the inputs generate")
+    p.add_argument("--check", action="store_true", help="exit 1 if the files differ from what the inputs generate; exit 2 (one line) if a filed "
+                   "result fails what `leaderboard add` checks")
     # dest is not "action": the CLI treats a group whose "action" is None as "print its help"
     acts = p.add_subparsers(dest="lb_action", metavar="ACTION", parser_class=type(p))
     a = acts.add_parser("add", help="check a results file and file it as leaderboard/results/<name>.json",
@@ -77,6 +78,12 @@ def run(args) -> int:
 
     root = _root(args.root)
     if args.check:
+        from ..leaderboard.add import check_results
+
+        # every filed result passes what `leaderboard add` checks: a row that arrives by a pull
+        # request (docs/leaderboard.md, "Submitting a row") is held to the same rules
+        for p in sorted((root / "results").glob("*.json")):
+            check_results(p)
         stale = leaderboard.check(root)
         if stale:
             print(f"{root}: leaderboard is stale; run `skyeyes-bench leaderboard` and commit:", file=sys.stderr)

@@ -214,6 +214,26 @@ def test_add_refuses_a_bad_results_file_in_one_line(board, tmp_path, how, field)
     assert not list((lb / "results").iterdir()) and not (lb / "frames").exists()
 
 
+@pytest.mark.parametrize("how, field", [
+    ("unknown protocol", "'protocol.ref'"), ("no fit time", "'submission.timings.fit_s'"),
+    ("changed protocol", "'protocol.sha256'"), ("partial", "'format'"), ("val split", "'dataset.split'")])
+def test_check_holds_a_row_committed_by_hand_to_what_add_checks(board, tmp_path, how, field):
+    """A row that arrives by a pull request (a results file put straight into results/, no `add`)
+    is refused by `leaderboard --check`, CI's gate, as `add` would refuse it."""
+    lb = _fresh(board, tmp_path)
+    run_cli("leaderboard", "--root", str(lb))
+    run_cli("leaderboard", "--root", str(lb), "--check")  # the honest rows pass
+    doc = json.loads((lb / "results" / "blurry.json").read_text())
+    if how == "val split":
+        doc["dataset"]["split"] = "val"
+    else:
+        doc = _corrupt(doc, how)
+    bad = lb / "results" / "blurry.json"
+    bad.write_text(json.dumps(doc))
+    rc, out, err = run_cli("leaderboard", "--root", str(lb), "--check", check=2)
+    assert err.count("\n") == 1 and str(bad) in err and f"field {field}" in err, err
+
+
 def test_choose_frames_is_evenly_spaced_and_from_the_dataset_only():
     # 8 scenes x 2 sequences of 5 frames (listed shuffled): the first sequence of scenes 0, 2, 4, 6, frame 2
     seqs = [f"s{i}/y{q}" for i in range(8) for q in range(2)]

@@ -113,7 +113,8 @@ def test_markdown_links_point_at_files_that_exist():
 
 
 def test_every_cited_markdown_document_is_in_the_repository():
-    bad = missing_documents(_tracked())
+    this = Path(__file__).resolve().relative_to(ROOT).as_posix()  # its made-up names are examples
+    bad = missing_documents([f for f in _tracked() if f != this])
     assert not bad, "documents cited but not in the repository:\n" + "\n".join(bad)
 
 

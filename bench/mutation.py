@@ -25,22 +25,10 @@ call arguments removed or set to None, dict keyword arguments renamed, lambdas' 
 assignments replaced by None, if-expressions' branches swapped, string-method pairs swapped
 (lower/upper, lstrip/rstrip, ...).
 
-Measured (f4f31c4, 2 shared cores, nice 19): skyeyes_bench/stats.py with tests/skyeyes_bench/
-test_stats.py alone, 1895 mutants in 575 s: 817 killed, 210 survived, 868 "no tests" (compare_results,
-_comparable, bca_interval, ... are reached only by test_evaluate's compare tests, not by test_stats):
-kill rate 43.1% of all, 79.6% of the mutants those tests reach. After tests for the gaps it showed
-(372fde8; stopped at a 1500 s limit under load, 1795 of 1895 checked): 804 killed, 123 survived,
-868 no tests: 44.8% of all, 86.7% of those reached. Most survivors left are equivalent (dtype=None
-on float64 input, minlength where the last cluster has rows, errstate arguments, a discarded
-diagonal) or JSON keys asserted elsewhere. The campaign with the default tier over the four
-modules has not been run (hours here).
+The campaigns run so far and their kill rates are in docs/log/runs-2026.md.
 
-NOTE (2026-11-25): run it on an idle machine. Started at nice 19 beside two reproduce runs
-(load 2-3), the stats.py campaign with tests/skyeyes_bench checked 296 of 1895 mutants in 85 min,
-and the 9 it marked "timeout" were mutants of `pooled_value` and `resample_counts` whose covering
-tests (evaluate end to end) ran past 15x their unloaded time: starved, not killed. Its other
-figures: 156 killed, 20 survived, 111 "no tests" (the BCa / basic / subsampling intervals, since
-given tests of their own).
+Run it on an idle machine: beside other jobs, tests that run far past their unloaded time are
+marked "timeout" (starved, not killed).
 
 Kill rate = (killed + timeout) / (mutants checked). "no tests" (no selected test reaches the
 function) counts as survived; mutants not checked before the time limit are left out and

@@ -53,13 +53,11 @@ class MVSMethodConfig(SceneConfig, gmvs.MVSConfig):
 PRESETS: dict[str, MVSMethodConfig] = {
     # Seconds at 48x48 (tests, CI).
     "smoke": MVSMethodConfig(planes=32, num_sources=4, train_lanes=1, min_consistent=1),
-    # The CPU default at 128x128: 141 CPU-s per synthtown@2 lane (64 aerial views; bench/mvs.py,
-    # test-0-lane00, load 5.6, 2026-11-25).
+    # The CPU default at 128x128 (about 2.5 CPU-minutes per lane of 64 aerial views; docs/log/runs-2026.md).
     "small": MVSMethodConfig(),
-    # The start of the splatting methods and their appearance at `small`: half the cost for the
-    # same depth accuracy, fewer points (bench/mvs.py, synthtown@2 test-0-lane00, load 5.6-5.9:
-    # 70 against 141 CPU-s; within 0.5 m 0.48 and 0.48, within 2% 0.61 and 0.61, completeness
-    # 0.27 against 0.43; planes=48 as well: 52 CPU-s, 0.45 / 0.58 / 0.23).
+    # The start of the splatting methods and their appearance at `small`: half the cost for the same depth
+    # accuracy, fewer points; chosen on a synthtown@2 test lane before a validation split existed; see
+    # docs/log/runs-2026.md.
     "fast": MVSMethodConfig(planes=64, num_sources=4),
     # GPU users at 512x512: more planes and sources, every train lane.
     "paper": MVSMethodConfig(planes=256, num_sources=8, window=7, train_lanes=1000, voxel_m=0.1),

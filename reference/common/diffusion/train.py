@@ -267,7 +267,7 @@ def make_accelerator(device: torch.device | str = "cpu", mixed_precision: str = 
         # accelerate keeps one state per process and refuses another precision; a single
         # process (tests, bench/ running several methods) may build its stages at several.
         # Its device lives in the PartialState under it: left alone, a CPU stage built after a
-        # CUDA one in the same process trained on CUDA (seen on an H200, 2026-11-27).
+        # CUDA one in the same process trained on CUDA (seen on an H200; docs/log/runs-2026.md).
         from accelerate.state import AcceleratorState
 
         AcceleratorState._reset_state(reset_partial_state=True)

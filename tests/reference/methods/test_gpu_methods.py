@@ -67,15 +67,15 @@ def _train(tmp: Path, device: str, stop_after: int | None = None, steps: int = 6
 
 
 def test_a_resumed_stage_keeps_its_ema_on_the_gpu(tmp_path):
-    """b99d601: the EMA's shadow weights came back from the checkpoint on the CPU and
-    `EMAModel.step` failed against the CUDA weights."""
+    """A resumed CUDA run once failed here: the EMA's shadow weights came back from the checkpoint
+    on the CPU and `EMAModel.step` failed against the CUDA weights."""
     whole, _ = _train(tmp_path / "whole", "cuda")
     _, first = _train(tmp_path / "killed", "cuda", stop_after=2)
     assert not first["done"]
     resumed, res = _train(tmp_path / "killed", "cuda")
     assert res["done"] and res["resumed_seconds"] > 0
     # The same steps from the same state, apart only by the GPU's unordered reductions (cuDNN's
-    # weight gradients): on an H200 (2026-11-27) those broke an elementwise 1e-4 tolerance, since
+    # weight gradients): on an H200 those broke an elementwise 1e-4 tolerance, since
     # AdamW's first steps move every weight by about the rate whatever its gradient's size. So
     # the bound of `test_training_on_the_gpu_follows_the_cpu`: far inside what training moved.
     assert _gap(resumed, whole) < 0.05 * _moved(whole)

@@ -17,7 +17,7 @@ from builders.skyeyes import render_all as _render_all  # noqa: E402
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # ~4 min alone; 600 s ran out with the 2 cores shared (load 5-8)
+@pytest.mark.timeout(1800)  # ~4 min alone; 600 s can run out with the 2 cores shared
 def test_smoke_preset_with_stand_in_prior(synthtown_smoke, tmp_path):
     from builders.skyeyes import StandInPrior
 
@@ -46,7 +46,7 @@ def test_smoke_preset_with_stand_in_prior(synthtown_smoke, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # ~4 min alone; 600 s ran out with the 2 cores shared (load 5-8)
+@pytest.mark.timeout(1800)  # ~4 min alone; 600 s can run out with the 2 cores shared
 def test_smoke_preset_with_sugar_prior(synthtown_smoke, tmp_path):
     import reference.methods.sugar  # noqa: F401  (the project's own module: never skipped)
     ds = open_dataset(synthtown_smoke)

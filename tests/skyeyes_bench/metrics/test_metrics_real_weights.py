@@ -184,7 +184,7 @@ def test_lpips_alex_natural_images():
     assert lpips(img[None], img[None], net="alex")[0] == pytest.approx(0.0, abs=1e-7)
     assert np.allclose(lpips(np.stack(blurred), ref, net="alex"), d, rtol=1e-5)
     assert all(b > a for a, b in zip(d, d[1:])), d
-    # golden (this code, 2026-11-22): a change here means the AlexNet weights or network changed
+    # golden (from this code): a change here means the AlexNet weights or network changed
     assert np.allclose(d, [0.0230, 0.2148, 0.4464, 0.6566], atol=1e-4), d
 
 

@@ -532,8 +532,8 @@ def test_device_and_precision_resolution(monkeypatch):
 
 
 def test_a_cpu_stage_after_another_device_stage_in_one_process_runs_on_the_cpu():
-    """accelerate keeps the device in a per-process PartialState: on an H200 (2026-11-27) a CPU
-    stage built after a CUDA one in the same process trained on CUDA. Without a GPU, a state
+    """accelerate keeps the device in a per-process PartialState: on an H200 a CPU stage built
+    after a CUDA one in the same process trained on CUDA (docs/log/runs-2026.md). Without a GPU, a state
     left on another device (meta stands in for cuda) must not leak into the next accelerator."""
     from accelerate.state import PartialState
 

@@ -8,11 +8,12 @@ from pathlib import Path
 
 from .. import stats
 from ..metricspec import sample_count_warning
+from .columns import Column, all_columns, choose_columns
 from .kinds import KINDS, label
 from .marks import rules_summary
 from .plots import plot_metrics, plot_name, strip_name, strip_rows
 from .sequence import FRAME_MS, sequence_name, sequence_rows, table_sequence
-from .tables import DIGITS, LABEL, Table
+from .tables import DIGITS, LABEL, Table, current_first
 
 DAGGER = "†"
 #: Marks a hardware cell that `leaderboard add` recorded (the results file did not).
@@ -56,16 +57,58 @@ def fmt(m: str, v: float | None, decimals: int | None = None) -> str:
     return f"{v:.{DIGITS[m] if decimals is None else decimals}f}"
 
 
-def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:
-    """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through `escape`."""
+def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str]:
+    """(`value`, `[lower, upper]` or `(why no interval)` or ''), the reason (input text) through `escape`."""
     r = t.rows[i]
-    text = fmt(m, r.values.get(m))
     if m in r.intervals:
         lo, hi = r.intervals[m]
-        text += f" [{fmt(m, lo)}, {fmt(m, hi)}]"
-    elif m in r.no_interval and r.values.get(m) is not None:
-        text += f" ({escape(r.no_interval[m])})"
-    return text
+        return fmt(m, r.values.get(m)), f"[{fmt(m, lo)}, {fmt(m, hi)}]"
+    if m in r.no_interval and r.values.get(m) is not None:
+        return fmt(m, r.values.get(m)), f"({escape(r.no_interval[m])})"
+    return fmt(m, r.values.get(m)), ""
+
+
+def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:
+    """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through `escape`."""
+    return " ".join(p for p in cell_parts(t, i, m, escape) if p)
+
+
+def one_sided(t: Table) -> dict[str, str]:
+    """Metric -> "upper" / "lower" / "either": the metrics of `t` with a cell whose interval ends at
+    its value (`results`: the half-sample draws all fell on one side of the value, so the interval
+    was widened to reach it), and which end that is."""
+    out: dict[str, str] = {}
+    for m in t.metrics:
+        for r in t.rows:
+            v, iv = r.values.get(m), r.intervals.get(m)
+            if v is None or iv is None or iv[0] == iv[1]:
+                continue
+            end = "upper" if iv[1] == v else "lower" if iv[0] == v else None
+            if end:
+                out[m] = end if out.get(m, end) == end else "either"
+    return out
+
+
+#: Where the page says why a Fréchet distance's interval can be one-sided (relative to leaderboard/).
+BIAS_DOC = "../docs/metrics.md#fid-and-fvd"
+
+
+def legend(t: Table) -> tuple[str, str]:
+    """The one line above a measured table on the intervals, as (text, its closing link's words):
+    which columns' intervals end at their value here and why (issue 58: `166.25 [147.26, 166.25]`
+    looked like an error)."""
+    sides = one_sided(t)
+    if not sides:
+        return ("Intervals: value [lower, upper], none one-sided here (one is where a set metric's small-sample bias "
+                "exceeds its spread)", "docs/metrics.md")
+    cols = ", ".join(LABEL[m] for m in t.metrics if m in sides)
+    ends = set(sides.values())
+    if ends == {"upper"}:  # the Fréchet distances (FID, FVD and their FD∞) on the committed board
+        return (f"One-sided intervals: {cols} read [lower, value]: these are biased upward with few samples, so "
+                f"every half-sample draw fell below the value", "why: docs/metrics.md")
+    where = "above the value" if ends == {"lower"} else "on one side of the value"
+    return (f"One-sided intervals: {cols} " + ("read [value, upper]" if ends == {"lower"} else "end at the value") +
+            f": a small-sample bias larger than the spread put every half-sample draw {where}", "why: docs/metrics.md")
 
 
 def num(v) -> str:
@@ -89,8 +132,17 @@ def arrow(m: str) -> str:
 
 
 def _measured_head(t: Table) -> list[str]:
-    return ["Method", "Kind", "Version", *[f"{LABEL[m]} {arrow(m)}" for m in t.metrics], "Run s (fit + render)",
-            "Hardware", "Peak MB"]
+    return [c.head for c in all_columns(t)]
+
+
+def same_text(t: Table, c: Column) -> str:
+    """What every row of `t` shows in column `c` (one of `choose_columns`'s same-in-every-row) as
+    "name value", for the line above the table (a metric without its arrow: nothing to rank)."""
+    r = t.rows[0]
+    if c.key in t.metrics:
+        return f"{LABEL[c.key]} {cell(t, 0, c.key)}"
+    return c.head + " " + {"version": lambda: r.version or "not recorded", "run": lambda: run_time(r),
+                           "hardware": lambda: hardware(r), "peak": lambda: num(r.peak_mb)}[c.key]()
 
 
 def _footnotes(t: Table) -> list[str]:
@@ -159,8 +211,14 @@ def render_markdown(root: Path, measured: list[Table], reported: list[Table], un
            _INTRO, "", "## Measured", ""]
     if across := counts_across(measured):
         out += [md(across), ""]
-    for t in measured:
-        out += [f"### {md(t.title)}", "", md(t.note), "", rules_summary(t), ""]
+    current, older = current_first(measured)
+    for t in current + older:
+        if older and t is older[0]:
+            out += ["## Measured on older protocol versions", "",
+                    "Scored with an older version of a protocol above: compare rows within a table, not across "
+                    "versions.", ""]
+        text, link = legend(t)
+        out += [f"### {md(t.title)}", "", md(t.note), "", rules_summary(t), "", f"{text} ([{link}]({BIAS_DOC})).", ""]
         head = _measured_head(t)
         out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for i, r in enumerate(t.rows):
@@ -236,17 +294,35 @@ document.querySelectorAll('table.sortable th').forEach(function (th) {
 """
 
 _CSS = """
-body { font-family: system-ui, sans-serif; margin: 2em; color: #222; max-width: 110em; }
-table { border-collapse: collapse; margin: 0.5em 0 1.5em; }
-th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; white-space: nowrap; }
+body { font-family: system-ui, sans-serif; margin: 1.5em; color: #222; max-width: 110em; }
+table { border-collapse: collapse; margin: 0.3em 0 1em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.5em; text-align: right; white-space: nowrap; }
 th { background: #f2f2f2; cursor: pointer; }
 td:first-child, th:first-child, td.kind, table.measured th:nth-child(2) { text-align: left; }
 td.best { font-weight: bold; }
+td small { display: block; font-size: 0.78em; color: #666; font-weight: normal; }
+table.measured { font-size: 0.92em; }
+table.measured th { white-space: normal; vertical-align: bottom; }
+table.measured td.hw { white-space: normal; min-width: 7em; max-width: 12em; text-align: left; }
+table.measured td.kind { white-space: normal; min-width: 5em; }
+table.measured caption { caption-side: top; text-align: left; color: #555; font-size: 0.9em; padding: 0.2em 0; }
+/* the method column stays in view while a wide table scrolls sideways */
+table.measured th:first-child, table.measured td:first-child {
+  position: sticky; left: 0; z-index: 1; background: #fff; box-shadow: inset -1px 0 #ccc; }
+table.measured th:first-child { background: #f2f2f2; }
+.allcols:not(:checked) ~ .wide .extra { display: none; }
+.allcols + label { font-size: 0.9em; color: #555; cursor: pointer; }
 .reported { color: #555; }
-.note { color: #555; font-size: 0.9em; }
-.plots img { max-width: 32em; margin: 0 0.5em 0.5em 0; }
+.note, .legend { color: #555; font-size: 0.9em; margin: 0.3em 0; }
+.legend { color: #333; }
+details { margin: 0.4em 0; }
+summary { cursor: pointer; color: #333; }
+.plots { display: grid; grid-template-columns: repeat(auto-fill, minmax(24em, 1fr)); gap: 0.5em; }
+.plots img { width: 100%; }
 img.strip { max-width: 100%; }
 .wide { overflow-x: auto; }
+ul.runs { margin: 0.3em 0; padding-left: 1.4em; }
+h3 { margin: 1.2em 0 0.3em; }
 """
 
 
@@ -264,6 +340,94 @@ def _md_code(text: str) -> str:
     return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts)).replace("**Bold**", "<b>Bold</b>")
 
 
+def _value_cell(text: str, sub: str = "", v: str = "", cls: str = "") -> str:
+    """A table cell: `text` over `sub` in small type (both already escaped), `v` the sort key."""
+    attr = f' class="{cls}"' if cls else ""
+    sub = f"<small>{sub}</small>" if sub else ""
+    return f'<td{attr} data-v="{v}">{text}{sub}</td>'
+
+
+def _measured_cell(t: Table, i: int, c: Column) -> str:
+    """Row `i`'s cell in column `c` of the page's table (`extra`: hidden until "all columns")."""
+    e, r = html.escape, t.rows[i]
+    extra = [] if c.core else ["extra"]
+    if c.key == "method":
+        return f'<td data-v="{e(r.method)}">{e(r.method)}</td>'
+    if c.key == "kind":  # its exact form is what the page check and tests look for
+        return f'<td class="kind" data-v="{e(label(r.kind))}">{e(label(r.kind))}</td>'
+    if c.key in t.metrics:
+        best = i in t.best.get(c.key, [])
+        value, sub = cell_parts(t, i, c.key, e)
+        mark = f" {DAGGER}" if best and c.key in t.not_credible else ""
+        return _value_cell(e(value) + mark, sub, _sort_value(r.values.get(c.key)),
+                           " ".join(["best"] * best + extra))
+    if c.key == "run":
+        sub = f"({num(r.fit_s)} + {num(r.render_s)})" if r.run_s is not None else ""
+        return _value_cell(num(r.run_s), sub, _sort_value(r.run_s), " ".join(extra))
+    if c.key == "hardware":
+        return _value_cell(e(hardware(r)), "", e(hardware(r)), " ".join(["hw"] + extra))
+    if c.key == "peak":
+        return _value_cell(num(r.peak_mb), "", _sort_value(r.peak_mb), " ".join(extra))
+    return _value_cell(e(r.version), "", e(r.version), " ".join(extra))  # version
+
+
+def _measured_table_html(t: Table) -> list[str]:
+    """One measured table: the legend line, the "all columns" switch (when some are hidden), the
+    table with its same-in-every-row values as the caption. Plain HTML and CSS: the switch is a
+    checkbox whose `:checked` state shows the `extra` cells (no script)."""
+    e = html.escape
+    cols, same = choose_columns(t)
+    text, link = legend(t)
+    out = [f'<p class="legend">{e(text)} (<a href="{e(BIAS_DOC)}">{e(link)}</a>).</p>']
+    hidden = [c for c in cols if not c.core]
+    if hidden:
+        box = f"cols-{t.file_key}"
+        out.append(f'<input type="checkbox" class="allcols" id="{e(box)}"><label for="{e(box)}">all columns '
+                   f'(+{len(hidden)}: {e(", ".join(c.head for c in hidden))})</label>')
+    caption = ("<caption>Same in every row: " + "; ".join(e(same_text(t, c)) for c in same) +
+               "</caption>") if same else ""
+    out.append(f'<div class="wide"><table class="sortable measured" data-key="{e(t.file_key)}" '
+               f'data-protocol="{e(t.protocol)}">{caption}<thead><tr>')
+    out.append("".join(f"<th>{e(c.head)}</th>" if c.core else f'<th class="extra">{e(c.head)}</th>' for c in cols)
+               + "</tr></thead><tbody>")
+    for i in range(len(t.rows)):
+        out.append("<tr>" + "".join(_measured_cell(t, i, c) for c in cols) + "</tr>")
+    out.append("</tbody></table></div>")
+    return out
+
+
+def _measured_html(root: Path, t: Table, files: dict) -> list[str]:
+    """A measured table's section: heading, notes, table, what each row runs, the sequence
+    animation; the plots and the strip of test frames folded (they are most of the page's height)."""
+    e = html.escape
+    out = [f'<section class="board"><h3 id="{e(t.file_key)}">{e(t.title)}</h3>',
+           f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>", *_measured_table_html(t)]
+    out += [f"<p class=note>{_md_code(f)}</p>" for f in _footnotes(t)]
+    out += [f"<p class=note>{e(RUNS_HEAD)}</p>", f'<ul class="runs note" data-key="{e(t.file_key)}">',
+            *[f'<li data-method="{method}"><b>{method}</b> {text}</li>' for method, text in runs(t, e)], "</ul>"]
+    animation, note = _sequence_notes(root, t, files, e, lambda c: f"<code>{e(c)}</code>")
+    if animation:
+        out.append(f'<p><img class="strip sequence" src="{e(animation)}" alt="{e(t.key)}: one test sequence, '
+                   f'ground truth then each method, in step"></p>')
+    if note:
+        out.append(f"<p class=note>{note.strip()}</p>")
+    plots = [f'<img src="{e(plot_name(t, m))}" alt="{e(t.key)}: {e(LABEL[m])} against run time">'
+             for m in plot_metrics(t)]
+    out.append(f'<details><summary>Plots: {len(plots)} metrics against run time (log scale), the Pareto front '
+               f'ringed</summary><div class="plots">{"".join(plots)}</div></details>' if plots else
+               "<p>No plot: no row records a run time.</p>")
+    strip, note = _strip_notes(root, t, files, e)  # names escaped here; the sentence has no markup
+    if strip:
+        out.append(f'<details><summary>Test frames: the same frames for every method, ground truth first</summary>'
+                   f'<p><img class="strip" src="{e(strip)}" alt="{e(t.key)}: the same test frames, ground truth '
+                   f'then each method"></p></details>')
+    else:
+        note = _md_code(_NO_STRIP)
+    if note:
+        out.append(f"<p class=note>{note}</p>")
+    return out + ["</section>"]
+
+
 def render_html(root: Path, measured: list[Table], reported: list[Table], unmeasured: list[str],
                 files: dict) -> str:
     e = html.escape
@@ -272,50 +436,22 @@ def render_html(root: Path, measured: list[Table], reported: list[Table], unmeas
            "<title>skyeyes-bench leaderboard</title>", f"<style>{_CSS}</style></head><body>",
            "<h1>skyeyes-bench leaderboard</h1>",
            "<p class=note>Generated by <code>skyeyes-bench leaderboard</code>; click a column to sort. "
+           f"<b>Bold</b>: best in its column; {DAGGER}: not credibly better than the runner-up. "
            "Reported rows are copied from papers and never ranked with measured rows.</p>",
-           f"<p class=note>{_md_code(_INTRO)}</p>", "<h2>Measured</h2>"]
+           f"<details><summary>How to read the tables</summary><p class=note>{_md_code(_INTRO)}</p></details>",
+           "<h2>Measured</h2>"]
     if across := counts_across(measured):
         out.append(f"<p class=note>{e(across)}</p>")
-    for t in measured:
-        out += [f'<h3 id="{e(t.file_key)}">{e(t.title)}</h3>',
-                f"<p class=note>{e(t.note)}<br>{e(rules_summary(t))}</p>",
-                f'<div class="wide"><table class="sortable measured" data-key="{e(t.file_key)}"><thead><tr>']
-        out.append("".join(f"<th>{e(h)}</th>" for h in _measured_head(t)) + "</tr></thead><tbody>")
-        for i, r in enumerate(t.rows):
-            cells = [f'<td data-v="{e(r.method)}">{e(r.method)}</td>',
-                     f'<td class="kind" data-v="{e(label(r.kind))}">{e(label(r.kind))}</td>',
-                     f'<td data-v="{e(r.version)}">{e(r.version)}</td>']
-            for m in t.metrics:
-                best = i in t.best.get(m, [])
-                mark = f" {DAGGER}" if best and m in t.not_credible else ""
-                cls = ' class="best"' if best else ""
-                cells.append(f'<td{cls} data-v="{_sort_value(r.values.get(m))}">{e(cell(t, i, m))}{mark}</td>')
-            cells += [f'<td data-v="{_sort_value(r.run_s)}">{e(run_time(r))}</td>',
-                      f'<td data-v="{e(hardware(r))}">{e(hardware(r))}</td>',
-                      f'<td data-v="{_sort_value(r.peak_mb)}">{num(r.peak_mb)}</td>']
-            out.append("<tr>" + "".join(cells) + "</tr>")
-        out.append("</tbody></table></div>")
-        out += [f"<p class=note>{_md_code(f)}</p>" for f in _footnotes(t)]
-        out += [f"<p class=note>{e(RUNS_HEAD)}</p>", f'<ul class="runs note" data-key="{e(t.file_key)}">',
-                *[f'<li data-method="{method}"><b>{method}</b> {text}</li>' for method, text in runs(t, e)], "</ul>"]
-        plots = [f'<img src="{e(plot_name(t, m))}" alt="{e(t.key)}: {e(LABEL[m])} against run time">'
-                 for m in plot_metrics(t)]
-        out.append(f'<div class="plots">{"".join(plots)}</div>' if plots else
-                   "<p>No plot: no row records a run time.</p>")
-        strip, note = _strip_notes(root, t, files, e)  # names escaped here; the sentence has no markup
-        if strip:
-            out.append(f'<p><img class="strip" src="{e(strip)}" alt="{e(t.key)}: the same test frames, ground truth '
-                       f'then each method"></p>')
-        else:
-            note = _md_code(_NO_STRIP)
-        if note:
-            out.append(f"<p class=note>{note}</p>")
-        animation, note = _sequence_notes(root, t, files, e, lambda c: f"<code>{e(c)}</code>")
-        if animation:
-            out.append(f'<p><img class="strip sequence" src="{e(animation)}" alt="{e(t.key)}: one test sequence, '
-                       f'ground truth then each method, in step"></p>')
-        if note:
-            out.append(f"<p class=note>{note.strip()}</p>")
+    current, older = current_first(measured)
+    for t in current:
+        out += _measured_html(root, t, files)
+    if older:
+        out.append(f'<details class="older"><summary>Older protocol versions: '
+                   f'{e(", ".join(dict.fromkeys(t.protocol for t in older)))} (compare rows within a table, not '
+                   f'across versions)</summary>')
+        for t in older:
+            out += _measured_html(root, t, files)
+        out.append("</details>")
     if unmeasured:
         out.append("<p>No measured rows yet for protocol: " + ", ".join(f"<code>{e(p)}</code>" for p in unmeasured) +
                    " (any version). File a results file with "

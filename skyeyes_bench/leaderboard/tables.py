@@ -190,6 +190,32 @@ def measured_tables(root: Path) -> list[Table]:
     return tables
 
 
+def protocol_version(ref: str) -> tuple[str, int]:
+    """`"synthtown@4"` -> `("synthtown", 4)` (refs are checked `ID@N` when read: `checks.protocol_ref`)."""
+    pid, _, version = ref.rpartition("@")
+    return pid, int(version)
+
+
+def current_first(tables: list[Table]) -> tuple[list[Table], list[Table]]:
+    """(the tables of each protocol id's highest version, the tables of its older versions): the
+    current protocol is what a reader compares against first (synthtown@4 before synthtown@3).
+    Each list by protocol id, then newest version first, then key; versions compare as numbers."""
+    newest: dict[str, int] = {}
+    for t in tables:
+        pid, v = protocol_version(t.protocol)
+        newest[pid] = max(v, newest.get(pid, v))
+
+    def order(t: Table):
+        pid, v = protocol_version(t.protocol)
+        return pid, -v, t.key
+
+    current, older = [], []
+    for t in sorted(tables, key=order):
+        pid, v = protocol_version(t.protocol)
+        (current if v == newest[pid] else older).append(t)
+    return current, older
+
+
 def _reference_note(names: list[str], docs: list[dict]) -> str:
     """'; of the ground truth, the same for every row: Unseen share 0.312, Warp floor 0.0123' ('' if none):
     metrics that describe the test data (`metricspec.MetricDef.reference`) are shown once, not ranked."""

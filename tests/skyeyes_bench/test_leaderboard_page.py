@@ -1,10 +1,13 @@
 """The leaderboard page in a real headless browser (scripts/check-leaderboard-page.py): a board
 with measured rows, plots, a strip and the sequence animation loads without console errors, every
 image decodes, the animation has several frames, and every measured row shows its kind and is named
-in the "What each row runs" list under its table.
+in the "What each row runs" list under its table; at 1400 px the current protocol version's table
+comes first, older versions are folded, and each shown table has its legend, fits the viewport with
+its default columns, shows the rest behind a switch and keeps its method column in view (issue 58).
 Slow tier: starts Chromium. Fails (never skips) when CI=true and Chromium is missing."""
 
 import importlib.util
+import json
 import os
 import shutil
 
@@ -90,6 +93,54 @@ def test_page_with_measured_rows_loads_in_chromium(tmp_path, monkeypatch):
     (root / "index.html").write_text((root / "index.html").read_text().replace('class="strip sequence"', 'hidden'))
     problems = mod.check_page(root / "index.html", shot, expect_animation=True)
     assert any("no sequence animation" in p for p in problems)
+    _check_layout(mod, root, shot)
+
+
+def _older_first(page: str) -> str:
+    """`page` with the older versions' tables taken out of their <details> and put first."""
+    first, fold = page.index('<section class="board">'), page.index('<details class="older">')
+    inner, end = page.index("</summary>", fold) + len("</summary>"), page.index("</details>\n<p>No measured", fold)
+    return page[:first] + page[inner:end] + page[first:fold] + page[end + len("</details>"):]
+
+
+def _check_layout(mod, root, shot):
+    """Issue 58: the page reads at a glance at 1400 px, and each of those checks can fail."""
+    d = json.loads((root / "results" / "blurry.json").read_text())
+    d["protocol"]["ref"] = "evaltest@2"  # as if scored again with a newer version of the protocol
+    (root / "results" / "blurry-v2.json").write_text(json.dumps(d))
+    run_cli("leaderboard", "--root", str(root))
+    index = root / "index.html"
+    page = index.read_text()
+    assert page.index('data-protocol="evaltest@2"') < page.index('<details class="older">') < page.index(
+        'data-protocol="evaltest@1"')
+    assert mod.check_page(index, shot, expect_measured=True, expect_animation=True) == []
+    where = f"{index}: measured table evaltest@2"
+    broken = {  # page -> the problems the check must report
+        page.replace("position: sticky; left: 0;", "left: 0;"): [
+            f"{where}: the method column is not sticky at left 0 with a background (position static, left 0px, "
+            f"background rgb(255, 255, 255))"],
+        page.replace('<p class="legend">', "<p>"): [
+            f"{where} has no legend line above it (.legend) on one-sided intervals"],
+        page.replace('<details class="older">', '<details class="older" open>'): [
+            f"{index}: measured table evaltest@1 of an older protocol version (evaltest@1) is shown; expected it "
+            f"folded (<details>)"],
+        _older_first(page): [
+            f"{index}: the first table on the page is evaltest@1, not the current version evaltest@2",
+            f"{index}: measured table evaltest@1 of an older protocol version (evaltest@1) is shown; expected it "
+            f"folded (<details>)"],
+    }
+    for text, want in broken.items():
+        index.write_text(text)
+        assert mod.check_page(index, shot) == want
+    # wider than the viewport with the default columns; hidden columns without the switch
+    index.write_text(page.replace('data-key="evaltest@2"', 'data-key="evaltest@2" style="min-width: 3000px"'))
+    (problem,) = mod.check_page(index, shot)
+    assert problem.startswith(f"{where}: its default columns do not fit a 1400 px viewport (table 3000 px in ")
+    index.write_text(page.replace(".allcols:not(:checked) ~ .wide .extra", ".extra").replace('class="allcols"', ""))
+    (problem,) = mod.check_page(index, shot)
+    assert problem.startswith(f"{where}: ") and problem.endswith(' hidden columns and no "all columns" switch '
+                                                                 '(input.allcols)')
+    index.write_text(page)
 
 
 def test_committed_page_loads_in_chromium(tmp_path):

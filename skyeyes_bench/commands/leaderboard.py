@@ -54,6 +54,9 @@ def register(sub) -> None:
                    "the cluster runs at once)")
     e.add_argument("--device", default="cpu", metavar="DEV", help="where the feature extractors run, as `evaluate "
                    "--device` (default: cpu, the reference)")
+    e.add_argument("--allow-missing", action="store_true", help="file results with a metric the protocol requires "
+                   "reported unavailable (its weights missing here); without it such a submission is one line and "
+                   "skipped, as `evaluate` without --allow-missing refuses it")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(run=run)
 
@@ -123,7 +126,8 @@ def _evaluate(args) -> int:
 
         require_ray()  # before any work: without Ray, one line that says how to install it
     lines, rc = intake(folders[0], root=_root(args.ev_root or args.root), out=args.ev_out, data=args.data, ray=ray,
-                       shards=args.shards, device=args.device, progress=not args.quiet)
+                       shards=args.shards, device=args.device, progress=not args.quiet,
+                       allow_missing=args.allow_missing)
     for line in lines:
         print(line, file=sys.stderr if ": error: " in line else sys.stdout)
     return rc

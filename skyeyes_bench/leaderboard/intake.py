@@ -83,8 +83,10 @@ def default_out(inbox: Path) -> Path:
 
 
 def intake(inbox, *, root, out=None, data: str | None = None, ray: str | None = None, shards: int | None = None,
-           device: str | None = "cpu", progress: bool = True) -> tuple[list[str], int]:
+           device: str | None = "cpu", progress: bool = True, allow_missing: bool = False) -> tuple[list[str], int]:
     """Score, file and publish every new or changed submission of `inbox` (module docstring).
+    allow_missing: False (the board's rule): a submission whose protocol requires a metric that
+    cannot be computed here is one line and skipped, not filed with that metric unavailable.
     Returns (the lines to print, the exit code: 0, or 2 / 1 when a submission was skipped)."""
     from ..batch import combined_exit
     from . import write
@@ -100,7 +102,7 @@ def intake(inbox, *, root, out=None, data: str | None = None, ray: str | None = 
         state = _read_state(out / STATE_FILE)
         lines, todo, codes = _pending(folders, state, root)
         codes += _score_and_file(todo, state, out, root, lines, data=data, ray=ray, shards=shards, device=device,
-                                 progress=progress)
+                                 progress=progress, allow_missing=allow_missing)
     files = write(root)
     lines.append(f"{root}: leaderboard regenerated ({len(files)} files)")
     return lines, combined_exit(codes)
@@ -126,7 +128,7 @@ def _pending(folders: list[Path], state: dict, root: Path) -> tuple[list[str], l
 
 
 def _score_and_file(todo: list[tuple[Path, str]], state: dict, out: Path, root: Path, lines: list[str], *,
-                    data, ray, shards, device, progress) -> list[int]:
+                    data, ray, shards, device, progress, allow_missing) -> list[int]:
     """Score `todo` into `out`, file each result under its folder's name and record it in the
     state; a line per folder into `lines`. Returns the exit codes of the folders that failed."""
     from ..batch import Job, evaluate_batch
@@ -135,7 +137,7 @@ def _score_and_file(todo: list[tuple[Path, str]], state: dict, out: Path, root: 
     jobs = [Job(f, out / f"{f.name}.results.json", data=data) for f, _ in todo]
     codes = []
     for (f, sha), o in zip(todo, evaluate_batch(jobs, ray=ray, shards=shards, device=device, force=True,
-                                                progress=progress)):
+                                                progress=progress, allow_missing=allow_missing)):
         if o.error is None:
             try:
                 add_result(o.job.out, root=root, name=f.name, force=_filed_by_us(root, f.name, o.job.out))

@@ -50,8 +50,22 @@ def _board(tmp_path, made):
 
 
 def _intake(data, root, inbox, *extra, check=2):
+    # the test protocol's LPIPS, FID and FVD weights are not in the test's cache: scored without them
     return run_cli("leaderboard", "evaluate", str(inbox), "--root", str(root), "--data", str(data), "--quiet",
-                   *extra, check=check)
+                   "--allow-missing", *extra, check=check)
+
+
+def test_without_allow_missing_an_incomplete_score_is_one_line_and_not_filed(made, tmp_path):
+    """The board files complete scores only: where the protocol's weights are missing, each
+    submission is one line naming it and the missing metrics, nothing is filed, exit 2."""
+    data, root, inbox = _board(tmp_path, made)
+    shutil.rmtree(inbox / "broken")
+    rc, out, err = run_cli("leaderboard", "evaluate", str(inbox), "--root", str(root), "--data", str(data),
+                           "--quiet", check=2)
+    lines = err.strip().splitlines()
+    assert sorted(ln.split(":")[0] for ln in lines) == ["blurry", "sharp"], err
+    assert all("cannot be computed here" in ln and "--allow-missing" in ln for ln in lines), err
+    assert not (root / "results").exists() or not list((root / "results").iterdir())
 
 
 def _assert_two_rows_and_one_error(root, inbox, out, err):

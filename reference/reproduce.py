@@ -13,6 +13,10 @@ submission/            the submission (SubmissionWriter)
 results.json           evaluate(...) of the submission
 ```
 
+With several seeds (`run_seeds`, `reproduce --seeds N`) each seed s is such a folder,
+`seed-<s>/`, and `results.json` beside them is the first seed's results with a `seeds` block
+(every seed's headline values and their spread; `skyeyes_bench.seeds`).
+
 An --out belongs to one run, the one its config.json records: the same run (same cache key)
 resumes there; any other run is refused (`check_out`) unless --force, which replaces its outputs.
 """
@@ -164,7 +168,6 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     methods, else 1). ray: None, or scene fits and scoring as Ray tasks at this address ("": a local
     Ray; `_on_ray`). Neither changes the results. split: "test", or "val": the run fits, renders and
     scores the validation split (`splits.scored_view`; without `data`, the preset's validation data)."""
-    from reference.methods import get_method_class
     from reference.parallel import default_jobs
     from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import format_summary
@@ -172,12 +175,9 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
 
     _check_options(jobs, ray)
     check_split(split)
-    cls = get_method_class(method)
-    config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}{'-val' if split == 'val' else ''}"
+    cls, config, overrides = _early_check(method, preset, overrides, device, pretrained, seed, out, force)
     config_d = dataclasses.asdict(config)
-    check_out(out, {"method": method, "method_version": cls.version, "seed": seed, "config": config_d},
-              force=force)  # before the dataset is generated
     if data is None:  # 1. Data
         from skyeyes_bench.data.synthtown import ensure_dataset
 
@@ -248,6 +248,79 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         for h in handlers:
             lg.removeHandler(h)
             h.close()
+
+
+def _early_check(method: str, preset: str, overrides: list[str] | None, device: str | None, pretrained: str | None,
+                 seed: int, out: Path, force: bool):
+    """The method's class, its resolved config and overrides, once `check_out` has found nothing
+    known so far that makes `out` another run's (before the dataset is generated)."""
+    from reference.methods import get_method_class
+
+    cls = get_method_class(method)
+    config, overrides = cls.configure(preset, overrides or [], device=device, pretrained=pretrained)
+    check_out(out, {"method": method, "method_version": cls.version, "seed": seed,
+                    "config": dataclasses.asdict(config)}, force=force)
+    return cls, config, overrides
+
+
+def run_seeds(method: str, preset: str = "smoke", seeds: int = 2, *, seed: int = 0, data=None, out=None,
+              overrides: list[str] | None = None, force: bool = False, progress: bool = True,
+              device: str | None = None, pretrained: str | None = None, jobs: int | None = None,
+              ray: str | None = None, split: str = "test") -> dict:
+    """`run` once per seed `seed`, `seed` + 1, ..., `seed` + `seeds` - 1, seed s into `out/seed-<s>/`
+    (each a complete run that resumes like any other), then `out/results.json` and its features
+    sidecar: the first seed's results (frames, replicates and sidecar intact, so `compare` pairs it
+    like any results file) with a `seeds` block (`skyeyes_bench.seeds.seeds_block`): every seed's
+    headline value per metric and their spread. Returns that document ({} in a non-main process of
+    `accelerate launch`). The other arguments are `run`'s; `out` defaults to
+    `outputs/<method>-<preset>[-val]-seeds`."""
+    from skyeyes_bench.results import read_results, write_results
+    from skyeyes_bench.seeds import format_spread, seeds_block
+
+    if seeds < 2:
+        raise UserError(f"--seeds {seeds}: expected 2 or more seeds (a single run takes --seed)")
+    _check_options(jobs, ray)
+    if out is None:
+        out = Path("outputs") / f"{method}-{preset}{'-val' if split == 'val' else ''}-seeds"
+    out = Path(out)
+    ss = list(range(seed, seed + seeds))
+    outputfiles.check_apart(out, data, pretrained, desc="an input of this run (--data, --pretrained)")
+    _check_seeds_out(out, force)
+    for s in ss:  # every seed's folder before any work: another run's is refused now, not after hours
+        _early_check(method, preset, overrides, device, pretrained, s, out / f"seed-{s}", force)
+    docs = []
+    for s in ss:  # 1. each seed: the single-seed run, its own folder, resumed like any other
+        if not run(method, preset, data=data, out=out / f"seed-{s}", seed=s, overrides=overrides, force=force,
+                   progress=progress, device=device, pretrained=pretrained, jobs=jobs, ray=ray, split=split):
+            return {}  # `accelerate launch`: the main process alone scores and aggregates
+        docs.append(read_results(out / f"seed-{s}" / "results.json", features=s == ss[0]))
+    # 2. the first seed's results, its sidecar beside them, and every seed's headline values
+    (doc, features), *_ = docs
+    doc["seeds"] = seeds_block(ss, [f"seed-{s}/results.json" for s in ss], [d for d, _ in docs])
+    _check_seeds_out(out, force)  # again at the point of writing: another run may have written it since
+    with outputfiles.reading(data, pretrained):
+        write_results(out / "results.json", doc, features)
+    print(f"{format_spread(doc['seeds'], method)}\nresults: {out / 'results.json'} (seed {ss[0]}'s results with the "
+          f"seeds block; each seed's in {out}/seed-<s>/)")
+    return doc
+
+
+def _check_seeds_out(out: Path, force: bool) -> None:
+    """Refuse an `out` of a run of several seeds that holds a single run (its config.json: the seeds
+    go into seed-<s>/ folders beside one results.json), or a results.json other than an earlier
+    one of several seeds (that is replaced: it is made from the seed folders) unless `force`."""
+    from skyeyes_bench.results import FEATURES_OUTPUT, RESULTS_OUTPUT, features_path
+
+    if (out / "config.json").is_file():
+        raise UserError(f"{out}: holds a single run (its config.json); a run of several seeds writes seed-<s>/ "
+                        "folders beside one results.json: choose another --out")
+    res = out / "results.json"
+    try:
+        ours = isinstance(inputfiles.read_json(res, allow_nan=True).get("seeds"), dict)
+    except (UserError, AttributeError):  # absent, unreadable or not an object: `check_output` says
+        ours = False
+    outputfiles.check_output(res, force=force or ours, sidecars=[features_path(res)], kind=RESULTS_OUTPUT,
+                             sidecar_kind=FEATURES_OUTPUT)
 
 
 def _render(m, scenes: list, renders: Path, progress: bool) -> tuple[dict, float]:

@@ -14,6 +14,7 @@ from typing import Callable
 from .bayes import hdi, student_t_posterior
 from .metricspec import METRICS, sample_count_warning
 from .registry import load_entry_point
+from .seeds import add_seed_tests
 from .stats import (INTERVAL_METHOD, advantage, advantage_interval, cluster_map, frame_metric_samples,
                     higher_is_better, interval_from_replicates, replicate_counts, replicate_draws,
                     set_metric_bootstrap, set_metric_samples, too_few)
@@ -308,7 +309,9 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     metrics from the stored `replicates` or else the features sidecars). Below MIN_CLUSTERS
     clusters there is no interval and no P(better) ("too few scenes (K=2)"). Per-frame metrics
     also get the Student-t summary of per-cluster differences (`bayes_summary`; its `estimand`
-    says what it describes).
+    says what it describes). When both results carry a `seeds` block (`reproduce --seeds N`),
+    each compared metric also gets Welch's t on the seeds' headline values (`seeds.seed_test`,
+    under `metrics[m]["seeds"]`; `out["seeds"]` names the seeds, or says that only one has them).
 
     `names`: how messages name A and B (`compare` passes the two files).
     `sidecars`: instead of `feats_a`, `feats_b`, a function giving both (each None where absent),
@@ -321,6 +324,7 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     """
     count_note = sample_count_warning([(names[0], a["metrics"]), (names[1], b["metrics"])])
     protocol = _check_comparable(a, b, names, count_note)
+    files = names
     st = protocol.statistics
     steps = emcee_steps or st.emcee_steps
     burn = min(st.emcee_burn, steps // 3) if emcee_steps else st.emcee_burn
@@ -353,6 +357,7 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             _compare_metric(out, name, ma, a, b, features, protocol, st, unit, k, few, counts, order, cl_of_seq,
                             steps, burn)
             bar.update(1)
+    add_seed_tests(out, a, b, files, st.interval)  # runs of several seeds (`reproduce --seeds N`): Welch's t
     return out
 
 

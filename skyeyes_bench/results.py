@@ -143,6 +143,10 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
         fields.integer(f"{path}: field 'shard.count'", shard["count"], "the number of shards", 1, max(n_seq, 1))
         fields.integer(f"{path}: field 'shard.index'", shard["index"], "the shard's number", 0, shard["count"] - 1)
     if not partial:
+        if doc.get("seeds") is not None:  # `reproduce --seeds N`: each seed's headline values
+            from .seeds import check_block
+
+            check_block(str(path), doc["seeds"])
         if not isinstance(doc.get("statistics", {}), dict):
             fields.fail(f"{path}: field 'statistics'", f"expected an object, got {fields.short(doc['statistics'])}")
         for name, m in doc["metrics"].items():

@@ -15,7 +15,9 @@ def register(sub) -> None:
                        "Bayesian Student-t model (emcee) of per-cluster differences giving P(A better) and a "
                        "95% HDI. Below 5 clusters: no interval and no P(better) ('too few scenes'). Set metrics "
                        "use the replicates stored in the results; the .features.npz sidecars are read only for "
-                       "older results without them (absent: those metrics are skipped, and said so). A progress "
+                       "older results without them (absent: those metrics are skipped, and said so). When both "
+                       "files come from runs of several seeds (reproduce --seeds N), each metric also gets Welch's t "
+                       "on the seeds' values: does the difference exceed the spread between seeds? A progress "
                        "bar appears on a terminal when it takes more than 2 s.")
     p.add_argument("a", metavar="A.json", help="results of method A")
     p.add_argument("b", metavar="B.json", help="results of method B")
@@ -54,6 +56,25 @@ def _abd(a: float, b: float, adv: float, higher: bool) -> tuple[str, str, str]:
     return f(a), f(b), f(adv)
 
 
+def _seed_list(seeds: list[int]) -> str:
+    return f"{len(seeds)} seeds ({', '.join(map(str, seeds))})"
+
+
+def _print_seeds(m: dict) -> None:
+    """The seed test of one metric (`seeds.seed_test`) as a line under it, if there is one."""
+    t = m.get("seeds")
+    if t is None:
+        return
+    if t["status"] != "ok":
+        print(f"         seeds: {t['note']}")
+        return
+    lo, hi = t["interval"]
+    df = "" if t["df"] is None else f", df {t['df']:.3g}"
+    print(f"         seeds: A {_fmt(t['a_mean'])} sd {_fmt(t['a_sd'])} (n={t['n_a']}), B {_fmt(t['b_mean'])} sd "
+          f"{_fmt(t['b_sd'])} (n={t['n_b']}); advantage {_fmt(t['advantage'])} se {_fmt(t['se'])}, "
+          f"{int(t['level'] * 100)}% Welch [{_fmt(lo)}, {_fmt(hi)}]{df}: {t['verdict']}")
+
+
 def run(args) -> int:
     from ..api import compare
 
@@ -70,6 +91,12 @@ def run(args) -> int:
           "(A - B for PSNR/SSIM, B - A for LPIPS/FID/KID/FVD/KVD)")
     if res["too_few"]:
         print(f"  {res['too_few']}: no intervals and no P(A better) (they need at least 5 {unit}s)")
+    seeds = res.get("seeds")
+    if seeds is not None:
+        print(f"  seeds: {seeds['note']}" if seeds.get("note") else
+              f"  seeds: A {_seed_list(seeds['a'])}, B {_seed_list(seeds['b'])}; each metric's 'seeds' line: the "
+              f"advantage of the seed means, {int(seeds['level'] * 100)}% Welch t interval, and whether it exceeds "
+              f"the spread between seeds")
     for name, m in res["metrics"].items():
         if m["status"] != "ok":
             print(f"  {name:<6} skipped: {m['note']}")
@@ -79,6 +106,7 @@ def run(args) -> int:
         if m["bootstrap_interval"] is None:
             line += f"interval: {m.get('interval_note') or 'none'}"
             print(line)
+            _print_seeds(m)
             continue
         lo, hi = m["bootstrap_interval"]
         line += f"{int(m['level'] * 100)}% [{_fmt(lo)}, {_fmt(hi)}]  P(A better, resampling) {_fmt(m['p_a_better_bootstrap'])}"
@@ -93,6 +121,7 @@ def run(args) -> int:
         elif bz.get("note"):
             line += f"  ({bz['note']})"
         print(line)
+        _print_seeds(m)
     if any(m.get("bayes", {}).get("fitted") for m in res["metrics"].values()):
         print(f"Student-t mu: the {BAYES_NOTE.format(unit=unit)}")
     return 0

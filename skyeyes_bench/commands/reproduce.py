@@ -27,7 +27,12 @@ def register(sub) -> None:
                    "CitySample a part of the train towns, then left out of training); never ranked")
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: outputs/<method>-<preset>, "
                    "with --split val outputs/<method>-<preset>-val)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0); with --seeds the first seed")
+    p.add_argument("--seeds", type=int, default=None, metavar="N",
+                   help="run the method N >= 2 times, with seeds --seed, --seed + 1, ..., each into --out/seed-<s>/ "
+                        "(a complete run that resumes like any other), then write --out/results.json: the first "
+                        "seed's results with a 'seeds' block of every seed's values and their spread, which "
+                        "compare tests against another such file (default --out: outputs/<method>-<preset>-seeds)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config field of the preset (repeatable), e.g. --set iterations=200")
     p.add_argument("--device", default=None, metavar="DEV",
@@ -60,7 +65,11 @@ def run(args) -> int:
     from reference import reproduce
     from skyeyes_bench.batch import ray_address
 
-    reproduce.run(args.method, args.preset, data=args.data, out=args.out, seed=args.seed, overrides=args.overrides,
-                  force=args.force, progress=not args.quiet and sys.stderr.isatty(), device=args.device,
-                  pretrained=args.pretrained, jobs=args.jobs, ray=ray_address(args.ray, []), split=args.split)
+    kw = dict(data=args.data, out=args.out, seed=args.seed, overrides=args.overrides, force=args.force,
+              progress=not args.quiet and sys.stderr.isatty(), device=args.device, pretrained=args.pretrained,
+              jobs=args.jobs, ray=ray_address(args.ray, []), split=args.split)
+    if args.seeds is not None:  # several seeds: `run` once per seed, then their spread
+        reproduce.run_seeds(args.method, args.preset, args.seeds, **kw)
+    else:
+        reproduce.run(args.method, args.preset, **kw)
     return 0

@@ -1,0 +1,157 @@
+"""Several seeds of one method (`reproduce --seeds N`): the `seeds` block of a results file, its
+check when the file is read, and `compare`'s seed test.
+
+The board's intervals resample scenes: they say how much a value depends on which scenes were
+drawn, not on how a network happened to train. A run of N seeds keeps each seed's headline value
+per metric; two such runs are compared by Welch's t on those values (unequal variances, the
+Welch-Satterthwaite degrees of freedom), a test of the seed means that says whether their
+difference exceeds the spread between seeds. Pure functions on results documents; the command
+(`reference.reproduce.run_seeds`) writes and reads the files.
+
+Block (`results.json["seeds"]`):
+
+```
+{"seeds": [0, 1, 2], "results": ["seed-0/results.json", ...],   # beside this file
+ "metrics": {name: {"values": [v_0, v_1, v_2], "mean", "sd", "min", "max"}}}
+```
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+
+import numpy as np
+
+from . import fields
+from .stats import advantage, higher_is_better
+
+#: What the seed test reports (in compare's JSON beside its numbers).
+SEED_TEST = ("difference of the seed means of each metric's headline value (advantage of A: > 0 means A is better), "
+             "its standard error sqrt(sd_A^2/n_A + sd_B^2/n_B) and a Welch t interval (Welch-Satterthwaite degrees "
+             "of freedom); 'exceeds the seed spread' when the interval excludes 0. It describes how the networks "
+             "happened to train, not which scenes were drawn (the resampling interval above)")
+EXCEEDS, WITHIN = "exceeds the seed spread", "within the seed spread"
+
+
+def spread(values: list[float]) -> dict:
+    """{"values", "mean", "sd" (sample sd, ddof=1), "min", "max"} of one metric's per-seed values
+    [N >= 2]. A non-finite value (PSNR +inf of an exact seed) leaves no spread: sd null, and the
+    mean is the infinity (null if undefined)."""
+    assert len(values) >= 2, values
+    v = [float(x) for x in values]
+    if all(map(math.isfinite, v)):
+        mean, sd = statistics.fmean(v), statistics.stdev(v)
+    else:
+        mean, sd = float(np.mean(v)), None
+        mean = None if math.isnan(mean) else mean
+    return {"values": v, "mean": mean, "sd": sd, "min": min(v), "max": max(v)}
+
+
+def seeds_block(seeds: list[int], results: list[str], docs: list[dict]) -> dict:
+    """The `seeds` block of N >= 2 runs: `seeds` [N], `results` [N] (their results files, relative
+    to the file the block goes into), `docs` [N] (their results); a metric enters when it has
+    status ok in every seed, with its headline `value` from each."""
+    assert len(seeds) == len(results) == len(docs) >= 2, (seeds, results)
+    names = [n for n in docs[0]["metrics"] if all(d["metrics"].get(n, {}).get("status") == "ok" for d in docs)]
+    return {"seeds": list(seeds), "results": list(results),
+            "metrics": {n: spread([d["metrics"][n]["value"] for d in docs]) for n in names}}
+
+
+def format_spread(block: dict, method: str | None = None) -> str:
+    """The per-seed spread of a `seeds` block, one line per metric, for a terminal."""
+    def g(v):
+        return "n/a" if v is None else f"{v:.4g}"
+
+    seeds = ", ".join(map(str, block["seeds"]))
+    lines = [f"seeds {seeds}{f' of {method}' if method else ''}: each metric's value over the "
+             f"{len(block['seeds'])} seeds (mean, sample sd, min..max; the intervals above resample scenes, "
+             f"this is how the training happened to go)"]
+    for name, m in block["metrics"].items():
+        lines.append(f"  {name:<8} mean {g(m['mean'])}  sd {g(m['sd'])}  {g(m['min'])}..{g(m['max'])}  "
+                     f"[{', '.join(map(g, m['values']))}]")
+    return "\n".join(lines)
+
+
+def check_block(where: str, block) -> None:
+    """Raise a one-line UserError at the first field of a results file's `seeds` block (`where`:
+    the file) that this version cannot use."""
+    fields.conform(where, block, {"seeds": [int], "results": [str], "metrics": {str: {"values": [fields.Number]}}},
+                   "seeds")
+    n = len(block["seeds"])
+    if n < 2:
+        fields.fail(f"{where}: field 'seeds.seeds'", f"expected 2 or more seeds, got {n}")
+    if len(set(block["seeds"])) != n:
+        fields.fail(f"{where}: field 'seeds.seeds'", f"expected distinct seeds, got {fields.short(block['seeds'])}")
+    if len(block["results"]) != n:
+        fields.fail(f"{where}: field 'seeds.results'", f"expected {n} results files (one per seed), got "
+                    f"{len(block['results'])}")
+    for i, rel in enumerate(block["results"]):  # a path a reader may open: it stays beside the file
+        fields.rel_path(f"{where}: field 'seeds.results[{i}]'", rel, "a seed's results file, relative to this one")
+    for name, m in block["metrics"].items():
+        shown = name if name.isprintable() and len(name) <= 40 else fields.short(name, 40)  # one line
+        at = f"{where}: field 'seeds.metrics.{shown}"
+        if len(m["values"]) != n:
+            fields.fail(at + ".values'", f"expected {n} values (one per seed), got {len(m['values'])}")
+        for key in ("mean", "sd", "min", "max"):
+            fields.conform(where, m.get(key), fields.Optional(fields.Number), f"seeds.metrics.{shown}.{key}")
+        for j, v in enumerate(m["values"]):
+            if isinstance(v, float) and math.isnan(v):
+                fields.fail(at + f".values[{j}]'", "expected a number, got NaN")
+
+
+def seed_test(va: list[float], vb: list[float], metric: str, level: float) -> dict:
+    """Welch's t on per-seed values va [n_A], vb [n_B] (n >= 2 each) of `metric`: the advantage of
+    A's seed mean (> 0: A better, `stats.advantage`), its standard error, the Welch-Satterthwaite
+    degrees of freedom, the `level` interval and the verdict."""
+    from scipy.stats import t as student_t
+
+    a, b = spread(va), spread(vb)
+    out = {"status": "ok", "n_a": len(va), "n_b": len(vb), "a_mean": a["mean"], "b_mean": b["mean"],
+           "a_sd": a["sd"], "b_sd": b["sd"], "level": level}
+    if a["sd"] is None or b["sd"] is None:
+        return {**out, "status": "skipped", "note": "a seed's value is infinite: no seed spread"}
+    adv = float(advantage(np.array([a["mean"]]), np.array([b["mean"]]), metric)[0])
+    va_n, vb_n = a["sd"] ** 2 / len(va), b["sd"] ** 2 / len(vb)  # squared standard errors of the two means
+    se = math.sqrt(va_n + vb_n)
+    out.update(advantage=adv, se=se, higher_is_better=higher_is_better(metric))
+    if se == 0:  # every seed of A alike, and of B: the difference is exact
+        out.update(df=None, interval=[adv, adv], verdict=EXCEEDS if adv != 0 else WITHIN,
+                   note="no spread between the seeds of either run: the interval is the difference itself")
+        return out
+    den = va_n ** 2 / (len(va) - 1) + vb_n ** 2 / (len(vb) - 1)
+    df = se ** 4 / den if den > 0 else float(len(va) + len(vb) - 2)  # den underflows only for sd ~ 1e-160
+    half = float(student_t.ppf(0.5 + level / 2, df)) * se
+    lo, hi = adv - half, adv + half
+    out.update(df=df, interval=[lo, hi], verdict=EXCEEDS if lo > 0 or hi < 0 else WITHIN)
+    return out
+
+
+def add_seed_tests(out: dict, a: dict, b: dict, names: tuple[str, str], level: float) -> None:
+    """Into the comparison `out` (`comparison.compare_results`) of results `a` and `b`: when both
+    carry a `seeds` block, `out["seeds"]` (both runs' seeds, the test) and per compared metric
+    `out["metrics"][m]["seeds"]` (`seed_test`); when only one does, `out["seeds"]` says so in
+    its `note`; when neither, nothing."""
+    blocks = [d.get("seeds") for d in (a, b)]
+    if blocks == [None, None]:
+        return
+    for name, blk in zip(names, blocks):
+        if blk is not None:
+            check_block(name, blk)
+    out["seeds"] = {"a": blocks[0] and blocks[0]["seeds"], "b": blocks[1] and blocks[1]["seeds"],
+                    "test": SEED_TEST, "level": level}
+    if None in blocks:
+        has, lacks = (("A", "B"), names) if blocks[0] is not None else (("B", "A"), names[::-1])
+        n = len((blocks[0] or blocks[1])["seeds"])
+        out["seeds"]["note"] = (f"only {has[0]} ({lacks[0]}) ran several seeds ({n}); {has[1]} is one run: no "
+                                f"seed test")
+        return
+    ma, mb = blocks[0]["metrics"], blocks[1]["metrics"]
+    for name, r in out["metrics"].items():
+        if r.get("status") != "ok":
+            continue
+        if name not in ma or name not in mb:
+            r["seeds"] = {"status": "skipped", "note": f"{name} not scored in every seed of "
+                          f"{'A' if name not in ma else 'B'}"}
+            continue
+        r["seeds"] = seed_test(ma[name]["values"], mb[name]["values"], name, level)

@@ -58,14 +58,21 @@ def fmt(m: str, v: float | None, decimals: int | None = None) -> str:
 
 
 def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str]:
-    """(`value`, `[lower, upper]` or `(why no interval)` or ''), the reason (input text) through `escape`."""
+    """(`value`, `[lower, upper]` or `(why no interval)` or '', then for a run of several seeds
+    `; N seeds: mean ± sd`), the reason (input text) through `escape`."""
     r = t.rows[i]
     if m in r.intervals:
         lo, hi = r.intervals[m]
-        return fmt(m, r.values.get(m)), f"[{fmt(m, lo)}, {fmt(m, hi)}]"
-    if m in r.no_interval and r.values.get(m) is not None:
-        return fmt(m, r.values.get(m)), f"({escape(r.no_interval[m])})"
-    return fmt(m, r.values.get(m)), ""
+        sub = f"[{fmt(m, lo)}, {fmt(m, hi)}]"
+    elif m in r.no_interval and r.values.get(m) is not None:
+        sub = f"({escape(r.no_interval[m])})"
+    else:
+        sub = ""
+    if m in r.seeds and r.values.get(m) is not None:
+        mean, sd, n = r.seeds[m]
+        spread = f"{n} seeds: {fmt(m, mean)} ± {fmt(m, sd) if sd is not None else 'n/a'}"
+        sub = f"{sub}; {spread}" if sub else spread
+    return fmt(m, r.values.get(m)), sub
 
 
 def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:

@@ -28,6 +28,7 @@ class Row:
     no_interval: dict[str, str] = field(default_factory=dict)  # metric -> why its interval is null
     replicates: dict[str, list] = field(default_factory=dict)  # metric -> R bootstrap replicates (None: undefined)
     centres: dict[str, float] = field(default_factory=dict)  # metric -> its interval's centre (FD∞), where recorded
+    seeds: dict[str, tuple[float, float | None, int]] = field(default_factory=dict)  # metric -> (mean, sd, n seeds)
     statistics: dict = field(default_factory=dict)  # the results' "statistics" (resamples, level, seed)
     sequences: dict[str, dict] = field(default_factory=dict)  # measured: per-sequence values
     run_s: float | None = None  # fit + render seconds
@@ -150,6 +151,12 @@ def measured_row(doc: dict, name: str, metrics: list[str]) -> Row:
             row.replicates[m] = md["replicates"]
         if _number(md.get("interval_centre")) is not None:
             row.centres[m] = float(md["interval_centre"])
+    # a run of several training seeds (`reproduce --seeds N`): the row's values and intervals are
+    # its first seed's; the spread over the seeds is shown beside them
+    block = doc.get("seeds") or {}
+    for m, sm in (block.get("metrics") or {}).items():
+        if m in metrics and _number(sm.get("mean")) is not None:
+            row.seeds[m] = (float(sm["mean"]), _number(sm.get("sd")), len(block.get("seeds") or []))
     return row
 
 

@@ -234,6 +234,31 @@ def test_check_holds_a_row_committed_by_hand_to_what_add_checks(board, tmp_path,
     assert err.count("\n") == 1 and str(bad) in err and f"field {field}" in err, err
 
 
+def test_a_row_of_several_seeds_shows_their_spread(board, tmp_path):
+    """A results file of `reproduce --seeds N` keeps its first seed's value and interval in the
+    cell and adds `N seeds: mean ± sd` (numpy's mean and sample sd of the seed values)."""
+    import numpy as np
+
+    lb = _fresh(board, tmp_path)
+    p = lb / "results" / "blurry.json"
+    doc = json.loads(p.read_text())
+    psnr = doc["metrics"]["psnr"]["value"]
+    vals = [psnr, psnr + 0.31, psnr - 0.12]
+    doc["seeds"] = {"seeds": [0, 1, 2], "results": ["seed-0/results.json", "seed-1/results.json",
+                                                     "seed-2/results.json"],
+                    "metrics": {"psnr": {"values": vals, "mean": float(np.mean(vals)),
+                                         "sd": float(np.std(vals, ddof=1)), "min": min(vals), "max": max(vals)}}}
+    p.write_text(json.dumps(doc))
+    run_cli("leaderboard", "--root", str(lb))
+    want = f"3 seeds: {np.mean(vals):.2f} ± {np.std(vals, ddof=1):.2f}"
+    row = next(ln for ln in (lb / "README.md").read_text().splitlines() if ln.startswith("| blurry |"))
+    assert f"{psnr:.2f} [" in row and want in row, row
+    twin = next(ln for ln in (lb / "README.md").read_text().splitlines() if ln.startswith("| blurry-twin |"))
+    assert "seeds:" not in twin
+    assert want in (lb / "index.html").read_text()
+    run_cli("leaderboard", "--root", str(lb), "--check")
+
+
 def test_choose_frames_is_evenly_spaced_and_from_the_dataset_only():
     # 8 scenes x 2 sequences of 5 frames (listed shuffled): the first sequence of scenes 0, 2, 4, 6, frame 2
     seqs = [f"s{i}/y{q}" for i in range(8) for q in range(2)]

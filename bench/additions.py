@@ -73,7 +73,8 @@ class Prior:
     each screened sequence: what a `SequenceView` needs."""
 
     def __init__(self, args, cfg: dict, scenes_dir: Path | None, scenes):
-        from reference.common.diffusion.conditions import PriorRenders, registry_prior
+        from reference.common.diffusion.conditions import PriorRenders
+        from reference.common.priors import prior_part
 
         c = cfg["config"]
         work = args.workdir / "prior"
@@ -83,7 +84,7 @@ class Prior:
                   "screened scenes first", flush=True)
         elif not (work / "scenes").exists():
             (work / "scenes").symlink_to(scenes_dir.resolve(), target_is_directory=True)
-        self.prior = registry_prior(c["prior_method"], c["prior_preset"], work, cfg["seed"], "cpu")
+        self.prior = prior_part(c["prior_method"], c["prior_preset"], work, cfg["seed"], "cpu")
         self.renders = PriorRenders(lambda: self.prior)
         self.renders.fit_scenes(scenes, progress=False, jobs=1)
         self.prior.fit_scenes(scenes, progress=False)  # resumed from the run's checkpoints

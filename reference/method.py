@@ -129,6 +129,20 @@ def cache_key(method: str, version: str, config: dict, seed: int, data_sha: str,
 # --------------------------------------------------------------------------- the method
 
 
+class SceneGeometry(Protocol):
+    """What a prior offers of a fitted scene's geometry to what conditions on it (the diffusion
+    family's additions), instead of its internals (`reference.common.gaussians.scene_geometry`)."""
+
+    def depth(self, scene: Scene, cam) -> np.ndarray:
+        """Planar depth (m) seen by `cam` (a `skyeyes_bench.cameras.Camera`): float64
+        [cam.height, cam.width], +inf where the scene has nothing."""
+        ...
+
+    def points(self, scene: Scene) -> np.ndarray:
+        """[M, 3] points of the fitted scene (world, m, z up)."""
+        ...
+
+
 class SceneParts(Protocol):
     """A part of a method that fits on many scenes at once, before the method's own per-scene
     fits (`Method.scene_parts`)."""
@@ -357,6 +371,10 @@ class Method(abc.ABC):
     def load_scene_model(self, path: Path) -> Any:
         """Read back what `save_scene_model` wrote; equal to what was saved, bit for bit."""
         raise NotImplementedError
+
+    def has_fitted(self, scene: Scene) -> bool:
+        """Whether `scene` was fitted (or resumed) in this run."""
+        return scene.name in self._scene_models
 
     def scene_model(self, scene: Scene) -> Any:
         """What `fit_scene_model` fitted on (or resumed for) `scene`."""

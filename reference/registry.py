@@ -1,6 +1,7 @@
 """Registry of reference methods: id -> lazy "module:Class" (a `reference.method.Method`; one
-module per method in `reference/methods/`). A method may use another by its id at run time
-(Skyeyes its prior, gvg its geometry), never by importing its module."""
+module per method in `reference/methods/`). No method uses another, by its id or by its module:
+what two methods share is a part of `reference/common` (Skyeyes' prior and the `sugar` row are
+`common.sugar.SuGaRSplatting`; gvg's geometry and the `mvs` row `common.mvs_cloud.MVSCloud`)."""
 
 from __future__ import annotations
 

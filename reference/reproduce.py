@@ -169,34 +169,15 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
     Ray; `_on_ray`). Neither changes the results. split: "test", or "val": the run fits, renders and
     scores the validation split (`splits.scored_view`; without `data`, the preset's validation data)."""
     from reference.parallel import default_jobs
-    from skyeyes_bench.data.layout import open_dataset
     from skyeyes_bench.evaluate import format_summary
-    from skyeyes_bench.splits import check_split, scored_view
+    from skyeyes_bench.splits import check_split
 
     _check_options(jobs, ray)
     check_split(split)
     out = Path(out) if out is not None else Path("outputs") / f"{method}-{preset}{'-val' if split == 'val' else ''}"
     cls, config, overrides = _early_check(method, preset, overrides, device, pretrained, seed, out, force)
     config_d = dataclasses.asdict(config)
-    if data is None:  # 1. Data
-        from skyeyes_bench.data.synthtown import ensure_dataset
-
-        data = ensure_dataset(preset, progress=progress, split=split)
-    root = Path(data)
-    ds = open_dataset(root)
-    if split == "val":  # the validation scenes as its test split (`scored_view`); the protocol says where they are
-        from skyeyes_bench.protocol import current_for_data, load_protocol
-
-        ds = scored_view(ds, split, load_protocol(current_for_data(ds.protocol)))
-    dsha, csha = dataset_sha(root, ds), code_sha(cls)
-    if split != "test":  # a run on another split of the same dataset is another run
-        dsha = json_sha([dsha, split])
-    key = cache_key(method, cls.version, config_d, seed, dsha, csha)
-    record = {"method": method, "method_version": cls.version, "preset": preset, "overrides": overrides, "seed": seed,
-              "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name, "split": split,
-              "manifest_sha256": dsha}, "code_sha256": csha, "repeat": f"skyeyes-bench reproduce --method {method} "
-              f"--preset {preset} --seed {seed} --data {root} " + (f"--split {split} " if split != "test" else "")
-              + " ".join(f"--set {o}" for o in overrides)}
+    root, ds, key, record = _run_record(method, preset, cls, config_d, seed, overrides, data, split, progress)
     check_out(out, record, force=force)  # before anything is written to --out
     # --out is apart from what the run reads; every write below checks again (`outputfiles.reading`)
     inputs = (root, config_d.get("pretrained"))
@@ -248,6 +229,35 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
         for h in handlers:
             lg.removeHandler(h)
             h.close()
+
+
+def _run_record(method: str, preset: str, cls, config_d: dict, seed: int, overrides: list[str], data, split: str,
+                progress: bool):
+    """The run's dataset (generated when `data` is None; with split "val" its validation scenes as
+    the test split), its cache key and config.json's record: (root, dataset, key, record)."""
+    from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.splits import scored_view
+
+    if data is None:  # 1. Data
+        from skyeyes_bench.data.synthtown import ensure_dataset
+
+        data = ensure_dataset(preset, progress=progress, split=split)
+    root = Path(data)
+    ds = open_dataset(root)
+    if split == "val":  # the validation scenes as its test split (`scored_view`); the protocol says where they are
+        from skyeyes_bench.protocol import current_for_data, load_protocol
+
+        ds = scored_view(ds, split, load_protocol(current_for_data(ds.protocol)))
+    dsha, csha = dataset_sha(root, ds), code_sha(cls)
+    if split != "test":  # a run on another split of the same dataset is another run
+        dsha = json_sha([dsha, split])
+    key = cache_key(method, cls.version, config_d, seed, dsha, csha)
+    record = {"method": method, "method_version": cls.version, "preset": preset, "overrides": overrides, "seed": seed,
+              "config": config_d, "cache_key": key, "dataset": {"root": str(root), "name": ds.name, "split": split,
+              "manifest_sha256": dsha}, "code_sha256": csha, "repeat": f"skyeyes-bench reproduce --method {method} "
+              f"--preset {preset} --seed {seed} --data {root} " + (f"--split {split} " if split != "test" else "")
+              + " ".join(f"--set {o}" for o in overrides)}
+    return root, ds, key, record
 
 
 def _early_check(method: str, preset: str, overrides: list[str] | None, device: str | None, pretrained: str | None,

@@ -10,8 +10,8 @@ every render; it changes colours only, never where things are.
   (render, ground truth) pixel pairs where the render covers the pixel.
 - `Backgrounds`: the colour of uncovered pixels above and below the horizon, the mean ground
   truth colour there on the train lanes (`sky_colour`: from a lane's aerial views, without them).
-- `Appearance`: both, as a reconstruction method holds them (`learn_appearance`: learned from the
-  `mvs` method's reconstructions of train lanes, as `gaussians3d`, `sugar` and `nerf` do).
+- `Appearance`: both, as a reconstruction method holds them (`reference.common.mvs_cloud.learn_appearance`:
+  learned from the fused MVS clouds of train lanes, as `gaussians3d`, `sugar` and `nerf` do).
 """
 
 from __future__ import annotations
@@ -164,23 +164,3 @@ class Appearance:
         backgrounds (`background`; already ground-view colours)."""
         a = alpha[..., None]
         return (self.colour_map(colour) * a + self.background(scene).image(cam) * (1 - a)).astype(np.float32)
-
-
-def learn_appearance(owner, dataset) -> Appearance:
-    """The appearance `owner` (a `Method` whose config is a `SceneConfig` with an `mvs_preset`)
-    learns on the train split: the `mvs` method's (found by its id in the registry) at that
-    stereo preset in owner's region, fitted on `train_lanes` lanes in `<workdir>/appearance`, its
-    fits there reused. The seconds it took from caches count in `owner.cached_s`."""
-    from reference.registry import get_method_class
-
-    cfg = owner.config
-    if cfg.train_lanes <= 0:
-        return Appearance()
-    mvs = get_method_class("mvs").from_preset(cfg.mvs_preset, owner.workdir / "appearance", seed=owner.seed,
-                                              progress=owner.progress, train_lanes=cfg.train_lanes,
-                                              device=owner.device, margin_m=cfg.margin_m, z_min=cfg.z_min,
-                                              z_max=cfg.z_max)
-    mvs.jobs = owner.jobs
-    mvs.fit_train(dataset)
-    owner.took_from_cache(mvs.cached_s)
-    return mvs.appearance

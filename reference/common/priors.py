@@ -1,6 +1,10 @@
-"""The per-frame conditions of the diffusion methods: another method's renders of every ground
-pose (Skyeyes' Gaussian prior), cached by content hash; or the nearest aerial view (the
-ControlNet baseline).
+"""The per-frame conditions of the diffusion methods: a prior's renders of every ground pose
+(Skyeyes' Gaussian prior), cached by content hash; or the nearest aerial view (the ControlNet
+baseline).
+
+A prior is a part of `reference/common` (`PRIOR_PARTS`), named by the diffusion config's
+`prior_method`: the same parts the `sugar`, `gaussians3d` and `mvs` rows are made of, never a
+method looked up by its id.
 """
 
 from __future__ import annotations
@@ -17,6 +21,28 @@ from skyeyes_bench.paths import cache_dir
 
 if TYPE_CHECKING:
     from reference.method import Method
+
+#: The priors a diffusion method may condition on, by the name its config gives (`prior_method`):
+#: "module:Class" of a part (a `Method` of `reference/common`), loaded when first used.
+PRIOR_PARTS: dict[str, str] = {
+    "sugar": "reference.common.sugar:SuGaRSplatting",
+    "gaussians3d": "reference.common.splatting:GaussianSplatting",
+    "mvs": "reference.common.mvs_cloud:MVSCloud",
+}
+#: The priors made of Gaussians, whose depth and means the additions read (`additions.view`).
+GAUSSIAN_PRIORS = ("sugar", "gaussians3d")
+
+
+def prior_part(name: str, preset: str, workdir, seed: int, device: str | None = None, **values) -> "Method":
+    """The prior `name` of `PRIOR_PARTS` at `preset` (config fields in `values` replaced), on
+    `device` when its config has one; a name not there is a one-line UserError listing them."""
+    from reference.method import has_field
+    from skyeyes_bench.registry import load_entry_point, lookup
+
+    cls = load_entry_point(lookup(PRIOR_PARTS, name, "prior"))
+    extra = {"device": device} if device is not None and has_field(cls.presets[preset], "device") else {}
+    return cls.from_preset(preset, workdir, seed=seed, **values, **extra)
+
 
 #: Key of a prior cache entry holding the seconds it cost (frame keys are relative file paths).
 _SECONDS = "_seconds"

@@ -25,11 +25,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from reference.common.appearance import Appearance, learn_appearance
+from reference.common.appearance import Appearance
 from reference.common.gaussians import rasterize
 from reference.common.gaussians.model import GaussianModel
+from reference.common.gaussians.scene_geometry import GaussianGeometry
 from reference.common.gaussians.train import TrainConfig, View, train
 from reference.common.geometry import region, sfm, splat
+from reference.common.mvs_cloud import learn_appearance
 from reference.common.mvs_start import start_cloud
 from reference.common.scene import FitConfig, held_out, region_box
 from reference.method import Method
@@ -95,11 +97,16 @@ def frame_view(frame: Frame, *, with_image: bool = True, device: str | torch.dev
                 torch.tensor(cam.K, dtype=torch.float32, device=device), name=frame.file)
 
 
-class GaussianSplatting(Method):
+class GaussianSplatting(GaussianGeometry, Method):
     """Gaussians fitted on a lane's aerial views from the MVS start, rendered from its ground
-    cameras through the learned appearance; a member adds its training loss (`regularizer`)."""
+    cameras through the learned appearance; a member adds its training loss (`regularizer`).
+    Without one it is vanilla 3DGS, the `gaussians3d` row and a prior a diffusion method may
+    condition on (`reference.common.priors.PRIOR_PARTS`), offering its scene's geometry
+    (`GaussianGeometry`: depth, points)."""
 
+    name = "gaussians3d"
     version = "0.1"
+    presets = PRESETS
     scene_checkpoint = "model.pt"
 
     def __init__(self, config: Gaussians3DConfig, workdir, **kw):
@@ -113,7 +120,7 @@ class GaussianSplatting(Method):
 
     # ---------------------------------------------------------------- appearance (train split)
     def fit_train(self, dataset) -> None:
-        """The colour map and backgrounds, learned as `mvs` learns them (`learn_appearance`)."""
+        """The colour map and backgrounds, learned from the fused MVS clouds of train lanes (`learn_appearance`)."""
         self.appearance = learn_appearance(self, dataset)
 
     # ---------------------------------------------------------------- fitting (a scene)

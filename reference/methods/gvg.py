@@ -14,7 +14,7 @@ Here, per ground frame, the condition is [colour, depth, mask] concatenated to t
 input (`CoreConfig.cond_extra = 2`):
 
 * colour: the aerial texture projected into the ground camera through the reconstructed geometry,
-  i.e. the `mvs` method's render of its fused cloud (dense stereo of the lane's aerial views,
+  i.e. the fused MVS cloud's render (the part `mvs` is made of: dense stereo of the lane's aerial views,
   each point a disc, `reference.common.geometry.splat`) in the aerial views' own colours, over
   the lane's own background colours where no disc projects (`train_lanes=0`: nothing learned
   from other lanes, as a prior should be);
@@ -38,8 +38,8 @@ presets, where GVG fine-tunes SD (with `--pretrained` the SD1.5 UNet's conv_in i
 the condition instead, `core.widen_conv_in`).
 
 The method is the diffusion pipeline (`reference.common.diffusion.pipeline`) with this
-condition: the `mvs` method (from the registry, rendering its geometry: `MVS(geometry=True)`)
-as the prior, its renders encoded by `condition_channels`.
+condition: the fused MVS cloud (`reference.common.mvs_cloud.MVSCloud(geometry=True)`, the
+part the `mvs` row is made of) as the prior, its renders encoded by `condition_channels`.
 """
 
 from __future__ import annotations
@@ -54,11 +54,12 @@ from reference.common.diffusion.conditions import PriorRenders
 from reference.common.diffusion.config import WHOLE_UNET_LR, DiffusionConfig
 from reference.common.diffusion.pipeline import DiffusionMethod
 from reference.common.diffusion.presets import baseline_presets
+from reference.common.mvs_cloud import MVSCloud
 from reference.method import Method
 
 def condition_channels(raw: np.ndarray, depth_ref_m: float) -> np.ndarray:
-    """A geometry render of the `mvs` method [H, W, 5] (colour, depth m, alpha:
-    `reference.methods.mvs.geometry_render`) -> the condition [H, W, 5] in [0, 1]:
+    """A geometry render of the fused MVS cloud [H, W, 5] (colour, depth m, alpha:
+    `reference.common.mvs_cloud.geometry_render`) -> the condition [H, W, 5] in [0, 1]:
     colour, inverse depth min(depth_ref_m / depth, 1) where the mask is 1 (0 elsewhere), and the
     mask alpha > 0.5."""
     assert raw.ndim == 3 and raw.shape[-1] == 5, raw.shape  # r, g, b, depth_m, alpha
@@ -81,7 +82,7 @@ def gvg_config(base: DiffusionConfig, mvs_preset: str) -> GVGConfig:
     concatenated (also at `paper`, where Skyeyes has a ControlNet branch) with the depth and mask
     channels, the `mvs` geometry of `mvs_preset` as the prior, frame by frame."""
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(DiffusionConfig)}
-    fields.update(core=dataclasses.replace(base.core, conditioning="concat", cond_extra=2), prior_method="mvs", prior_preset=mvs_preset,
+    fields.update(core=dataclasses.replace(base.core, conditioning="concat", cond_extra=2), prior_method=MVSCloud.name, prior_preset=mvs_preset,
                   condition="prior", vcm=False,
                   pretrained_acm_lr=WHOLE_UNET_LR)
     return GVGConfig(**fields)
@@ -100,19 +101,17 @@ class GVG(DiffusionMethod):
 
     def __init__(self, config: GVGConfig, workdir, **kw):
         super().__init__(config, workdir, **kw)
-        if self.config.prior_method != "mvs":
-            raise ValueError(f"gvg prior_method {self.config.prior_method!r}: its geometry comes from 'mvs'")
+        if self.config.prior_method != MVSCloud.name:
+            raise ValueError(f"gvg prior_method {self.config.prior_method!r}: its geometry is the fused MVS cloud's "
+                             f"({MVSCloud.name!r})")
         if self.config.core.cond_extra != 2:
             raise ValueError("gvg: the condition has 2 extra channels (depth, mask): core.cond_extra=2")
 
     def make_prior(self) -> Method:
-        """The `mvs` method of `prior_preset` rendering its geometry, with no appearance learned
-        on other lanes (a prior sees its own lane only)."""
-        from reference.registry import get_method_class
-
-        mvs = get_method_class("mvs")
-        config, _ = mvs.configure(self.config.prior_preset, values={"train_lanes": 0, "device": self.device})
-        return mvs(config, self.workdir / "prior", seed=self.seed, progress=self.progress, geometry=True)
+        """The fused MVS cloud (`MVSCloud`) of `prior_preset` rendering its geometry, with no
+        appearance learned on other lanes (a prior sees its own lane only)."""
+        config, _ = MVSCloud.configure(self.config.prior_preset, values={"train_lanes": 0, "device": self.device})
+        return MVSCloud(config, self.workdir / "prior", seed=self.seed, progress=self.progress, geometry=True)
 
     def condition_label(self) -> str:
         return "condition: the mvs cloud's projected aerial texture, inverse depth and coverage mask"

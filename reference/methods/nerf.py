@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from reference.common.appearance import Appearance, learn_appearance
+from reference.common.appearance import Appearance
+from reference.common.mvs_cloud import learn_appearance
 from reference.common.geometry import splat
 from reference.common.mvs_start import start_cloud
 from reference.common.nerf import BakedField, Model, NeRFConfig, NeRFField, OccupancyGrid, SceneBox, bake_field
@@ -110,7 +111,7 @@ PRESETS = {
 
 class NeRF(Method):
     """The field on the aerial views; the appearance learned on the train split as `gaussians3d`'s
-    (`reference.common.appearance.learn_appearance`)."""
+    (`reference.common.mvs_cloud.learn_appearance`)."""
 
     name = "nerf"
     version = "0.1"
@@ -126,7 +127,7 @@ class NeRF(Method):
         self.appearance = Appearance()
 
     def fit_train(self, dataset) -> None:
-        """The colour map and backgrounds, learned as `mvs` learns them (`learn_appearance`)."""
+        """The colour map and backgrounds, learned from the fused MVS clouds of train lanes (`learn_appearance`)."""
         self.appearance = learn_appearance(self, dataset)
 
     def _box(self, scene: Scene) -> SceneBox:

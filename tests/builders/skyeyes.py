@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reference.common.gaussians.scene_geometry import GaussianGeometry
 from reference.method import Method
 from skyeyes_bench.cameras import Camera
 from skyeyes_bench.data.writer import DatasetWriter
@@ -48,9 +49,9 @@ def render_all(method, dataset) -> dict:
     return out
 
 
-class StandInPrior(Method):
+class StandInPrior(GaussianGeometry, Method):
     """TEST-ONLY stand-in for SuGaR: ground truth, box-blurred and noised, and as its fitted
-    scene a Gaussian prior's model (`warp.prior_depth`, `warp.prior_ground` read it): a grid of
+    scene a Gaussian prior's model (its depth and points, `GaussianGeometry`, read by the additions): a grid of
     grey Gaussians on the street 1.6 m under the ground cameras, nothing above it (the sky).
     Counts its calls."""
 
@@ -62,7 +63,7 @@ class StandInPrior(Method):
     def __init__(self, workdir: Path, seed: int = 0):
         import types
 
-        # what a Gaussian prior's config gives `warp.prior_depth`
+        # what a Gaussian prior's config gives `GaussianGeometry.depth`
         super().__init__(types.SimpleNamespace(sh_degree=0, render_near_m=0.05), workdir, seed=seed)
         self.fitted: list[str] = []
 

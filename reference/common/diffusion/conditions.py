@@ -15,7 +15,6 @@ additions read (`additions`: the street and the sky).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -92,17 +91,5 @@ class PriorFits:
         """Fit the prior on `scenes` it has not fitted; its seconds taken from caches."""
         prior = self.prior()
         before = prior.cached_s
-        prior.fit_scenes([s for s in scenes if s.name not in prior._scene_models])
+        prior.fit_scenes([s for s in scenes if not prior.has_fitted(s)])
         return prior.cached_s - before
-
-
-def registry_prior(method_id: str, preset: str, workdir: Path, seed: int, device: str | None = None,
-                   **values) -> "Method":
-    """The method `method_id` of the registry at `preset` (config fields in `values` replaced), on
-    `device` when its config has one."""
-    from reference.method import has_field
-    from reference.registry import get_method_class
-
-    cls = get_method_class(method_id)
-    extra = {"device": device} if device is not None and has_field(cls.presets[preset], "device") else {}
-    return cls.from_preset(preset, workdir, seed=seed, **values, **extra)

@@ -16,7 +16,8 @@ What a member chooses, in its own module:
 - its presets (the family's budget, `presets`, with its own changes) and config (`DiffusionConfig`
   or an extension of it);
 - the condition part, `make_condition` (`conditions`: a prior's renders, the nearest aerial view;
-  by default what `config.condition` names, with `config.prior_method` from the registry);
+  by default what `config.condition` names, with the prior part `config.prior_method` names:
+  `reference.common.priors.PRIOR_PARTS`);
 - the guidance part, `make_guidance` (`guidance.Unguided`, or IP2P's `ImageTextGuidance`);
 - whether a VCM runs: its config (`vcm`, `clip_frames`);
 - our additions (`additions.AdditionsConfig`: carried noise, prior anchor, street, sky), only
@@ -33,19 +34,15 @@ from typing import TYPE_CHECKING, Any, ClassVar, Iterator
 
 import numpy as np
 
-from reference.common.priors import frame_key
+from reference.common.priors import GAUSSIAN_PRIORS, frame_key, prior_part
 from reference.method import Method
 from skyeyes_bench.data.layout import Dataset, Scene, Sequence
 
 from .additions import Additions, AdditionsConfig, SequenceView
-from .conditions import NearestAerial, PriorFits, PriorRenders, SceneConditions, registry_prior
+from .conditions import NearestAerial, PriorFits, PriorRenders, SceneConditions
 from .config import DiffusionConfig
 from .guidance import Unguided
 from .presets import GPU_TRAINING
-
-#: The priors made of Gaussians, whose depth (`additions.view.prior_depth`) and means the street
-#: and the sky additions read.
-GAUSSIAN_PRIORS = ("sugar", "gaussians3d")
 
 if TYPE_CHECKING:
     import torch
@@ -173,9 +170,10 @@ class DiffusionMethod(Method):
         return PriorRenders(lambda: self.prior)
 
     def make_prior(self) -> Method:
-        """The prior: `config.prior_method` of the registry at `prior_preset`, on this device."""
+        """The prior: the part `config.prior_method` (`priors.PRIOR_PARTS`) at `prior_preset`, on
+        this device."""
         c = self.config
-        return registry_prior(c.prior_method, c.prior_preset, self.workdir / "prior", self.seed, self.device)
+        return prior_part(c.prior_method, c.prior_preset, self.workdir / "prior", self.seed, self.device)
 
     def make_guidance(self) -> Unguided:
         """The guidance part (`guidance.Unguided`: none)."""

@@ -336,6 +336,53 @@ def _train_step(acc, net, opt, params, ema, loss_fn, part: tuple[int, int], *, s
     return loss
 
 
+def _set_lr(opt, lr: float, step: int, anneal_from: int | None, steps: int) -> None:
+    """The rate of `step`: `lr`, decaying linearly from `anneal_from` (None: constant)."""
+    if anneal_from is not None:
+        for group in opt.param_groups:
+            group["lr"] = lr * anneal_factor(step, anneal_from, steps)
+
+
+class _StepLog:
+    """`train_loop`'s bookkeeping of its steps: the progress bar (main process, a terminal), the
+    losses read back from the device in batches (one wait, not one per step), a log line every
+    LOG_EVERY of the steps, and when a checkpoint is due."""
+
+    def __init__(self, acc, losses: list[float], *, start: int, steps: int, desc: str, ckpt_every: int,
+                 t0: float, progress: bool):
+        from tqdm import tqdm
+
+        self.acc, self.losses, self.start, self.steps, self.desc = acc, losses, start, steps, desc
+        self.ckpt_every, self.t0 = ckpt_every, t0
+        self.bar = tqdm(range(start, steps), desc=desc, disable=None if (progress and acc.is_main_process) else True,
+                        leave=False, initial=start, total=steps)
+        if acc.is_main_process and start < steps:
+            log.info("%s: steps %d..%d on %s (mixed precision %s, %d process(es))", desc, start, steps, acc.device,
+                     acc.mixed_precision, acc.num_processes)
+        self.every = max(1, round(steps * LOG_EVERY))
+        self.pending: list[torch.Tensor] = []  # this process's losses not yet read back (a read waits for the device)
+
+    def after(self, loss: torch.Tensor, done: int) -> bool:
+        """Record the step that made `done` steps in all; whether a checkpoint is due."""
+        self.pending.append(self.acc.reduce(loss.detach(), reduction="mean"))
+        shown = not self.bar.disable
+        ckpt_due = done % self.ckpt_every == 0 or done == self.steps
+        if ckpt_due or shown or done % self.every == 0:
+            self.flush()
+            if shown:
+                self.bar.set_postfix(loss=f"{self.losses[-1]:.4f}")
+        if done % self.every == 0 and done < self.steps and self.acc.is_main_process:
+            log.info("%s: %d/%d steps, %.3f s a step, loss %.4f", self.desc, done, self.steps,
+                     (time.perf_counter() - self.t0) / (done - self.start), self.losses[-1])
+        return ckpt_due
+
+    def flush(self) -> None:
+        """Read the pending losses back into `losses`."""
+        if self.pending:
+            self.losses.extend(torch.stack(self.pending).float().cpu().tolist())
+            self.pending.clear()
+
+
 def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
                loss_fn: Callable[..., torch.Tensor], *, steps: int, lr: float,
                seed: int, ckpt: Path, ckpt_every: int = 50, grad_clip: float = 1.0,
@@ -369,8 +416,6 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         plus the checkpoint's, "cpu_seconds": likewise in process CPU time, "resumed_seconds": the
         checkpoint's wall time (work this call reused, not redid), "done": bool}.
     """
-    from tqdm import tqdm
-
     acc = accelerator or make_accelerator("cpu")
     ckpt = Path(ckpt)
     model.to(acc.device)
@@ -394,37 +439,19 @@ def train_loop(model: ControlledUNet, params: list[torch.nn.Parameter],
         acc.wait_for_everyone()
 
     model.train()
-    bar = tqdm(range(start, steps), desc=desc, disable=None if (progress and acc.is_main_process) else True,
-               leave=False, initial=start, total=steps)
-    if acc.is_main_process and start < steps:
-        log.info("%s: steps %d..%d on %s (mixed precision %s, %d process(es))", desc, start, steps, acc.device,
-                 acc.mixed_precision, acc.num_processes)
-    every = max(1, round(steps * LOG_EVERY))
-    pending: list[torch.Tensor] = []  # this process's losses not yet read back (a read waits for the device)
+    log_ = _StepLog(acc, losses, start=start, steps=steps, desc=desc, ckpt_every=ckpt_every, t0=t0,
+                    progress=progress)
     done_now = start
-    for step in bar:
-        if anneal_from is not None:
-            for group in opt.param_groups:
-                group["lr"] = lr * anneal_factor(step, anneal_from, steps)
+    for step in log_.bar:
+        _set_lr(opt, lr, step, anneal_from, steps)
         loss = _train_step(acc, net, opt, params, ema, loss_fn, part, seed=seed, step=step,
                            grad_clip=grad_clip, micro_batches=micro_batches)
-        pending.append(acc.reduce(loss.detach(), reduction="mean"))
         done_now = step + 1
-        shown = not bar.disable
-        ckpt_due = done_now % ckpt_every == 0 or done_now == steps
-        if ckpt_due or shown or done_now % every == 0:
-            losses.extend(torch.stack(pending).float().cpu().tolist())  # one wait, not one per step
-            pending.clear()
-            if shown:
-                bar.set_postfix(loss=f"{losses[-1]:.4f}")
-        if done_now % every == 0 and done_now < steps and acc.is_main_process:
-            log.info("%s: %d/%d steps, %.3f s a step, loss %.4f", desc, done_now, steps,
-                     (time.perf_counter() - t0) / (done_now - start), losses[-1])
-        if ckpt_due:
+        if log_.after(loss, done_now):
             save(done_now)
         if stop_after is not None and done_now - start >= stop_after:
             break
-    losses.extend(torch.stack(pending).float().cpu().tolist() if pending else [])
+    log_.flush()
     wall, proc = time.perf_counter() - t0, time.process_time() - c0
     if acc.is_main_process and done_now > start:
         log.info("%s: %d steps in %.0f s (%.3f s a step)", desc, done_now - start, wall, wall / (done_now - start))

@@ -1,4 +1,4 @@
-"""SuGaR's regularisation (Guedon & Lepetit, CVPR 2024) for `reference.methods.sugar`.
+"""SuGaR's regularisation (Guedon & Lepetit, CVPR 2024) for `reference.common.sugar`.
 
 Two phases after plain 3DGS warm-up:
 

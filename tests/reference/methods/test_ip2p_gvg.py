@@ -211,17 +211,20 @@ def test_gvg_end_to_end_deterministic_in_the_seed(tiny, tmp_path):
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
         assert np.abs(a[k] - d[k]).max() > 1e-3
-    with pytest.raises(ValueError, match="comes from 'mvs'"):
+    with pytest.raises(ValueError, match=r"fused MVS cloud's \('mvs'\)"):
         gvg_mod.GVG(dataclasses.replace(cfg, prior_method="sugar"), tmp_path / "x")
 
 
 def test_gvg_prior_is_the_mvs_geometry_of_its_stereo_preset(tmp_path):
     m = gvg_mod.GVG(gvg_mod.PRESETS["small"], tmp_path / "a")
     prior = m.prior
+    from reference.common.mvs_cloud import MVSCloud
     from reference.methods.mvs import MVS
     from reference.methods.mvs import PRESETS as MVS_PRESETS
 
-    assert isinstance(prior, MVS) and prior.geometry and prior.name == "mvs-geometry"
+    # the shared part, not the `mvs` row (no method instantiates another)
+    assert type(prior) is MVSCloud and not isinstance(prior, MVS)
+    assert prior.geometry and prior.name == "mvs-geometry"
 
     assert prior.config == dataclasses.replace(MVS_PRESETS["fast"], train_lanes=0, device="cpu")
 

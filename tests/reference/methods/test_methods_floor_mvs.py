@@ -99,7 +99,7 @@ def test_mvs_with_an_empty_region_renders_the_background_and_warns(synthtown_smo
     ds = open_dataset(synthtown_smoke)
     scene = ds.split("test")[0]
     m = MVS.from_preset("smoke", tmp_path / "w", z_min=200.0, z_max=201.0, train_lanes=0)
-    with caplog.at_level(logging.WARNING, logger="reference.methods.mvs"):
+    with caplog.at_level(logging.WARNING, logger="reference.common.mvs_cloud"):
         m.fit_scene(scene, progress=False)
     assert any("no point" in r.getMessage() for r in caplog.records)
     seq = next(iter(scene.sequences.values()))

@@ -262,7 +262,7 @@ def test_training_crops_share_one_window_per_row():
 def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     import torch
 
-    from reference.common.diffusion.conditions import registry_prior
+    from reference.common.priors import prior_part
 
     m = Skyeyes(dataclasses.replace(TINY, device="auto"), tmp_path / "a")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -272,9 +272,9 @@ def test_device_auto_and_the_prior_follows_it(monkeypatch, tmp_path):
     assert m.device == "cuda"
     assert Skyeyes(dataclasses.replace(TINY, device="cuda:1"), tmp_path / "b").device == "cuda:1"
     small = PRESETS["small"]
-    prior = registry_prior(small.prior_method, small.prior_preset, tmp_path / "p", 0, "cuda")
+    prior = prior_part(small.prior_method, small.prior_preset, tmp_path / "p", 0, "cuda")
     assert prior.name == "sugar" and prior.config.device == "cuda"
-    assert registry_prior(small.prior_method, small.prior_preset, tmp_path / "q", 0, None).config.device == "cpu"
+    assert prior_part(small.prior_method, small.prior_preset, tmp_path / "q", 0, None).config.device == "cpu"
 
 
 

@@ -1,5 +1,5 @@
 """What an addition may read of one sequence at render time (`SequenceView`): the prior's renders
-of its frames, the frames' cameras, the prior's depth and its Gaussians; and the geometry helpers
+of its frames, the frames' cameras, the prior's depth and its points (`SceneGeometry`); and the geometry helpers
 behind them. Everything here comes from the task's inputs (the aerial views, through the fitted
 prior, and the ground poses), never from the ground truth.
 """
@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-import torch
 
 from skyeyes_bench.cameras import Camera
 
@@ -22,23 +21,11 @@ def scaled_camera(cam: Camera, width: int, height: int) -> Camera:
     return Camera(K, cam.c2w, width, height)
 
 
-@torch.no_grad()
 def prior_depth(prior, scene, frame, width: int, height: int) -> np.ndarray:
-    """The expected planar depth (m) of a Gaussian prior's fitted scene (`sugar`, `gaussians3d`:
-    `scene_model(scene)[0]` is its `GaussianModel`) seen from `frame`'s pose with its intrinsics
-    scaled to width x height: float64 [height, width], +inf where the Gaussians cover less than
-    half the pixel (the sky and the background: a direction, as the warp metric reads it)."""
-    from reference.common.gaussians import rasterize
-
-    model = prior.scene_model(scene)[0]
-    cam = scaled_camera(frame.camera(), width, height)
-    dev = model.means.device
-    out = rasterize(model.means, model.quats, model.scales, model.opacities, model.sh,
-                    torch.tensor(cam.w2c, dtype=torch.float32, device=dev),
-                    torch.tensor(cam.K, dtype=torch.float32, device=dev), width, height,
-                    sh_degree=prior.config.sh_degree, near=prior.config.render_near_m)
-    depth = out["depth"].double().cpu().numpy()
-    return np.where((out["alpha"].cpu().numpy() > 0.5) & (depth > 0), depth, np.inf)
+    """The prior's planar depth (m) of its fitted scene (`reference.method.SceneGeometry.depth`)
+    seen from `frame`'s pose with its intrinsics scaled to width x height: float64 [height, width],
+    +inf where the prior has nothing (the sky and the background)."""
+    return prior.depth(scene, scaled_camera(frame.camera(), width, height))
 
 
 #: Forward-backward consistency of `flow_coords`, pixels at the model's resolution. NOTE: on the
@@ -106,7 +93,7 @@ class SequenceView:
     per size: the prior's renders (`renders`), the frames' cameras (`cameras`), the prior's depth
     (`depths`: a Gaussian prior's), the prior's Gaussians' means (`means`).
 
-    prior: the prior `Method` (its `scene_model(scene)[0]` a `GaussianModel` for depths and means);
+    prior: the prior `Method`, a `reference.method.SceneGeometry` (its depths and points);
     priors: the prior's renders of the sequence's frames, in order (what the ACM is conditioned on)."""
 
     def __init__(self, prior, scene, sequence, priors: list[np.ndarray]):
@@ -132,4 +119,4 @@ class SequenceView:
 
     def means(self) -> np.ndarray:
         """[M, 3] the prior's Gaussians' means (world, m)."""
-        return self._once("means", lambda: self.prior.scene_model(self.scene)[0].means.detach().cpu().numpy())
+        return self._once("means", lambda: self.prior.points(self.scene))

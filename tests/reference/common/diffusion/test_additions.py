@@ -22,6 +22,7 @@ from reference.common.diffusion.additions.sky import sky_fit
 from reference.common.diffusion.additions.street import (DEPTH_TOL, level_street, prior_ground, street_points,
                                                          street_transfer)
 from reference.common.diffusion.additions.view import grid_coords, prior_depth
+from reference.common.gaussians.scene_geometry import GaussianGeometry
 from reference.common.diffusion.config import DiffusionConfig
 from reference.common.gaussians.model import GaussianModel
 from skyeyes_bench.cameras import Camera, intrinsics
@@ -471,12 +472,11 @@ def test_level_street_finds_the_plane_under_the_lane_and_its_tilt(kerb_sides):
 
 def _stand_in_view(means: np.ndarray, cams: list[Camera], monkeypatch, seq_id: str = "lane/seq") -> SequenceView:
     """A `SequenceView` of one sequence whose frames are `cams` (the scene's ground frames too),
-    over a stand-in Gaussian prior whose fitted scene's means are `means` [M, 3] and whose depth is
-    +inf everywhere (nothing in front of the street, the whole upper half sky)."""
+    over a stand-in prior whose scene's points (`SceneGeometry.points`) are `means` [M, 3] and whose
+    depth is +inf everywhere (nothing in front of the street, the whole upper half sky)."""
     frames = [types.SimpleNamespace(camera=lambda c=c: c, height=c.height, width=c.width) for c in cams]
     scene = types.SimpleNamespace(name=seq_id.split("/")[0], ground=frames)
-    model = types.SimpleNamespace(means=torch.tensor(means, dtype=torch.float32))
-    prior = types.SimpleNamespace(scene_model=lambda s: (model,) if s is scene else None)
+    prior = types.SimpleNamespace(points=lambda s: np.asarray(means, np.float32) if s is scene else None)
     monkeypatch.setattr(SequenceView, "depths", lambda self, h, w: [np.full((h, w), np.inf) for _ in self.sequence.frames])
     return SequenceView(prior, scene, types.SimpleNamespace(id=seq_id, frames=frames), [])
 
@@ -637,8 +637,14 @@ def test_prior_depth_of_an_opaque_plane():
     xyz = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 6.0)], -1)  # the upper half of the view
     model = GaussianModel.from_points(xyz, np.full_like(xyz, 0.5), 0, opacity=0.99)
     scene = object()
-    prior = types.SimpleNamespace(scene_model=lambda s: (model,) if s is scene else None,
-                                  config=types.SimpleNamespace(sh_degree=0, render_near_m=0.1))
+
+    class Prior(GaussianGeometry):
+        config = types.SimpleNamespace(sh_degree=0, render_near_m=0.1)
+
+        def scene_model(self, s):
+            return (model,) if s is scene else None
+
+    prior = Prior()
     frame = types.SimpleNamespace(camera=lambda: _cam(size=32, fov=40.0))
     depth = prior_depth(prior, scene, frame, 16, 12)
     assert depth.shape == (12, 16)

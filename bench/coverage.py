@@ -32,15 +32,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from skyeyes_bench import stats  # noqa: E402
+from skyeyes_bench import stats
 
 
 def population_fid(m, lam_g, lam_s) -> float:

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+
 
 def bench_protocol(size: int) -> str:
     """The current SynthTown protocol's text (every metric, its parameters and statistics) with
@@ -63,9 +63,8 @@ def main() -> None:
     if args.child:
         child(*args.child)
         return
-    from builders.evaluation import blurred_submission, make_dataset
-
     from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.synthetic import blurred_submission, make_dataset
 
     tmp = Path(tempfile.mkdtemp(prefix="skyeyes-bench-eval-"))
     try:

@@ -149,7 +149,8 @@ def aerial_sweep_depth(scene, cam, *, depths: np.ndarray = np.geomspace(2.0, 150
     return np.exp(median_filter(np.log(win), size=median_px, mode="nearest"))
 
 
-def main(argv=None) -> None:
+def parse_args(argv):
+    """The screen's options (`screen.screen_parser`) and this benchmark's; -> (args, the ways)."""
     ap = screen.screen_parser(__doc__)
     ap.set_defaults(scenes=1)
     ap.add_argument("--priors", required=True, type=Path, help="folder of the prior's cached renders (<scene>-<key>.npz)")
@@ -165,75 +166,84 @@ def main(argv=None) -> None:
     ways = args.ways.split(",")
     if any(w.startswith("prior-") for w in ways) and args.prior is None:
         ap.error("the prior-depth and prior-ground ways need --prior")
-    _, scenes, seqs = screen.screened(args, "bench/flow_accuracy.py")
-    prior = None
-    if args.prior is not None:
-        from reference.methods.sugar import SuGaR
+    return args, ways
 
-        prior = SuGaR.from_preset(args.preset, args.prior.expanduser(), progress=False)
-    stats: dict[str, dict] = {}
 
-    def add(key: str, uv, ok, gt_uv, gt_ok, depth, seconds: float) -> None:
-        both = ok & gt_ok
-        s = stats.setdefault(key, {"epe": [], "depth": [], "cover": [0, 0], "s": 0.0})
-        s["epe"].append(np.hypot(*(uv[both] - gt_uv[both]).T))
-        s["depth"].append(depth[both])
-        s["cover"][0] += int(both.sum())
-        s["cover"][1] += int(gt_ok.sum())
-        s["s"] += seconds
+def tally(stats: dict, key: str, uv, ok, gt_uv, gt_ok, depth, seconds: float) -> None:
+    """Count way `key`'s target uv [H, W, 2] (valid where `ok`) against the truth's in `stats`: its
+    end-point errors and the truth's depths on the pixels both call valid, its cover, its seconds."""
+    both = ok & gt_ok
+    s = stats.setdefault(key, {"epe": [], "depth": [], "cover": [0, 0], "s": 0.0})
+    s["epe"].append(np.hypot(*(uv[both] - gt_uv[both]).T))
+    s["depth"].append(depth[both])
+    s["cover"][0] += int(both.sum())
+    s["cover"][1] += int(gt_ok.sum())
+    s["s"] += seconds
 
-    print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
-    for scene in scenes:
-        found = sorted(args.priors.expanduser().glob(f"{scene.name}-*.npz"))
-        if not found:
-            raise UserError(f"--priors {args.priors}: no {scene.name}-*.npz (the prior's cached renders of that "
-                            "scene; run `reproduce` of the preset first)")
-        npz = np.load(found[0])
-        if prior is not None:
-            prior.fit_scene(scene)  # resumed from its checkpoint
-            means = prior.scene_model(scene)[0].means.detach().cpu().numpy()
-            zg = prior_ground(means, [f.camera().c2w[2, 3] for f in scene.ground])
-            if zg is None:
-                raise UserError(f"--prior {args.prior}: none of its Gaussians of {scene.name} lie under the ground "
-                                "cameras (no street for the prior-ground way)")
-        mine = [q for s, q in seqs if s is scene]
-        for q in mine:
-            fs = list(q.frames)
-            guides = {"prior": np.stack([npz[f.file].astype(np.float32) / 255 for f in fs])}
-            if args.submission:
-                guides["frames"] = np.stack([read_image(args.submission / scene.name / f.file) for f in fs])
-            flows = {(way, g): flow_coords(imgs, fb_px=args.fb_px, flow=flow_fn(way))
-                     for way in ways if way in FLOWS for g, imgs in guides.items()}
-            depths = {}
-            if "aerial-sweep" in ways:
-                depths["aerial-sweep"] = [aerial_sweep_depth(scene, f.camera()) for f in fs]
-            if prior is not None:
-                h, w = fs[0].height, fs[0].width
-                depths["prior-depth"] = [prior_depth(prior, scene, f, w, h) for f in fs]
-                depths["prior-ground"] = [ground_filled(d, f.camera(), zg) for d, f in zip(depths["prior-depth"], fs)]
-            for k in range(1, len(fs)):
-                a, b = fs[k - 1], fs[k]
-                gt_uv, gt_ok = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
-                depth = b.depth()
-                xs, ys = np.meshgrid(np.arange(b.width) + 0.5, np.arange(b.height) + 0.5)
-                for way in ways:
-                    if way in depths:
-                        t0 = time.perf_counter()
-                        uv = moved_by_depth(depths[way][k], b.camera(), a.camera())
-                        add(way, uv, np.isfinite(uv).all(-1), gt_uv, gt_ok, depth, time.perf_counter() - t0)
-                        continue
-                    for g in guides:
-                        t0 = time.perf_counter()
-                        if way == "zero":
-                            uv, ok = np.stack([xs, ys], -1), np.ones_like(gt_ok)
-                        else:
-                            uv, ok = flows[way, g](k)
-                        add(f"{way} on {g}", uv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
-                        if args.rigid and way != "zero":
-                            t0 = time.perf_counter()
-                            ruv, _ = rigid_from_flow(uv, ok, b.camera(), a.camera(), median_px=args.median_px)
-                            add(f"{way} on {g}, rigid", ruv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
-        print(f"{scene.name}: {len(mine)} sequences", flush=True)
+
+def prior_renders(priors: Path, scene):
+    """The prior's cached renders of `scene` (the first `<scene>-*.npz` under `priors`)."""
+    found = sorted(priors.expanduser().glob(f"{scene.name}-*.npz"))
+    if not found:
+        raise UserError(f"--priors {priors}: no {scene.name}-*.npz (the prior's cached renders of that "
+                        "scene; run `reproduce` of the preset first)")
+    return np.load(found[0])
+
+
+def street_height(prior, scene, where: Path) -> float:
+    """The height of the ground plane under the prior's Gaussians of `scene` (fitted: resumed from
+    its checkpoint in `where`), `street.prior_ground`."""
+    prior.fit_scene(scene)  # resumed from its checkpoint
+    means = prior.scene_model(scene)[0].means.detach().cpu().numpy()
+    zg = prior_ground(means, [f.camera().c2w[2, 3] for f in scene.ground])
+    if zg is None:
+        raise UserError(f"--prior {where}: none of its Gaussians of {scene.name} lie under the ground "
+                        "cameras (no street for the prior-ground way)")
+    return zg
+
+
+def score_sequence(args, ways: list[str], stats: dict, scene, q, npz, prior, zg) -> None:
+    """Each way's motion from frame j - 1 to frame j of sequence `q` of `scene`, against the
+    ground truth's, counted in `stats` (`tally`)."""
+    fs = list(q.frames)
+    guides = {"prior": np.stack([npz[f.file].astype(np.float32) / 255 for f in fs])}
+    if args.submission:
+        guides["frames"] = np.stack([read_image(args.submission / scene.name / f.file) for f in fs])
+    flows = {(way, g): flow_coords(imgs, fb_px=args.fb_px, flow=flow_fn(way))
+             for way in ways if way in FLOWS for g, imgs in guides.items()}
+    depths = {}
+    if "aerial-sweep" in ways:
+        depths["aerial-sweep"] = [aerial_sweep_depth(scene, f.camera()) for f in fs]
+    if prior is not None:
+        h, w = fs[0].height, fs[0].width
+        depths["prior-depth"] = [prior_depth(prior, scene, f, w, h) for f in fs]
+        depths["prior-ground"] = [ground_filled(d, f.camera(), zg) for d, f in zip(depths["prior-depth"], fs)]
+    for k in range(1, len(fs)):
+        a, b = fs[k - 1], fs[k]
+        gt_uv, gt_ok = warp_coords(b.depth(), b.camera(), a.depth(), a.camera(), TOL)
+        depth = b.depth()
+        xs, ys = np.meshgrid(np.arange(b.width) + 0.5, np.arange(b.height) + 0.5)
+        for way in ways:
+            if way in depths:
+                t0 = time.perf_counter()
+                uv = moved_by_depth(depths[way][k], b.camera(), a.camera())
+                tally(stats, way, uv, np.isfinite(uv).all(-1), gt_uv, gt_ok, depth, time.perf_counter() - t0)
+                continue
+            for g in guides:
+                t0 = time.perf_counter()
+                if way == "zero":
+                    uv, ok = np.stack([xs, ys], -1), np.ones_like(gt_ok)
+                else:
+                    uv, ok = flows[way, g](k)
+                tally(stats, f"{way} on {g}", uv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
+                if args.rigid and way != "zero":
+                    t0 = time.perf_counter()
+                    ruv, _ = rigid_from_flow(uv, ok, b.camera(), a.camera(), median_px=args.median_px)
+                    tally(stats, f"{way} on {g}, rigid", ruv, ok, gt_uv, gt_ok, depth, time.perf_counter() - t0)
+
+
+def report(stats: dict) -> None:
+    """One line per way: its end-point errors, cover, median error by the truth's depth, seconds."""
     for key, s in stats.items():
         e, d = np.concatenate(s["epe"]), np.concatenate(s["depth"])
         bands = [f"{lo}-{hi if np.isfinite(hi) else ''} m {np.median(e[(d >= lo) & (d < hi)]):.2f}"
@@ -242,6 +252,26 @@ def main(argv=None) -> None:
         bands.append(f"sky {np.median(e[sky]):.2f}" if sky.any() else "sky n/a")
         print(f"{key:28s} EPE median {np.median(e):.2f} mean {e.mean():.2f} <1px {np.mean(e < 1):.3f} covers "
               f"{s['cover'][0] / s['cover'][1]:.3f}; median by depth: {', '.join(bands)}; {s['s']:.1f} s")
+
+
+def main(argv=None) -> None:
+    args, ways = parse_args(argv)
+    _, scenes, seqs = screen.screened(args, "bench/flow_accuracy.py")
+    prior = None
+    if args.prior is not None:
+        from reference.methods.sugar import SuGaR
+
+        prior = SuGaR.from_preset(args.preset, args.prior.expanduser(), progress=False)
+    stats: dict[str, dict] = {}
+    print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
+    for scene in scenes:
+        npz = prior_renders(args.priors, scene)
+        zg = street_height(prior, scene, args.prior) if prior is not None else None
+        mine = [q for s, q in seqs if s is scene]
+        for q in mine:
+            score_sequence(args, ways, stats, scene, q, npz, prior, zg)
+        print(f"{scene.name}: {len(mine)} sequences", flush=True)
+    report(stats)
     print(f"load average after {os.getloadavg()[0]:.1f}")
 
 

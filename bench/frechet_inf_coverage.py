@@ -6,7 +6,7 @@ and, on the same replicates, about the value alone (before the centre).
 
 16-d Gaussians with a closed-form distance, N = 64, 256, 1024, 4096 rows in K = 16 clusters,
 `--draws` data sets per N and seed, R = 80 half-samples, 6 sizes x 4 subsets
-(tests/builders/frechet_sim.py). Prints, per seed and pooled, the share of draws whose interval
+(`skyeyes_bench.synthetic.simulate`). Prints, per seed and pooled, the share of draws whose interval
 holds the truth, per N and overall, and the load average (other processes slow this down, not
 the figures). docs/metrics.md, "FID∞ and FVD∞", has the measured table.
 """
@@ -15,14 +15,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from builders.frechet_sim import simulate  # noqa: E402
+from skyeyes_bench.synthetic import simulate
 
 
 def _coverage(rows_by_n: dict, truth: float) -> tuple[dict, float]:

@@ -29,9 +29,6 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
-
 
 def fresh_cache(path: Path, weights: Path) -> None:
     """An empty cache at `path` holding (links to) the metric weights, used from here on."""
@@ -64,9 +61,9 @@ def one_process(sub: Path, data: Path, out: Path, threads: str | None) -> tuple[
 
 def differs(a: dict, b: dict) -> str:
     """'' when the scores are identical, else each metric whose value differs and by how much."""
-    from builders.evaluation import scores
+    from skyeyes_bench.synthetic import comparable
 
-    if scores(a) == scores(b):
+    if comparable(a) == comparable(b):
         return ""
     out = []
     for name, m in a["metrics"].items():
@@ -101,10 +98,9 @@ def main() -> None:
     ap.add_argument("--data", type=Path, help="a SynthTown smoke dataset (default: generated into a temporary folder)")
     ap.add_argument("--weights", type=Path, default=None, help="metric weights folder (default: the user's cache's)")
     args = ap.parse_args()
-    from builders.evaluation import blurred_submission
-
     from skyeyes_bench import paths
     from skyeyes_bench.data.layout import open_dataset
+    from skyeyes_bench.synthetic import blurred_submission
 
     weights = args.weights or paths.weights_dir()
     workers = [int(w) for w in args.workers.split(",")]

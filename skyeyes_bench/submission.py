@@ -321,8 +321,20 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     """
     sub = Path(sub_dir)
     root = sub.resolve()
+    problems = _match_problems(sub / SUBMISSION_FILE, ds, protocol, manifest)
+    all_expected = expected_frames(ds)
+    expected = {frame_relpath(s, f): f for s, f in all_expected}
+    extra, escaped = _walk_problems(sub, root, ds, expected)
+    problems.extend(extra)
+    check = frames if frames is not None else all_expected
+    problems.extend(_frame_problems(sub, root, check, escaped, decode=decode, progress=progress))
+    return problems
+
+
+def _match_problems(mfile: Path, ds, protocol, manifest: dict) -> list[str]:
+    """What of the manifest `mfile` does not match `protocol` and dataset `ds` (the protocol and
+    its file's sha256, the dataset's protocol, split and name)."""
     problems: list[str] = []
-    mfile = sub / SUBMISSION_FILE
     # A protocol also scores submissions written for another that scores the same data: the one
     # whose data it is (synthtown@3 scores synthtown@2's frames) or a sibling version (a
     # synthtown@4 submission scored as synthtown@3, to file it in that table). Its
@@ -347,9 +359,14 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
     if manifest["dataset"]["name"] != ds.name:
         problems.append(f"{mfile}: field 'dataset.name' is {manifest['dataset']['name']!r}, the dataset is "
                         f"{ds.name!r}")
-    all_expected = expected_frames(ds)
-    expected = {frame_relpath(s, f): f for s, f in all_expected}
-    # 1. walk the folder: escaping symlinks and extra files
+    return problems
+
+
+def _walk_problems(sub: Path, root: Path, ds, expected: dict) -> tuple[list[str], set[str]]:
+    """Walk the submission folder `sub` (resolved: `root`) for each symlink that leaves it and each
+    extra file (not in `expected`, the relative paths of the expected frames, nor a manifest).
+    Returns (the problems, the relative paths of the escaping links)."""
+    problems: list[str] = []
     escaped: set[str] = set()
     for dirpath, dirnames, filenames in os.walk(sub, followlinks=False):
         d = Path(dirpath)
@@ -364,8 +381,14 @@ def validate_submission(sub_dir, ds, protocol, manifest: dict, *, frames=None, d
                 continue
             if rel not in expected and rel not in (SUBMISSION_FILE, EXPECTED_FILE):
                 problems.append(f"{p}: extra file (not a ground frame of a {ds.scored} scene of {ds.name!r})")
-    # 2. the expected frames
-    check = frames if frames is not None else all_expected
+    return problems, escaped
+
+
+def _frame_problems(sub: Path, root: Path, check, escaped: set[str], *, decode: bool, progress: bool) -> list[str]:
+    """The problems of the expected frames `check` ((scene, Frame) pairs) in the submission folder
+    `sub` (resolved: `root`): a path leaving the folder (unless under a link in `escaped`, reported
+    already), a bad image (`image_problems`), and one line for every frame missing."""
+    problems: list[str] = []
     missing = []
     from tqdm import tqdm
 

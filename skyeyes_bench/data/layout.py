@@ -15,7 +15,8 @@
 A scene is one lane; a sequence is the ordered ground frames of one lane at one yaw offset.
 A frame may carry its own "intrinsics" (same keys) overriding its group's.
 
-This module reads and validates; `skyeyes_bench.data.writer` writes (`DatasetWriter`).
+This module reads and validates; `skyeyes_bench.data.writer` writes (`DatasetWriter`);
+`skyeyes_bench.data.layers` names, checks and reads the layer files.
 """
 
 from __future__ import annotations
@@ -33,58 +34,15 @@ import numpy as np
 from .. import fields, imagefiles, inputfiles
 from ..cameras import Camera, K_from_dict, rigid_problem
 from ..errors import UserError, ValidationError
+from .layers import LAYERS, layer_file, layer_header, read_layer  # noqa: F401  (importable from here too)
 
 DATASET_FILE = "dataset.json"
 SCENE_FILE = "scene.json"
 KINDS = ("ground", "aerial")
-LAYERS = ("depth", "semantics")
-_LAYER_EXT = {"depth": ".exr", "semantics": ".png"}
-#: What a layer file holds (docs/formats.md): the format its extension names (the bytes such a file
-#: starts with), the pixel formats (OpenImageIO's names) and channel counts accepted (None: any),
-#: and what the message says was expected. OpenImageIO reads any format whatever the name, so a
-#: 16-bit PNG named .exr would otherwise be read as depth in metres.
-_LAYER_FORMATS = {
-    "depth": ("OpenEXR", b"v/1\x01", ("float",), (1,),
-              "an OpenEXR file of 1 float32 channel (planar depth in metres, inf = sky)"),
-    "semantics": ("PNG", imagefiles.PNG_MAGIC, ("uint8",), None, "an 8-bit PNG of labels"),
-}
-#: The first bytes of formats a layer file may hold by mistake, to say what it holds.
-_SIGNATURES = ((b"v/1\x01", "an OpenEXR image"), (imagefiles.PNG_MAGIC, "a PNG image"),
-               (b"\x93NUMPY", "a NumPy .npy array"), (b"PK\x03\x04", "a zip archive (.npz?)"),
-               (b"\xff\xd8\xff", "a JPEG image"), (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"))
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 #: Largest image side accepted in intrinsics (the decoders' pixel limit is imagefiles.MAX_PIXELS).
 _MAX_SIDE = 65536
 _PROTOCOL_REF = re.compile(r"^[a-z0-9][a-z0-9._-]*@[1-9]\d*$")
-
-
-def layer_file(file: str, layer: str) -> str:
-    """`ground/000012.png` -> `ground_depth/000012.exr` (same stem, docs/formats.md)."""
-    folder, _, name = file.rpartition("/")
-    return f"{folder}_{layer}/{Path(name).stem}{_LAYER_EXT[layer]}"
-
-
-def layer_header(path: Path, layer: str) -> tuple[int, int]:
-    """(width, height) of a `layer` file, after checking from its bytes and header that it holds
-    what its name says (`_LAYER_FORMATS`); else a one-line UserError naming the file, what it
-    holds and what was expected."""
-    name, magic, pixel, channels, expected = _LAYER_FORMATS[layer]
-    with inputfiles.open_regular(path) as f:
-        head = f.read(8)
-    if not head.startswith(magic):
-        held = next((what for sig, what in _SIGNATURES if head.startswith(sig)), None)
-        held = f"holds {held}, not the {name} its name says" if held else f"holds no {name} data (it starts with {head!r})"
-        raise UserError(f"{path}: {held}; expected {expected}")
-    w, h, c, fmt = imagefiles.image_header(path)
-    if fmt not in pixel or (channels is not None and c not in channels):
-        raise UserError(f"{path}: holds {c} channel{'s' if c != 1 else ''} of {fmt}, expected {expected}")
-    return w, h
-
-
-def read_layer(path: Path, layer: str) -> np.ndarray:
-    """The pixels of a `layer` file checked by `layer_header`: depth float32 [H, W] metres, labels uint8 [H, W]."""
-    layer_header(path, layer)
-    return imagefiles.read_depth(path) if layer == "depth" else imagefiles.read_labels(path)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,11 +1,16 @@
-"""Helpers shared by the evaluate/submission/leaderboard tests (no tests here): a tiny dataset
-built with DatasetWriter and a test protocol that uses the test-only `random-*` extractors."""
+"""Helpers shared by the evaluate/submission/leaderboard tests (no tests here): a test protocol that
+uses the test-only `random-*` extractors, and (from `skyeyes_bench.synthetic`, which bench/ uses
+too) a tiny dataset built with DatasetWriter, a blurred submission of it and the comparable part of
+a results document."""
 
 import contextlib
 import shutil
 from pathlib import Path
 
 import numpy as np
+
+from skyeyes_bench.synthetic import blurred_submission, make_dataset  # noqa: F401  (the tests import them from here)
+from skyeyes_bench.synthetic import comparable as scores  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 
@@ -118,48 +123,6 @@ def protocol_env(tmp: Path, text: str = TEST_PROTOCOL):
         mp.undo()
 
 
-def _texture(rng, h, w):
-    """Smooth random colour texture with some fine detail, float [H, W, 3]."""
-    from scipy.ndimage import gaussian_filter, zoom
-
-    base = zoom(rng.random((h // 4, w // 4, 3)), (4, 4, 1), order=1)
-    img = 0.7 * base + 0.3 * gaussian_filter(rng.random((h, w, 3)), (0.7, 0.7, 0))
-    return np.clip(img, 0, 1)
-
-
-def make_dataset(root: Path, *, protocol="evaltest@1", name="evaltiny", scenes=2, seqs=2, frames=16,
-                 size=32, seed=0) -> Path:
-    from skyeyes_bench.data.writer import DatasetWriter
-
-    rng = np.random.default_rng(seed)
-    intr = {"width": size, "height": size, "fx": size / 2, "fy": size / 2, "cx": size / 2, "cy": size / 2}
-    names = [f"test-0-lane{i:02d}" for i in range(scenes)]
-    with DatasetWriter(root, name=name, protocol=protocol) as w:
-        for sname in ["train-0-lane00", *names]:
-            s = w.scene(sname, {"ground": intr, "aerial": intr})
-            s.add_aerial(_texture(rng, size, size), np.eye(4))
-            for q in range(seqs):
-                for i in range(frames if sname != "train-0-lane00" else 2):
-                    c2w = np.eye(4)
-                    c2w[0, 3] = 2.0 * i
-                    s.add_ground(_texture(rng, size, size), c2w, sequence=f"yaw{q * 90:03d}", index=i)
-            s.close()
-        w.finish(splits={"train": ["train-0-lane00"], "test": names})
-    return root
-
-
-def blurred_submission(ds, out: Path, sigma=1.0, method="blur") -> Path:
-    from scipy.ndimage import gaussian_filter
-
-    from skyeyes_bench.submission import SubmissionWriter, expected_frames
-
-    with SubmissionWriter(out, dataset=ds, method=method, method_version="1", config={"sigma": sigma}) as w:
-        for scene, f in expected_frames(ds):
-            w.add(scene, f, gaussian_filter(f.image(), (sigma, sigma, 0)))
-        w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
-    return out
-
-
 def indexed_submission(ds, out: Path, method="indexed", step=10) -> Path:
     """A submission whose frame of index i is the ground truth squeezed into a third of the range
     plus a brightness of 20 + step * i levels: a frame's mean brightness says which it is (frame
@@ -171,17 +134,6 @@ def indexed_submission(ds, out: Path, method="indexed", step=10) -> Path:
             w.add(scene, f, np.clip(f.image() / 3 + (20 + step * int(f.index)) / 255, 0, 1))
         w.finish(timings={"fit_s": 1.0, "render_s": 2.0, "per_frame_render_s": [0.01]}, peak_memory_mb=10.0)
     return out
-
-
-def scores(doc: dict) -> dict:
-    """What must not depend on how a result was computed (one process, shards and `merge`, Ray,
-    Slurm): every metric (value, interval, replicates), the per-sequence and per-frame values and
-    the hashes of what was scored. An unavailable metric's reason is left out: it names the cache
-    that lacked the weights."""
-    got = {k: doc[k] for k in ("metrics", "sequences", "frames", "sha256")}
-    got["metrics"] = {name: {k: v for k, v in m.items() if not (m["status"] == "unavailable" and k == "reason")}
-                      for name, m in got["metrics"].items()}
-    return got
 
 
 def scipy_fid(x, y) -> float:

@@ -9,7 +9,7 @@ kill rate per module:
     nice -n 19 .venv/bin/python bench/mutation.py --module skyeyes_bench/stats.py \\
         --tests tests/skyeyes_bench/test_stats.py --time-limit 1800
 
-Default modules (issue 21): skyeyes_bench/metrics, skyeyes_bench/stats.py, skyeyes_bench/evaluate.py
+Default modules (issue 21): skyeyes_bench/metrics, skyeyes_bench/stats.py, skyeyes_bench/scoring
 and the rasterizer (reference/common/gaussians/{raster,project}.py). CPU-heavy: mutmut first runs
 the selected tests once to learn which tests reach which function, then, per mutant, only those.
 The whole campaign with the default tier is hours on 2 cores; give --tests and --time-limit, or
@@ -51,7 +51,7 @@ from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_MODULES = ["skyeyes_bench/metrics", "skyeyes_bench/stats.py", "skyeyes_bench/evaluate.py",
+DEFAULT_MODULES = ["skyeyes_bench/metrics", "skyeyes_bench/stats.py", "skyeyes_bench/scoring",
                    "reference/common/gaussians/raster.py", "reference/common/gaussians/project.py"]
 #: What the tests read besides the packages (mutmut copies tests/ and pyproject.toml itself).
 ALSO_COPY = ["protocols", "leaderboard", "bench", "scripts", "docs", "README.md"]

@@ -60,10 +60,10 @@ def evaluate(submission, data=None, *, out=None, protocol: str | None = None, sp
         skyeyes_bench.UserError: bad input (one line saying what and where); its subclass
             `ValidationError` lists every problem of the submission.
     """
-    from . import evaluate as ev
+    from .scoring.run import evaluate as score
 
-    return ev.evaluate(submission, data=data, out=out, shard=shard, force=force, progress=progress,
-                       protocol=protocol, device=device, split=split, allow_missing=allow_missing)
+    return score(submission, data=data, out=out, shard=shard, force=force, progress=progress,
+                 protocol=protocol, device=device, split=split, allow_missing=allow_missing)
 
 
 def compare(a, b, *, out=None, progress: bool = False) -> dict[str, Any]:
@@ -186,12 +186,12 @@ def folder_metrics(dir1, dir2, metrics=("fid", "kid", "fvd", "kvd", "lpips"), *,
 
     from .devices import resolve_device
     from .errors import UserError
-    from .evaluate import _clips
     from .metrics.cache import extract_clip_features, extract_image_features
     from .metrics.extractors import on_device
     from .metricspec import CLIP_FEATURES, metric_def
     from .protocol import load_protocol
     from .registry import load_entry_point
+    from .scoring.features import clips as cut
 
     proto = load_protocol(protocol)
     dev = resolve_device(device)
@@ -217,7 +217,7 @@ def folder_metrics(dir1, dir2, metrics=("fid", "kid", "fvd", "kvd", "lpips"), *,
                 for root, rel in frames:
                     if clip:
                         clips = [[root / r for r in seq[c.start:c.stop]] for seq in _videos(rel)
-                                 for c in _clips(len(seq), m.clip_length, m.clip_stride or m.clip_length)]
+                                 for c in cut(len(seq), m.clip_length, m.clip_stride or m.clip_length)]
                         got.append(extract_clip_features(m.extractor, clips, progress=progress, device=dev)
                                    if clips else np.zeros((0, 1)))
                     else:

@@ -3,7 +3,9 @@
 Every module that needs to know about a metric reads it here: `protocol` (which names and
 settings a protocol may use), `evaluate` / `results` (how a value is computed), `stats` (which
 direction is better, which bootstrap resamples a set metric) and `leaderboard` (column order,
-label, decimals). Adding a metric is one entry below plus the function it names.
+label, decimals). Adding a metric is one entry below (or one `register_metric` call beside its
+function) plus the function it names; the lists of frame, set and sequence metrics are read from
+the table when asked for, so a metric registered after import is one of them.
 
 Code is named by lazy `"module:attr"` entry points (`registry.load_entry_point`), so importing
 this module imports nothing beyond the standard library (no numpy: `skyeyes-bench --help` and
@@ -26,6 +28,36 @@ CLIP_FEATURES = "clip"
 #: `Extractor.kind` of the extractors of image and of clip features (their stored spelling).
 IMAGE_EXTRACTOR = "image"
 CLIP_EXTRACTOR = "video"
+
+
+@dataclass(frozen=True)
+class Setting:
+    """A key a protocol may give a metric under [metrics.<name>]: its type and its range."""
+
+    key: str
+    type: type  # str, int or float (a TOML integer given for a float is stored as a float)
+    least: int | None = None  # the value must be >= least
+    unit: str | None = None  # the value must lie in (0, 1); what it is, for the error
+
+
+#: The settings the metrics below share, in the order a protocol's settings are shown
+#: (`protocols show`). A metric with a key of its own declares it in `MetricDef.settings`.
+SETTINGS: dict[str, Setting] = {s.key: s for s in (
+    Setting("extractor", str),  # registry id of the feature extractor
+    Setting("resize", str),  # resize mode before the extractor ("clean-bicubic", ...)
+    Setting("aggregate", str),  # how per-frame values become one (psnr: inf handling)
+    Setting("window", int, least=1),  # SSIM Gaussian window size
+    Setting("sigma", float),
+    Setting("k1", float),
+    Setting("k2", float),
+    Setting("subset_size", int, least=1),  # KID/KVD subsets
+    Setting("num_subsets", int, least=1),
+    Setting("clip_length", int),  # FVD/KVD clip length in frames (>= 2: `protocol` checks it)
+    Setting("clip_stride", int, least=1),  # frames between clip starts within a sequence
+    Setting("depth_tolerance", float),  # relative depth tolerance of the visibility / occlusion tests
+    Setting("num_sizes", int, least=2),  # FID∞/FVD∞: how many subset sizes the line in 1/N is fitted to
+    Setting("min_fraction", float, unit="the smallest subset size as a share of all rows"),  # FID∞/FVD∞
+)}
 
 
 @dataclass(frozen=True)
@@ -69,6 +101,12 @@ class MetricDef:
     # a property of the ground truth (the same for every submission on the dataset: the unseen
     # share, the warp floor): reported beside the scores, never ranked or compared
     reference: bool = False
+    # settings of its own, keys `SETTINGS` does not hold (each also in `keys`): a new metric's new key
+    settings: tuple[Setting, ...] = ()
+
+    def setting(self, key: str) -> Setting:
+        """The type and range of `key`, one of `keys`: the metric's own, else the shared one."""
+        return next((s for s in self.settings if s.key == key), None) or SETTINGS[key]
 
 
 _KID_KEYS = frozenset({"extractor", "resize", "subset_size", "num_subsets"})
@@ -121,10 +159,50 @@ METRICS: dict[str, MetricDef] = {m.name: m for m in (
     MetricDef("warp_floor", "frame", False, _DEPTH, "Warp floor", 4, reference=True, **_WARP),
 )}
 
-FRAME_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "frame")
-SET_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.kind == "set")
-#: Frame metrics computed a sequence at a time from depth and poses (the rest: frame by frame).
-SEQUENCE_METRICS: tuple[str, ...] = tuple(n for n, m in METRICS.items() if m.per_sequence)
+
+
+def register_metric(m: MetricDef) -> MetricDef:
+    """Add `m` to `METRICS` (after those above, in display order): the one registry line of a
+    metric defined elsewhere. Every key it accepts must have a `Setting` (shared or its own)."""
+    if m.name in METRICS:
+        raise ValueError(f"metric {m.name!r} is already registered")
+    own = {s.key for s in m.settings}
+    unknown = sorted(m.keys - own - set(SETTINGS)) + sorted(own - m.keys)
+    if unknown:
+        raise ValueError(f"metric {m.name!r}: key {unknown[0]!r} needs a Setting in MetricDef.settings and a "
+                         "place in MetricDef.keys")
+    METRICS[m.name] = m
+    return m
+
+
+def frame_metrics() -> tuple[str, ...]:
+    """The frame metrics, in table order (read when called: a metric registered later is one)."""
+    return tuple(n for n, m in METRICS.items() if m.kind == "frame")
+
+
+def set_metrics() -> tuple[str, ...]:
+    """The set metrics, in table order."""
+    return tuple(n for n, m in METRICS.items() if m.kind == "set")
+
+
+def sequence_metrics() -> tuple[str, ...]:
+    """The frame metrics computed a sequence at a time from depth and poses (the rest: frame by frame)."""
+    return tuple(n for n, m in METRICS.items() if m.per_sequence)
+
+
+_LIVE = {"FRAME_METRICS": frame_metrics, "SET_METRICS": set_metrics, "SEQUENCE_METRICS": sequence_metrics}
+
+
+def __getattr__(name: str):
+    """`FRAME_METRICS`, `SET_METRICS`, `SEQUENCE_METRICS`: the functions above' tuples, as of now."""
+    if name in _LIVE:
+        return _LIVE[name]()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def known_keys() -> set[str]:
+    """Every setting key some metric accepts (a `MetricSpec` answers None for one it was not given)."""
+    return set(SETTINGS).union(*(m.keys for m in METRICS.values()))
 
 
 def metric_def(name: str) -> MetricDef:
@@ -147,7 +225,7 @@ def sample_count_warning(named: list[tuple[str, dict]]) -> str | None:
     256 clips (B); a Fréchet distance's bias ...". Possible across protocols, or when a
     submission was scored in part."""
     parts = []
-    for name in SET_METRICS:
+    for name in set_metrics():
         counts = [(label, m["n"], m.get("unit") or "row") for label, metrics in named
                   if (m := (metrics or {}).get(name)) and m.get("status") == "ok" and m.get("n") is not None]
         if len({n for _, n, _ in counts}) > 1:

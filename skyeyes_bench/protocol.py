@@ -13,11 +13,11 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from .errors import UserError, short
 from .inputfiles import read_toml
-from .metricspec import CLIP_FEATURES, METRICS
+from .metricspec import CLIP_FEATURES, METRICS, SETTINGS, known_keys, metric_def
 from .paths import protocols_dir
 
 #: Largest protocol version (9 digits): a longer number in a file name or a reference is refused in one
@@ -29,10 +29,6 @@ _REF = re.compile(r"^([a-z0-9][a-z0-9._-]*)(?:@(\d+))?$")
 #: Resampling units `[statistics] cluster` may name: a scene (one lane: its sequences share one
 #: fitted model, so they are not independent) or, as synthtown@1 does, a sequence.
 CLUSTER_UNITS = ("scene", "sequence")
-
-#: Metric names a protocol may ask for, and the settings each one accepts (from `metricspec`).
-METRIC_KEYS: dict[str, frozenset[str]] = {name: m.keys for name, m in METRICS.items()}
-
 
 @dataclass(frozen=True)
 class DataSpec:
@@ -59,23 +55,45 @@ class CaptureSpec:
     sequence: str  # prose: what one sequence is
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class MetricSpec:
+    """The settings one protocol gives one metric: its name and {key: value} for the keys its
+    `metricspec.MetricDef.keys` accepts (whose types and ranges `MetricDef.setting` gives).
+
+    `MetricSpec("kid", subset_size=100)` or `MetricSpec("kid", {"subset_size": 100})`; a setting
+    reads as an attribute (`spec.subset_size`), None when not given (for any key some metric
+    accepts; another name is an AttributeError). Frozen and hashable; equal when the name and the
+    given settings are (a None value is not given)."""
+
     name: str
-    extractor: str | None = None  # registry id of the feature extractor
-    resize: str | None = None  # resize mode before the extractor ("clean-bicubic", ...)
-    aggregate: str | None = None  # how per-frame values become one (psnr: inf handling)
-    window: int | None = None  # SSIM Gaussian window size
-    sigma: float | None = None
-    k1: float | None = None
-    k2: float | None = None
-    subset_size: int | None = None  # KID/KVD subsets
-    num_subsets: int | None = None
-    clip_length: int | None = None  # FVD/KVD clip length in frames
-    clip_stride: int | None = None  # frames between clip starts within a sequence
-    depth_tolerance: float | None = None  # relative depth tolerance of the visibility / occlusion tests
-    num_sizes: int | None = None  # FID∞/FVD∞: how many subset sizes the line in 1/N is fitted to (>= 2)
-    min_fraction: float | None = None  # FID∞/FVD∞: the smallest subset size as a share of all rows, in (0, 1)
+    settings: tuple[tuple[str, Any], ...]  # (key, value), in `metricspec.SETTINGS` order, then its own keys
+
+    def __init__(self, name: str, settings: Mapping[str, Any] | tuple = (), **more: Any):
+        given = {k: v for k, v in {**dict(settings), **more}.items() if v is not None}
+        allowed = metric_def(name).keys
+        for key in given:
+            if key not in allowed:
+                raise UserError(f"metric {name!r}: unknown setting {key!r} (known: {', '.join(sorted(allowed))})")
+        order = {k: i for i, k in enumerate(SETTINGS)}
+        items = tuple(sorted(given.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
+        object.__setattr__(self, "name", name)
+        object.__setattr__(self, "settings", items)
+
+    def __getattr__(self, key: str) -> Any:
+        # only called for names that are not attributes; pickle and copy ask for dunders before
+        # `__dict__` is filled, so those (and the fields themselves) are never settings
+        if key.startswith("_") or key in ("name", "settings"):
+            raise AttributeError(key)
+        for k, v in self.__dict__.get("settings", ()):
+            if k == key:
+                return v
+        if key in known_keys():
+            return None
+        raise AttributeError(f"{type(self).__name__} {self.__dict__.get('name')!r} has no setting {key!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """{key: value} of the settings given, in their order."""
+        return dict(self.settings)
 
 
 @dataclass(frozen=True)
@@ -137,7 +155,7 @@ class Protocol:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d.pop("sha256"), d.pop("path"), d.pop("val")
-        d["metrics"] = {m.pop("name"): {k: v for k, v in m.items() if v is not None} for m in d["metrics"]}
+        d["metrics"] = {m["name"]: dict(m["settings"]) for m in d["metrics"]}
         if not d["data"]["dataset_protocol"]:  # unset: absent, so older protocols keep their sha256
             del d["data"]["dataset_protocol"]
         return d
@@ -158,6 +176,8 @@ def _type_ok(value: Any, annotation: str) -> bool:
     base = annotation.replace(" | None", "")
     if base == "str":
         return isinstance(value, str)
+    if base == "bool":
+        return isinstance(value, bool)
     if base == "int":
         return isinstance(value, int) and not isinstance(value, bool)
     if base == "float":
@@ -199,6 +219,35 @@ def _build(cls: type, table: Any, where: str, file: str, extra: dict | None = No
     return cls(**kwargs)
 
 
+def _metric_spec(name: str, table: Any, file: str) -> MetricSpec:
+    """[metrics.<name>] of a protocol file: the keys its `MetricDef` accepts, each of its setting's type."""
+    if name not in METRICS:
+        raise UserError(f"{file}: unknown metric 'metrics.{name}' (known: {', '.join(METRICS)})")
+    if not isinstance(table, dict):
+        raise UserError(f"{file}: [metrics.{name}] must be a table")
+    spec = metric_def(name)
+    settings = {}
+    for key, value in table.items():
+        if key not in spec.keys:
+            raise UserError(f"{file}: unknown key 'metrics.{name}.{key}' (known: {', '.join(sorted(spec.keys))})")
+        typ = spec.setting(key).type.__name__
+        if not _type_ok(value, typ):
+            raise UserError(f"{file}: key 'metrics.{name}.{key}' must be {typ}, got {value!r}")
+        settings[key] = _convert(value, typ)
+    return MetricSpec(name, settings)
+
+
+def _check_ranges(m: MetricSpec, file: str) -> None:
+    """Each setting of `m` within its range (`metricspec.Setting.least`, `.unit`)."""
+    spec = metric_def(m.name)
+    for key, v in m.settings:
+        s = spec.setting(key)
+        if s.least is not None and v < s.least:
+            raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must be >= {s.least}, got {v}")
+        if s.unit is not None and not 0 < v < 1:
+            raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must lie in (0, 1) ({s.unit}), got {v}")
+
+
 def canonical_sha256(content: dict[str, Any]) -> str:
     """sha256 of the canonical JSON (sorted keys, no whitespace) of a parsed protocol."""
     blob = json.dumps(content, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
@@ -226,16 +275,7 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     sections = {name: _build(cls, raw[name], name, file) for name, cls in _SECTIONS.items()}
     if not isinstance(raw["metrics"], dict) or not raw["metrics"]:
         raise UserError(f"{file}: [metrics] must be a non-empty table of [metrics.<name>] tables")
-    metrics = []
-    for name, table in raw["metrics"].items():
-        if name not in METRIC_KEYS:
-            raise UserError(f"{file}: unknown metric 'metrics.{name}' (known: {', '.join(METRIC_KEYS)})")
-        if isinstance(table, dict):
-            for key in table:
-                if key not in METRIC_KEYS[name]:
-                    allowed = ", ".join(sorted(METRIC_KEYS[name]))
-                    raise UserError(f"{file}: unknown key 'metrics.{name}.{key}' (known: {allowed})")
-        metrics.append(_build(MetricSpec, table, f"metrics.{name}", file, extra={"name": name}))
+    metrics = [_metric_spec(name, table, file) for name, table in raw["metrics"].items()]
     for m in metrics:
         if METRICS[m.name].depth and not (m.depth_tolerance is not None and 0 < m.depth_tolerance < 1):
             raise UserError(f"{file}: key 'metrics.{m.name}.depth_tolerance' must lie in (0, 1) (a relative depth "
@@ -271,13 +311,7 @@ def parse_protocol(raw: dict[str, Any], file: str) -> Protocol:
     if not capture.ground_step_m > 0:
         raise UserError(f"{file}: key 'capture.ground_step_m' must be > 0, got {capture.ground_step_m}")
     for m in metrics:
-        for key, least in (("window", 1), ("subset_size", 1), ("num_subsets", 1), ("clip_stride", 1), ("num_sizes", 2)):
-            v = getattr(m, key)
-            if v is not None and v < least:
-                raise UserError(f"{file}: key 'metrics.{m.name}.{key}' must be >= {least}, got {v}")
-        if m.min_fraction is not None and not 0 < m.min_fraction < 1:
-            raise UserError(f"{file}: key 'metrics.{m.name}.min_fraction' must lie in (0, 1) (the smallest subset "
-                            f"size as a share of all rows), got {m.min_fraction}")
+        _check_ranges(m, file)
     proto = Protocol(
         id=raw["id"], version=raw["version"], title=raw["title"], description=raw["description"],
         reference=raw["reference"], data=data, capture=sections["capture"],

@@ -24,7 +24,7 @@ import numpy as np
 
 from . import fields, inputfiles, outputfiles, outputunit
 from .errors import UserError, single_line
-from .metricspec import FRAME_METRICS, METRICS, metric_def
+from .metricspec import METRICS, frame_metrics, metric_def
 
 RESULTS_FORMAT = "skyeyes-bench/results@1"
 PARTIAL_FORMAT = "skyeyes-bench/partial@1"
@@ -122,6 +122,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
     fields.conform(str(path), doc, {**_RESULTS_SHAPE, **(_PARTIAL_SHAPE if partial else _FINAL_SHAPE)})
     n_seq = len(doc["dataset"]["sequences"])
     seen: dict[tuple[str, str], int] = {}
+    names = frame_metrics()
     for i, r in enumerate(doc["frames"]):
         fields.integer(f"{path}: field 'frames[{i}].sequence'", r["sequence"], "a sequence number", 0, n_seq - 1)
         key = (r["scene"], r["file"])
@@ -129,7 +130,7 @@ def _results_problem(doc: dict, path: Path, partial: bool) -> None:
             fields.fail(f"{path}: field 'frames[{i}]'",
                         f"frame {quoted(key[0] + '/' + key[1])} is listed twice (also frames[{seen[key]}])")
         seen[key] = i
-        for name in FRAME_METRICS:
+        for name in names:
             if name in r:
                 weighted = metric_def(name).weighted  # a value per region, null when the region is empty
                 fields.conform(str(path), r[name], fields.Optional(fields.Number) if weighted else fields.Number,

@@ -12,7 +12,7 @@ import numpy as np
 
 from . import inputfiles, outputfiles, outputunit, stats
 from .errors import UserError, ValidationError
-from .metricspec import FRAME_METRICS
+from .metricspec import frame_metrics
 from .results import (FEATURES_OUTPUT, RESULTS_OUTPUT, lines_digest, quoted, features_path, read_results,
                       write_results)
 from .summary import finalize
@@ -180,7 +180,7 @@ def _frame_records_problems(loaded: list[tuple[Path, dict, dict]]) -> list[str]:
         return problems
     protocol = load_protocol(first["protocol"]["ref"])
     unavailable = {k for _, d, _ in loaded for k in d["unavailable"]}
-    wanted = [name for name in FRAME_METRICS if protocol.metric(name) and name not in unavailable]
+    wanted = [name for name in frame_metrics() if protocol.metric(name) and name not in unavailable]
     for p, d, _ in loaded:
         for i, r in enumerate(d["frames"]):
             lack = [name for name in wanted if name not in r]

@@ -31,12 +31,15 @@ import numpy as np
 
 from .metricspec import METRICS, metric_def
 
-#: Metrics for which a lower value is better (everything else: higher is better).
+#: Metrics of the table at import for which a lower value is better (everything else: higher is better).
 LOWER_IS_BETTER = frozenset(n for n, m in METRICS.items() if not m.higher_is_better)
 
 
 def higher_is_better(metric: str) -> bool:
-    return metric not in LOWER_IS_BETTER
+    """The table's direction of `metric`, read when asked (a metric registered later has one); an
+    unknown name: higher is better."""
+    m = METRICS.get(metric)
+    return True if m is None else m.higher_is_better
 
 
 # --------------------------------------------------------------------------- clusters

@@ -12,7 +12,7 @@ import numpy as np
 
 from . import stats
 from .errors import UserError
-from .metricspec import CLIP_FEATURES, FRAME_METRICS, metric_def
+from .metricspec import CLIP_FEATURES, frame_metrics, metric_def
 from .registry import load_entry_point
 from .results import RESULTS_FORMAT, lines_digest, timed_stage, progress_bar
 
@@ -109,7 +109,7 @@ def _frame_metrics(doc: dict, frames: list[dict], protocol, rs: _Resampling,
     per_seq: dict[str, dict] = {sid: {"frames": int((seqs == i).sum())} for i, sid in enumerate(seq_ids)}
     # over: means of values near 1e308 (only a hostile part holds them) are +-inf, without a warning
     with timed_stage(timing, "bootstrap_s"), np.errstate(over="ignore"):
-        for name in FRAME_METRICS:
+        for name in frame_metrics():
             if not protocol.metric(name):
                 continue
             if name in doc["unavailable"]:

@@ -4,7 +4,6 @@ The table is plain data (no numpy on import); every protocol shipped names only 
 every entry point it names resolves; the set-metric estimators and bootstraps it names agree
 with independent computations."""
 
-import dataclasses
 import subprocess
 import sys
 import tomllib
@@ -14,7 +13,8 @@ import pytest
 from conftest import ROOT
 
 from skyeyes_bench import comparison, leaderboard, paths, protocol, stats
-from skyeyes_bench.metricspec import FRAME_METRICS, METRICS, SEQUENCE_METRICS, SET_METRICS, metric_def
+from skyeyes_bench.errors import UserError
+from skyeyes_bench.metricspec import FRAME_METRICS, METRICS, SEQUENCE_METRICS, SET_METRICS, SETTINGS, metric_def
 from skyeyes_bench.registry import load_entry_point
 
 
@@ -42,10 +42,11 @@ def test_table_is_complete_and_consistent():
     assert FRAME_METRICS == ("psnr", "ssim", "lpips", *regions, "warp", "warp_floor")
     assert SET_METRICS == ("fid", "fid_inf", "kid", "fvd", "fvd_inf", "kvd")
     assert SEQUENCE_METRICS == (*regions, "warp", "warp_floor")
-    settings = {f.name for f in dataclasses.fields(protocol.MetricSpec)} - {"name"}
     for name, m in METRICS.items():
         assert m.name == name and m.kind in ("frame", "set")
-        assert m.keys <= settings, f"{name}: keys {sorted(m.keys - settings)} are not protocol.MetricSpec fields"
+        assert m.keys <= set(SETTINGS), f"{name}: keys {sorted(m.keys - set(SETTINGS))} have no metricspec.Setting"
+        assert not m.settings  # the built-in metrics share their keys' settings
+        assert all(m.setting(k) is SETTINGS[k] for k in m.keys)
         assert m.extractor == ("extractor" in m.keys)
         assert bool(m.depth) == ("depth_tolerance" in m.keys) == bool(m.per_sequence)
         assert m.pool in ("mean", "mse") and (m.pool == "mse") == (m.weighted and name.startswith("psnr"))
@@ -58,7 +59,9 @@ def test_table_is_complete_and_consistent():
             assert callable(load_entry_point(m.estimator)) and callable(load_entry_point(m.bootstrap))
             assert ("clip_length" in m.keys) == (m.features == "clip")
     # the readers derive from the table, not from copies of it
-    assert protocol.METRIC_KEYS == {n: m.keys for n, m in METRICS.items()}
+    assert protocol.MetricSpec("kid", subset_size=10).as_dict() == {"subset_size": 10}
+    with pytest.raises(UserError, match="metric 'psnr': unknown setting 'window' \\(known: aggregate\\)"):
+        protocol.MetricSpec("psnr", window=3)
     assert stats.LOWER_IS_BETTER == {"lpips", "fid", "fid_inf", "kid", "fvd", "fvd_inf", "kvd", "lpips_seen",
                                      "lpips_unseen", "unseen_share", "warp", "warp_floor"}
     assert {n for n, m in METRICS.items() if m.reference} == {"unseen_share", "warp_floor"}

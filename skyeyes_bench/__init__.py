@@ -25,7 +25,7 @@ _LAZY = {
     "open_dataset": "skyeyes_bench.data.layout:open_dataset",
     "UserError": "skyeyes_bench.errors:UserError",
     "ValidationError": "skyeyes_bench.errors:ValidationError",
-    "MissingMetrics": "skyeyes_bench.evaluate:MissingMetrics",
+    "MissingMetrics": "skyeyes_bench.scoring.inputs:MissingMetrics",
     # the Python API (skyeyes_bench.api)
     "compare": "skyeyes_bench.api:compare",
     "compute_fid": "skyeyes_bench.api:compute_fid",

@@ -174,15 +174,16 @@ def _diffusion_resume(method, data, tmp_path, monkeypatch):
     half-written checkpoint left beside the last good one) and mid-render; compare."""
     import diffusers  # noqa: F401  (a hard dependency of reference: a broken install fails here, never skips)
     from reference.common.diffusion import train
-    from reference.methods.mvs import MVS
+    from reference.common.mvs_cloud import MVSCloud
 
     cls = get_method_class(method)
     a, b = tmp_path / "a", tmp_path / "b"
     # Separate caches: the diffusion stages and prior renders live in the cache, not in --out.
     reproduce(method, data, a, tmp_path / "cache-a", monkeypatch)
     if cls.presets["smoke"].condition == "prior":
-        # 1. Killed once the prior (mvs) has fitted the train lane, before its renders are cached.
-        with kill_after(monkeypatch, MVS, "fit_one_scene"):
+        # 1. Killed once the prior's appearance (the fused MVS cloud, the part `MVSCloud`) has
+        # fitted the train lane, before its renders are cached.
+        with kill_after(monkeypatch, MVSCloud, "fit_one_scene"):
             reproduce(method, data, b, tmp_path / "cache-b", monkeypatch)
     # 2. Killed in the ACM stage, after its first save (its step 2); a base stage (a ControlNet
     # branch from scratch; the smoke presets' concat UNet has none) saves at its steps 2 and 4 first.

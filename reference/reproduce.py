@@ -284,8 +284,7 @@ def run_seeds(method: str, preset: str = "smoke", seeds: int = 2, *, seed: int =
     headline value per metric and their spread. Returns that document ({} in a non-main process of
     `accelerate launch`). The other arguments are `run`'s; `out` defaults to
     `outputs/<method>-<preset>[-val]-seeds`."""
-    from skyeyes_bench.results import read_results, write_results
-    from skyeyes_bench.seeds import format_spread, seeds_block
+    from skyeyes_bench.seeds import assemble, check_seeds_out, format_spread
 
     if seeds < 2:
         raise UserError(f"--seeds {seeds}: expected 2 or more seeds (a single run takes --seed)")
@@ -295,42 +294,19 @@ def run_seeds(method: str, preset: str = "smoke", seeds: int = 2, *, seed: int =
     out = Path(out)
     ss = list(range(seed, seed + seeds))
     outputfiles.check_apart(out, data, pretrained, desc="an input of this run (--data, --pretrained)")
-    _check_seeds_out(out, force)
+    check_seeds_out(out, force)
     for s in ss:  # every seed's folder before any work: another run's is refused now, not after hours
         _early_check(method, preset, overrides, device, pretrained, s, out / f"seed-{s}", force)
-    docs = []
     for s in ss:  # 1. each seed: the single-seed run, its own folder, resumed like any other
         if not run(method, preset, data=data, out=out / f"seed-{s}", seed=s, overrides=overrides, force=force,
                    progress=progress, device=device, pretrained=pretrained, jobs=jobs, ray=ray, split=split):
             return {}  # `accelerate launch`: the main process alone scores and aggregates
-        docs.append(read_results(out / f"seed-{s}" / "results.json", features=s == ss[0]))
     # 2. the first seed's results, its sidecar beside them, and every seed's headline values
-    (doc, features), *_ = docs
-    doc["seeds"] = seeds_block(ss, [f"seed-{s}/results.json" for s in ss], [d for d, _ in docs])
-    _check_seeds_out(out, force)  # again at the point of writing: another run may have written it since
     with outputfiles.reading(data, pretrained):
-        write_results(out / "results.json", doc, features)
+        doc = assemble(out, ss, force=force)
     print(f"{format_spread(doc['seeds'], method)}\nresults: {out / 'results.json'} (seed {ss[0]}'s results with the "
           f"seeds block; each seed's in {out}/seed-<s>/)")
     return doc
-
-
-def _check_seeds_out(out: Path, force: bool) -> None:
-    """Refuse an `out` of a run of several seeds that holds a single run (its config.json: the seeds
-    go into seed-<s>/ folders beside one results.json), or a results.json other than an earlier
-    one of several seeds (that is replaced: it is made from the seed folders) unless `force`."""
-    from skyeyes_bench.results import FEATURES_OUTPUT, RESULTS_OUTPUT, features_path
-
-    if (out / "config.json").is_file():
-        raise UserError(f"{out}: holds a single run (its config.json); a run of several seeds writes seed-<s>/ "
-                        "folders beside one results.json: choose another --out")
-    res = out / "results.json"
-    try:
-        ours = isinstance(inputfiles.read_json(res, allow_nan=True).get("seeds"), dict)
-    except (UserError, AttributeError):  # absent, unreadable or not an object: `check_output` says
-        ours = False
-    outputfiles.check_output(res, force=force or ours, sidecars=[features_path(res)], kind=RESULTS_OUTPUT,
-                             sidecar_kind=FEATURES_OUTPUT)
 
 
 def _render(m, scenes: list, renders: Path, progress: bool) -> tuple[dict, float]:

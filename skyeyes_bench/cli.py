@@ -23,6 +23,7 @@ COMMANDS = [
     "evaluate",
     "compare",
     "merge",
+    "seeds",
     "leaderboard",
     "reproduce",
 ]

@@ -5,8 +5,10 @@ The board's intervals resample scenes: they say how much a value depends on whic
 drawn, not on how a network happened to train. A run of N seeds keeps each seed's headline value
 per metric; two such runs are compared by Welch's t on those values (unequal variances, the
 Welch-Satterthwaite degrees of freedom), a test of the seed means that says whether their
-difference exceeds the spread between seeds. Pure functions on results documents; the command
-(`reference.reproduce.run_seeds`) writes and reads the files.
+difference exceeds the spread between seeds. Pure functions on results documents, and
+`assemble`, which writes a folder's block: `reproduce --seeds` calls it after its runs, and
+`skyeyes-bench seeds DIR` where the seeds ran apart (other machines, Slurm array tasks, a GPU) and
+each was scored by `evaluate --out DIR/seed-<s>/results.json`.
 
 Block (`results.json["seeds"]`):
 
@@ -19,7 +21,9 @@ Block (`results.json["seeds"]`):
 from __future__ import annotations
 
 import math
+import re
 import statistics
+from pathlib import Path
 
 import numpy as np
 
@@ -155,3 +159,76 @@ def add_seed_tests(out: dict, a: dict, b: dict, names: tuple[str, str], level: f
                           f"{'A' if name not in ma else 'B'}"}
             continue
         r["seeds"] = seed_test(ma[name]["values"], mb[name]["values"], name, level)
+
+
+#: A seed's folder inside a folder of several seeds.
+SEED_DIR = re.compile(r"seed-(\d+)")
+
+
+def seed_dirs(out: Path) -> list[int]:
+    """The seeds s of `out`'s seed-<s>/ folders that hold a results.json, in order."""
+    found = [int(m.group(1)) for d in Path(out).iterdir() if (m := SEED_DIR.fullmatch(d.name))
+             and (d / "results.json").is_file()] if Path(out).is_dir() else []
+    return sorted(found)
+
+
+def check_seeds_out(out: Path, force: bool) -> None:
+    """Refuse an `out` of several seeds that holds a single run (its config.json: the seeds go into
+    seed-<s>/ folders beside one results.json), or a results.json other than an earlier one of
+    several seeds (that is replaced: it is made from the seed folders) unless `force`."""
+    from . import inputfiles, outputfiles
+    from .errors import UserError
+    from .results import FEATURES_OUTPUT, RESULTS_OUTPUT, features_path
+
+    if (out / "config.json").is_file():
+        raise UserError(f"{out}: holds a single run (its config.json); a run of several seeds writes seed-<s>/ "
+                        "folders beside one results.json: choose another --out")
+    res = out / "results.json"
+    try:
+        ours = isinstance(inputfiles.read_json(res, allow_nan=True).get("seeds"), dict)
+    except (UserError, AttributeError):  # absent, unreadable or not an object: `check_output` says
+        ours = False
+    outputfiles.check_output(res, force=force or ours, sidecars=[features_path(res)], kind=RESULTS_OUTPUT,
+                             sidecar_kind=FEATURES_OUTPUT)
+
+
+def _identity(doc: dict) -> dict:
+    """What every seed of one row shares: method, protocol, dataset and split."""
+    sub, data = doc.get("submission") or {}, doc.get("dataset") or {}
+    return {"submission.method": sub.get("method"), "protocol.ref": (doc.get("protocol") or {}).get("ref"),
+            "dataset.name": data.get("name"), "dataset.split": data.get("split")}
+
+
+def assemble(out, seeds: list[int] | None = None, *, force: bool = False) -> dict:
+    """Write `out`/results.json (and its features sidecar): seed `seeds[0]`'s results (frames,
+    replicates and sidecar intact, so `compare` pairs it like any results file) with the `seeds`
+    block of `out`/seed-<s>/results.json for each s of `seeds` (None: every seed folder there, at
+    least 2). The seeds must be one method's on one protocol, dataset and split; a results file
+    that is not, or is missing, is a one-line UserError naming it. Returns the document."""
+    from .errors import UserError
+    from .results import read_results, write_results
+
+    out = Path(out)
+    ss = seed_dirs(out) if seeds is None else list(seeds)
+    if len(ss) < 2:
+        raise UserError(f"{out}: {len(ss)} seed-<s>/results.json found, expected 2 or more (each seed's run scored "
+                        f"into {out}/seed-<s>/results.json)")
+    check_seeds_out(out, force)
+    docs = []
+    for i, s in enumerate(ss):
+        path = out / f"seed-{s}" / "results.json"
+        if not path.is_file():
+            raise UserError(f"{path}: missing (seed {s}'s results)")
+        docs.append((path, *read_results(path, features=i == 0)))
+    want = _identity(docs[0][1])
+    for path, d, _ in docs[1:]:
+        got = _identity(d)
+        for k in want:
+            if got[k] != want[k]:
+                raise UserError(f"{path}: field '{k}' is {fields.short(got[k])}, expected {fields.short(want[k])} "
+                                f"(seed {ss[0]}'s): the seeds of one row share method, protocol, dataset and split")
+    (_, doc, features), *_ = docs
+    doc["seeds"] = seeds_block(ss, [f"seed-{s}/results.json" for s in ss], [d for _, d, _ in docs])
+    check_seeds_out(out, force)  # again at the point of writing: another run may have written it since
+    write_results(out / "results.json", doc, features)
+    return doc

@@ -166,3 +166,59 @@ def test_a_bad_seeds_block_is_one_line(world, tmp_path, edit, field, why):
     a, b = _files(world, tmp_path, blk, None)
     rc, out, err = run_cli("compare", str(a), str(b), check=2)
     assert err.count("\n") == 1 and "Traceback" not in err and str(a) in err and f"'{field}'" in err and why in err, err
+
+
+def _seed_copy(world, folder, key: str, seed: int, psnr_shift: float = 0.0):
+    """results `key` (a or b) as folder/seed-<seed>/results.json with its sidecar; PSNR's headline
+    value moved by `psnr_shift` (a seed that trained differently)."""
+    import shutil
+
+    tmp, _ = world
+    d = folder / f"seed-{seed}"
+    d.mkdir(parents=True)
+    doc = json.loads((tmp / f"{key}.json").read_text())
+    doc["metrics"]["psnr"]["value"] += psnr_shift
+    (d / "results.json").write_text(json.dumps(doc))
+    shutil.copyfile(tmp / doc["features"]["file"], d / doc["features"]["file"])
+    return doc
+
+
+def test_seeds_command_combines_seeds_run_apart(world, tmp_path):
+    """`skyeyes-bench seeds DIR`: the lowest seed's results intact with the block of every seed
+    folder there (numpy's mean and sd of what each file says), its sidecar beside it."""
+    docs = {s: _seed_copy(world, tmp_path / "row", "a", s, shift) for s, shift in ((2, 0.0), (0, 1.0), (5, -0.5))}
+    code, text, _ = run_cli("seeds", str(tmp_path / "row"))
+    assert code == 0 and "wrote" in text and "seeds 0, 2, 5 of a" in text
+    top = json.loads((tmp_path / "row" / "results.json").read_text())
+    block = top.pop("seeds")
+    sidecar, want = top.pop("features"), dict(docs[0])
+    assert sidecar["sha256"] == want.pop("features")["sha256"]  # the same features, named after the new file
+    assert top == want and block["seeds"] == [0, 2, 5]
+    assert block["results"] == ["seed-0/results.json", "seed-2/results.json", "seed-5/results.json"]
+    values = [docs[s]["metrics"]["psnr"]["value"] for s in (0, 2, 5)]
+    got = block["metrics"]["psnr"]
+    assert got["values"] == values and got["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+    assert got["sd"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
+    assert (tmp_path / "row" / sidecar["file"]).is_file()
+    _, again, _ = run_cli("compare", str(tmp_path / "row" / "results.json"), str(tmp_path / "row" / "results.json"),
+                          "--json")
+    assert json.loads(again)["seeds"]["a"] == [0, 2, 5]
+    assert run_cli("seeds", str(tmp_path / "row"))[0] == 0  # its own earlier file is replaced
+
+
+@pytest.mark.parametrize("layout, why", [
+    ("one", "1 seed-<s>/results.json found, expected 2 or more"),
+    ("other-method", "field 'submission.method' is 'b', expected 'a'"),
+    ("single-run", "holds a single run"),
+])
+def test_seeds_command_refuses_in_one_line(world, tmp_path, layout, why):
+    row = tmp_path / "row"
+    _seed_copy(world, row, "a", 0)
+    if layout == "other-method":
+        _seed_copy(world, row, "b", 1)
+    if layout == "single-run":
+        _seed_copy(world, row, "a", 1)
+        (row / "config.json").write_text("{}")
+    code, _, err = run_cli("seeds", str(row), check=2)
+    assert code == 2 and why in err and len(err.strip().splitlines()) == 1, err
+    assert not (row / "results.json").exists()

@@ -210,6 +210,9 @@ class DiffusionConfig:
     # Local attention of each token over the previous frame's window x window neighbourhood after
     # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
     vcm_local: int = 0
+    # The VCM's training crop (model-space pixels; -1: `train_crop`'s; 0: whole frames, what
+    # sampling sees: its attention then spans the tokens of whole frames, not a crop's quarter).
+    vcm_crop: int = -1
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -253,7 +256,7 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_crop")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

@@ -67,7 +67,7 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
 
         core_cfg = dataclasses.replace(config.core, pretrained=config.pretrained, conditioning=pretrained_conditioning,
                                        residual=False, coords=False, **pretrained_schedule(config.pretrained))
-        config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0,
+        config = dataclasses.replace(config, core=core_cfg, sample_strength=1.0, train_crop=0, vcm_crop=-1,
                                      acm_lr=config.pretrained_acm_lr)
     if config.sample_strength < 1.0 and not config.core.residual:
         raise ValueError("sample_strength < 1 (an SDEdit start from the prior) needs core.residual")
@@ -76,6 +76,8 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"({config.acm_steps}); the decay follows at least one constant-rate step")
     if config.clip_frames < 1:
         raise ValueError(f"clip_frames {config.clip_frames}: expected >= 1")
+    if config.vcm_crop < -1:
+        raise ValueError(f"vcm_crop {config.vcm_crop}: expected -1 (train_crop's), 0 (whole frames) or a crop size")
     if isinstance(config, AdditionsConfig):
         adds = Additions.of(config)
         if adds.components and config.condition != "prior":

@@ -199,7 +199,9 @@ class Stages:
         key = {"acm": acm_id, "batch": c.vcm_batch, "lr": c.vcm_lr, "frames": f_clip, "layers": list(vcm.VCM_BLOCKS),
                # the paper's wiring keeps the keys its stages had before these existed
                **({"keys": c.vcm_keys} if c.vcm_keys != "clip" else {}),
-               **({"local": c.vcm_local} if c.vcm_local else {})}
+               **({"local": c.vcm_local} if c.vcm_local else {}),
+               **({"crop": c.vcm_crop} if c.vcm_crop >= 0 else {})}
+        crop = c.train_crop if c.vcm_crop < 0 else c.vcm_crop
 
         def vcm_loss(net, g, part):
             rows = []
@@ -208,7 +210,7 @@ class Stages:
                 s0 = int(torch.randint(0, len(q) - f_clip + 1, (1,), generator=g, device=g.device))
                 rows.append(q[s0:s0 + f_clip])
             idx = torch.tensor(rows, device=d.z0.device)  # [B, F]
-            z, k = train.crops(g, c.train_crop, d.z0[idx], d.cond[idx])
+            z, k = train.crops(g, crop, d.z0[idx], d.cond[idx])
             with vcm.clip_frames(vmodel, f_clip):
                 return train.clip_denoise_loss(net, self.sched, z, k, g, part=part, snr_gamma=self.gamma)
 

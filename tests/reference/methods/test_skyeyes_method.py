@@ -372,3 +372,36 @@ def test_geo_ablation_with_only_the_anchor_is_the_ablations_frames_anchored_to_t
         want = prior_anchor(torch.from_numpy(plain[seq.id]).permute(0, 3, 1, 2), renders, 2.0, 0.8, 2)
         np.testing.assert_allclose(anchored[seq.id], want.permute(0, 2, 3, 1).numpy(), atol=1e-6)
         assert (np.abs(anchored[seq.id] - plain[seq.id]).max(axis=(1, 2, 3)) > 1e-3).all()
+
+
+@pytest.mark.parametrize("vcm_crop, want", [(-1, 8), (0, None), (4, 4)])
+def test_vcm_trains_on_its_own_crop(tiny, tmp_path, monkeypatch, vcm_crop, want):
+    """`vcm_crop` sets the VCM's training crop (-1: `train_crop`'s, 0: whole frames, what sampling
+    sees) without touching the ACM's; the VCM stage's key names it only when it is set, so the
+    stages cached before it existed keep their keys."""
+    from reference.common.diffusion import stages, train
+
+    seen = {"acm": set(), "vcm": set()}
+    real = train.crops
+
+    def spy(g, size, *tensors):
+        out = real(g, size, *tensors)
+        seen["vcm" if tensors[0].ndim == 5 else "acm"].add((size, tuple(out[0].shape[-2:])))
+        return out
+
+    keys = []
+    real_ckpt = stages.stage_ckpt
+    monkeypatch.setattr(train, "crops", spy)
+    monkeypatch.setattr(stages, "stage_ckpt", lambda stage, key, steps: (keys.append((stage, key)),
+                                                                          real_ckpt(stage, key, steps))[1])
+    core_cfg = dataclasses.replace(TINY.core, conditioning="concat", residual=True, residual_scale=2.0)
+    m, _, _ = _run(Skyeyes, tiny, tmp_path / "run", core=core_cfg, train_crop=8, vcm_crop=vcm_crop)
+    assert seen["acm"] == {(8, (8, 8))}  # the ACM's crop whatever the VCM's
+    full = (m.config.core.latent_size,) * 2  # the whole model-space frame
+    assert seen["vcm"] == {(want or 0, (want, want) if want else full)}
+    vcm_keys = [k for s, k in keys if s == "vcm"]
+    assert vcm_keys and all(("crop" in k) == (vcm_crop >= 0) for k in vcm_keys)
+    if vcm_crop >= 0:
+        assert all(k["crop"] == vcm_crop for k in vcm_keys)
+    with pytest.raises(ValueError, match="vcm_crop"):
+        Skyeyes(dataclasses.replace(TINY, vcm_crop=-2), tmp_path / "bad")

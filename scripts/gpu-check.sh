@@ -10,6 +10,8 @@
 #   bash scripts/gpu-check.sh start    # first device run: the jobs below, in their own session
 #   bash scripts/gpu-check.sh finish   # second device run, on the same warm machine: wait, pack, hand back
 #   bash scripts/gpu-check.sh tests    # the test suite's `gpu` tests (not slow), on their own
+#   bash scripts/gpu-check.sh seeds    # first device run of a seeds check (below); then `finish`, once
+#                                      # per submission: each call hands back one
 #
 # A lent machine runs one command for at most 10 minutes, so `start` launches the jobs with
 # setsid (they outlive the command) and watches them for MONITOR_S seconds; `finish`, called at
@@ -28,7 +30,16 @@
 #      are: `cat skyeyes-small.tar.part-* | tar -x -C run/`, then `skyeyes-bench evaluate`.
 # What comes back ($OUT, default ./gpu-check-out; a lent machine hands back at most 8 files, 64 MiB):
 # gpu-check.log (this command), jobs.log (the jobs'), stages.tsv (name, seconds, rc, start offset),
-# skyeyes-small-summary.json and up to 4 tar parts.
+# skyeyes-small-summary.json and up to 4 tar parts: one packed submission a call, the next one not
+# yet handed back.
+# `seeds` (issue 57: the seed spread of the paper's VCM ablation) runs, for each seed of SEEDS
+# (default "1 2"), each method of SEED_METHODS (default "skyeyes skyeyes-no-vcm": one stage cache,
+# so a seed's ACM is trained once for both) at `small` on CUDA, one after the other, and packs each
+# submission as it ends (name <method>-seed-<s>); seeds-summary.json holds every run's stages and
+# timings. Scored here, each into its row's seed folder, then combined:
+#   cat skyeyes-seed-1.tar.part-* | tar -x -C gpu/skyeyes/seed-1/
+#   skyeyes-bench evaluate gpu/skyeyes/seed-1/submission --out gpu/skyeyes/seed-1/results.json
+#   skyeyes-bench seeds gpu/skyeyes        # gpu/skyeyes/results.json with the seeds' spread
 # A dry run of the plumbing on a CPU machine:
 #   DEVICE=cpu BENCH=0 SMALL=smoke SMALL_ARGS="--set acm_steps=20 --set vcm_steps=4" METHODS="mean-frame" \
 #     GPU_TESTS=0 SMOKE_AT=60 bash scripts/gpu-check.sh
@@ -48,6 +59,8 @@ GPU_TESTS=${GPU_TESTS:-1}
 BENCH=${BENCH:-1}               # time the ACM step eager and compiled first; small takes the faster
 COMPILE_MODE=${COMPILE_MODE-reduce-overhead}
 BENCH_ARGS=${BENCH_ARGS:---steps 100 --warmup 20 --frames 16}
+SEEDS=${SEEDS:-1 2}             # seeds mode: the seeds, and the methods run for each
+SEED_METHODS=${SEED_METHODS:-skyeyes skyeyes-no-vcm}
 mkdir -p "$OUT" "$W"
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1
 
@@ -80,29 +93,37 @@ stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc
   return $rc
 }
 
-summary() {  # the small run's stage seconds, devices, lanes and peak memory, as JSON
-  python3 - "$W/skyeyes-small" "$W/gpumem.log" <<'EOF'
+summary() {  # summary MEMLOG RUN...: each run's stage seconds, devices, lanes and scores, and peak memory, as JSON
+  python3 - "$@" <<'EOF'
 import glob, json, sys
-run, mem = sys.argv[1], sys.argv[2]
-out = {}
-for f in glob.glob(f"{run}/work/*/method/training.json"):
-    out["training"] = {k: {x: v.get(x) for x in ("steps", "seconds", "it_per_s", "device", "mixed_precision",
-                                                  "processes", "final_loss")} for k, v in json.load(open(f)).items()}
-priors = [json.load(open(f)) for f in glob.glob(f"{run}/work/*/method/prior/scenes/*/fit.json")]
-out["prior_lanes"] = {"n": len(priors), "fit_seconds": sorted(round(p.get("fit_seconds", 0), 1) for p in priors)}
-try:
-    sub = json.load(open(f"{run}/submission/submission.json"))
-    out["timings"] = {k: v for k, v in sub.get("timings", {}).items() if k != "per_frame_render_s"}
-    out["hardware"] = sub.get("hardware")
-    out["config"] = {k: sub.get("config", {}).get(k) for k in ("acm_steps", "acm_batch", "vcm_steps", "vcm_batch",
-                                                              "mixed_precision", "device", "components")}
-except OSError as e:
-    out["submission"] = f"missing: {e}"
-try:
-    res = json.load(open(f"{run}/results.json"))
-    out["scores"] = {k: v.get("value") if isinstance(v, dict) else v for k, v in res.get("metrics", {}).items()}
-except (OSError, ValueError, AttributeError):
-    pass
+mem, runs = sys.argv[1], sys.argv[2:]
+
+
+def one(run):
+    out = {}
+    for f in glob.glob(f"{run}/work/*/method/training.json"):
+        out["training"] = {k: {x: v.get(x) for x in ("steps", "seconds", "it_per_s", "device", "mixed_precision",
+                                                      "processes", "final_loss")} for k, v in json.load(open(f)).items()}
+    priors = [json.load(open(f)) for f in glob.glob(f"{run}/work/*/method/prior/scenes/*/fit.json")]
+    out["prior_lanes"] = {"n": len(priors), "fit_seconds": sorted(round(p.get("fit_seconds", 0), 1) for p in priors)}
+    try:
+        sub = json.load(open(f"{run}/submission/submission.json"))
+        out["timings"] = {k: v for k, v in sub.get("timings", {}).items() if k != "per_frame_render_s"}
+        out["hardware"] = sub.get("hardware")
+        out["config"] = {k: sub.get("config", {}).get(k) for k in ("acm_steps", "acm_batch", "vcm_steps", "vcm_batch",
+                                                                  "mixed_precision", "device", "components")}
+    except OSError as e:
+        out["submission"] = f"missing: {e}"
+    try:
+        res = json.load(open(f"{run}/results.json"))
+        out["scores"] = {k: v.get("value") if isinstance(v, dict) else v for k, v in res.get("metrics", {}).items()}
+    except (OSError, ValueError, AttributeError):
+        pass
+    return out
+
+
+seeds = any("/seeds/" in r for r in runs)  # seeds mode: every run by name (<method>-seed-<s>)
+out = {"runs": {r.split("/seeds/")[-1].replace("/", "-"): one(r) for r in runs}} if seeds else one(runs[0])
 try:
     out["peak_gpu_memory_mb"] = max(int(x) for x in open(mem).read().split() if x.strip().isdigit())
 except (OSError, ValueError):
@@ -111,15 +132,37 @@ print(json.dumps(out, indent=1))
 EOF
 }
 
+pack() {  # pack NAME RUN: RUN's submission as 15 MiB tar parts in the hand-back queue
+  local name=$1 run=$2
+  [ -f "$run/submission/submission.json" ] || { echo "submission $name: none written"; return 0; }
+  mkdir -p "$W/queue"
+  tar -C "$run" -cf - submission | split -b 15M -d - "$W/queue/$name.tar.part-" && touch "$W/queue/$name.ready"
+  echo "submission $name: $(ls "$W/queue/$name".tar.part-* | wc -l) part(s) of 15 MiB ($(du -sh "$run/submission" | cut -f1))"
+}
+
 handback() {  # copy what the jobs wrote so far into $OUT (a rename, so no half file comes back)
-  local f
+  local f cur n
   for f in stages.tsv jobs.log; do [ -f "$W/$f" ] && cp "$W/$f" "$OUT/$f.part" && mv "$OUT/$f.part" "$OUT/$f"; done
-  summary > "$OUT/skyeyes-small-summary.json.part" 2>/dev/null && mv "$OUT/skyeyes-small-summary.json.part" "$OUT/skyeyes-small-summary.json"
-  if [ -f "$W/packed" ]; then
-    for f in $(ls "$W"/skyeyes-small.tar.part-* | head -n 4); do
-      [ -f "$OUT/$(basename "$f")" ] || { cp "$f" "$OUT/x.part" && mv "$OUT/x.part" "$OUT/$(basename "$f")"; }
-    done
+  if [ "$(cat "$W/mode" 2>/dev/null)" = seeds ]; then
+    summary "$W/gpumem.log" "$W"/seeds/*/seed-* > "$OUT/seeds-summary.json.part" 2>/dev/null \
+      && mv "$OUT/seeds-summary.json.part" "$OUT/seeds-summary.json"
+  else
+    summary "$W/gpumem.log" "$W/skyeyes-small" > "$OUT/skyeyes-small-summary.json.part" 2>/dev/null \
+      && mv "$OUT/skyeyes-small-summary.json.part" "$OUT/skyeyes-small-summary.json"
   fi
+  # one packed submission a call (a call hands back at most 64 MiB): the one this call took, else
+  # the first not yet handed back by an earlier call
+  cur=$(cat "$W/queue/this-call" 2>/dev/null)
+  if [ -z "$cur" ]; then
+    for f in $(ls "$W"/queue/*.ready 2>/dev/null); do
+      n=$(basename "$f" .ready); [ -f "$W/queue/$n.sent" ] || { cur=$n; break; }
+    done
+    [ -n "$cur" ] && { echo "$cur" > "$W/queue/this-call"; touch "$W/queue/$cur.sent"; echo "handing back $cur"; }
+  fi
+  [ -n "$cur" ] || return 0
+  for f in $(ls "$W/queue/$cur".tar.part-* | head -n 4); do
+    [ -f "$OUT/$(basename "$f")" ] || { cp "$f" "$OUT/x.part" && mv "$OUT/x.part" "$OUT/$(basename "$f")"; }
+  done
 }
 
 watch_jobs() {  # watch_jobs SECONDS: print the stage table as it grows; hand back every 15 s
@@ -172,12 +215,7 @@ jobs_main() {  # runs in its own session (setsid): small, then the smokes and te
   touch "$W/running-small"
   (stage skyeyes-small 1500 python3 -m skyeyes_bench.cli reproduce --method skyeyes --preset "$SMALL" \
      --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/skyeyes-small" --quiet --force $small_args 2>&1 | stamp small
-   run=$W/skyeyes-small
-   if [ -f "$run/submission/submission.json" ]; then
-     tar -C "$run" -cf - submission | split -b 15M -d - "$W/skyeyes-small.tar.part-"
-     echo "submission: $(ls "$W"/skyeyes-small.tar.part-* | wc -l) part(s) of 15 MiB ($(du -sh "$run/submission" | cut -f1))"
-     touch "$W/packed"
-   fi
+   pack skyeyes-small "$W/skyeyes-small"
    rm -f "$W/running-small") &
   local small=$!
   while kill -0 $small 2>/dev/null && [ "$(since)" -lt "$SMOKE_AT" ]; do sleep 2; done
@@ -196,36 +234,62 @@ jobs_main() {  # runs in its own session (setsid): small, then the smokes and te
   touch "$W/done"
 }
 
+jobs_seeds() {  # seeds mode, in its own session: each seed's methods at $SMALL on $DEVICE, each packed as it ends
+  exec >> "$W/jobs.log" 2>&1
+  cd "$SRC"
+  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 500 > "$W/gpumem.log" 2>/dev/null &
+  local sampler=$! s m name
+  t_start
+  for s in $SEEDS; do
+    for m in $SEED_METHODS; do  # one cache: the seed's priors and ACM are made by its first method, read by the rest
+      name=$m-seed-$s
+      touch "$W/running-$name"
+      stage "$name" 1500 python3 -m skyeyes_bench.cli reproduce --method "$m" --preset "$SMALL" --seed "$s" \
+        --device "$DEVICE" --data "$W/data/$SMALL" --out "$W/seeds/$m/seed-$s" --quiet --force $SMALL_ARGS 2>&1 | stamp "$name"
+      pack "$name" "$W/seeds/$m/seed-$s"
+      rm -f "$W/running-$name"
+    done
+  done
+  kill $sampler 2>/dev/null
+  echo "jobs ended at +$(since) s"
+  touch "$W/done"
+}
+
 case $mode in
-  start|all)
+  start|all|seeds)
     echo "== gpu-check $mode at $(git rev-parse --short HEAD 2>/dev/null || echo '?') on $(hostname), $(date -u +%FT%TZ)"
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
     if ls .whl/*.whl >/dev/null 2>&1 && [ ! -d "$site" ]; then  # the wheels, aside from the image's own environment
       python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
         || { echo "gpu-check: installing .whl/*.whl failed"; exit 1; }
     fi
-    rm -rf "$SRC" "$W"/done "$W"/packed "$W"/running-* "$W"/skyeyes-small.tar.part-* "$stages" "$W/jobs.log"
+    rm -rf "$SRC" "$W"/done "$W"/queue "$W"/seeds "$W"/running-* "$stages" "$W/jobs.log"
+    echo "$mode" > "$W/mode"  # what `finish` hands back: the small run's, or the seeds'
     mkdir -p "$SRC" "$W/data"
     tar --exclude=./.whl --exclude=./.gpu-data --exclude=./.git --exclude=./.venv --exclude=./outputs --exclude=./gpu-check-out -cf - . | tar -C "$SRC" -xf -
     python3 -c "import os, torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU', '| diffusers', diffusers.__version__, '| cores', os.cpu_count())"
     printf 'stage\tseconds\trc\tstart\n' > "$stages"
     t_start
-    for p in smoke "$SMALL"; do  # the carried data, or generated here with every core (not counted in small's time)
+    presets="smoke $SMALL"; [ "$mode" = seeds ] && presets=$SMALL
+    for p in $presets; do  # the carried data, or generated here with every core (not counted in small's time)
       if [ -d ".gpu-data/$p" ]; then cp -a ".gpu-data/$p" "$W/data/$p"
       else stage "data-$p" 300 python3 -m skyeyes_bench.cli data synthtown --preset "$p" --out "$W/data/$p" --workers "$(nproc)" --quiet; fi
     done
     t_start  # the stage offsets count from the timed run's start
-    export -f stage since stamp t_start smoke_one jobs_main
-    export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS BENCH COMPILE_MODE BENCH_ARGS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
-    setsid bash -c jobs_main < /dev/null > /dev/null 2>&1 &
-    if [ "$mode" = start ]; then watch_jobs $((MONITOR_S - SECONDS)); exit 0; fi
+    export -f stage since stamp t_start smoke_one pack jobs_main jobs_seeds
+    export W SRC DEVICE SMALL SMOKE_AT GPU_TESTS BENCH COMPILE_MODE BENCH_ARGS SEEDS SEED_METHODS stages METHODS=${METHODS:-} SMALL_ARGS=${SMALL_ARGS:-}
+    if [ "$mode" = seeds ]; then setsid bash -c jobs_seeds < /dev/null > /dev/null 2>&1 &
+    else setsid bash -c jobs_main < /dev/null > /dev/null 2>&1 &
+    fi
+    if [ "$mode" != all ]; then watch_jobs $((MONITOR_S - SECONDS)); exit 0; fi
     watch_jobs "$FINISH_S";;
   finish)
     echo "== gpu-check finish at +$(since) s"
+    rm -f "$W/queue/this-call"  # this call hands back the next packed submission
     watch_jobs "$FINISH_S";;
   tests)
     (cd "$SRC" 2>/dev/null || cd .; stage gpu-tests 540 python3 -m pytest -q -p no:cacheprovider -m "gpu and not slow" tests);;
-  *) echo "usage: bash scripts/gpu-check.sh [all|start|finish|tests|pack-data]"; exit 2;;
+  *) echo "usage: bash scripts/gpu-check.sh [all|start|finish|seeds|tests|pack-data]"; exit 2;;
 esac
 [ -f "$W/done" ] && { echo "== stages (seconds):"; column -t "$stages" 2>/dev/null || cat "$stages"; }
 exit 0

@@ -210,6 +210,10 @@ class DiffusionConfig:
     # Local attention of each token over the previous frame's window x window neighbourhood after
     # every resnet of the UNet's levels without self-attention (`vcm.LocalFrameAttention`; 0: none).
     vcm_local: int = 0
+    # The paper's clip attention as new layers after every resnet of this many of the UNet's levels
+    # without self-attention, the coarsest first (`vcm.ClipFrameAttention`; 0: none): SD1.5 attends
+    # at three of four levels, `small`'s UNet at its coarsest only.
+    vcm_levels: int = 0
     # The VCM's training crop (model-space pixels; -1: `train_crop`'s; 0: whole frames, what
     # sampling sees: its attention then spans the tokens of whole frames, not a crop's quarter).
     vcm_crop: int = -1
@@ -256,7 +260,7 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_crop")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_levels", "vcm_crop")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

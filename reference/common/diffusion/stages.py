@@ -194,12 +194,14 @@ class Stages:
         seqs = d.sequences(scenes)
         f_clip = min(c.clip_frames, min(len(q) for q in seqs))
         vmodel = copy.deepcopy(acm)
-        vcm.install_vcm(vmodel, vcm.ClipContext(keys=c.vcm_keys), local_window=c.vcm_local, seed=self.m.seed + 2)
+        vcm.install_vcm(vmodel, vcm.ClipContext(keys=c.vcm_keys), local_window=c.vcm_local, levels=c.vcm_levels,
+                        seed=self.m.seed + 2)
         params = core.trainable(vmodel, vcm.vcm_parameter_names(vmodel))
         key = {"acm": acm_id, "batch": c.vcm_batch, "lr": c.vcm_lr, "frames": f_clip, "layers": list(vcm.VCM_BLOCKS),
                # the paper's wiring keeps the keys its stages had before these existed
                **({"keys": c.vcm_keys} if c.vcm_keys != "clip" else {}),
                **({"local": c.vcm_local} if c.vcm_local else {}),
+               **({"levels": c.vcm_levels} if c.vcm_levels else {}),
                **({"crop": c.vcm_crop} if c.vcm_crop >= 0 else {})}
         crop = c.train_crop if c.vcm_crop < 0 else c.vcm_crop
 

@@ -140,8 +140,38 @@ class LocalFrameAttention(nn.Module):
         return h + self.out(out)
 
 
+class ClipFrameAttention(nn.Module):
+    """The paper's spatial-temporal attention (every token of a clip over every token of its F
+    frames) as a new layer, for the UNet's levels that have no self-attention to rewire: at `small`
+    the UNet attends at its coarsest level only, where SD1.5 (the paper's) attends at three of its
+    four. Heads of `head_dim` channels; the output projection starts at zero, so the model starts
+    as the ACM (as `LocalFrameAttention`)."""
+
+    def __init__(self, channels: int, ctx: ClipContext, groups: int, head_dim: int):
+        super().__init__()
+        if channels % head_dim:
+            raise ValueError(f"VCM clip layer: {channels} channels are not whole heads of {head_dim}")
+        self.ctx, self.heads = ctx, channels // head_dim
+        self.norm = nn.GroupNorm(groups, channels, eps=1e-6)
+        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
+        self.out = nn.Conv2d(channels, channels, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:  # [B*F, C, H, W]
+        bf, c, hh, ww = h.shape
+        f = self.ctx.frames
+        assert bf % f == 0, f"batch {bf} is not a whole number of {f}-frame clips"
+        b, n, d = bf // f, self.heads, c // self.heads
+        q, k, v = (x.reshape(b, f, n, d, hh * ww).permute(0, 2, 1, 4, 3).reshape(b, n, f * hh * ww, d)
+                   for x in self.qkv(self.norm(h)).chunk(3, dim=1))  # [B, heads, F*HW, d]: a clip's tokens
+        out = F.scaled_dot_product_attention(q, k, v)
+        out = out.view(b, n, f, hh * ww, d).permute(0, 2, 1, 4, 3).reshape(bf, c, hh, ww)
+        return h + self.out(out)
+
+
 class _WithLocal(nn.Module):
-    """A resnet of the UNet followed by a `LocalFrameAttention` on its output."""
+    """A resnet of the UNet followed by a `LocalFrameAttention` (or `ClipFrameAttention`) on its output."""
 
     def __init__(self, resnet: nn.Module, local: LocalFrameAttention):
         super().__init__()
@@ -151,33 +181,44 @@ class _WithLocal(nn.Module):
         return self.local(self.resnet(*args, **kwargs))
 
 
-def _plain_blocks(model: nn.Module) -> list[tuple[str, nn.Module]]:
-    """(name, block) of the UNet's down and up blocks that have no attention (its finer levels)."""
+def _plain_blocks(model: nn.Module, levels: int | None = None) -> list[tuple[str, nn.Module]]:
+    """(name, block) of the UNet's down and up blocks that have no attention (its finer levels);
+    with `levels`, only those of the `levels` coarsest such levels (down block i and up block
+    n - 1 - i are level i)."""
     unet = model.unet
+    n = len(unet.down_blocks)
+    plain = sorted({i for i, blk in enumerate(unet.down_blocks) if not hasattr(blk, "attentions")}, reverse=True)
+    keep = set(plain if levels is None else plain[:levels])
     return [(f"unet.{kind}.{i}", blk) for kind in ("down_blocks", "up_blocks")
-            for i, blk in enumerate(getattr(unet, kind)) if not hasattr(blk, "attentions")]
+            for i, blk in enumerate(getattr(unet, kind)) if not hasattr(blk, "attentions")
+            and (i if kind == "down_blocks" else n - 1 - i) in keep]
 
 
-def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_window: int = 0,
+def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_window: int = 0, levels: int = 0,
                 seed: int = 0) -> ClipContext:
     """Replace the processor of every `attn1` of the UNet's down and up blocks (`VCM_BLOCKS`);
     with `local_window`, also follow every resnet of the down and up blocks without attention by
-    a `LocalFrameAttention` (new layers, initialised from `seed`, outputs at zero). Returns the
-    context."""
+    a `LocalFrameAttention`; with `levels`, every resnet of the `levels` coarsest levels without
+    attention by a `ClipFrameAttention` (new layers, initialised from `seed`, outputs at zero; the
+    two exclude each other). Returns the context."""
     ctx = ctx or ClipContext()
     layers = self_attention_layers(model, VCM_BLOCKS)
     assert layers, "model has no self-attention layers in its down or up blocks"
+    if local_window and levels:
+        raise ValueError("VCM: local layers (vcm_local) and clip layers (vcm_levels) exclude each other")
     proc = ClipSelfAttnProcessor(ctx)
     for m in layers.values():
         m.set_processor(proc)
-    if local_window:
+    head_dim = next(iter(layers.values())).to_q.out_features // next(iter(layers.values())).heads
+    if local_window or levels:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            for _, blk in _plain_blocks(model):
+            for _, blk in _plain_blocks(model, levels or None):
                 for j, res in enumerate(blk.resnets):
                     groups = res.norm2.num_groups
-                    local = LocalFrameAttention(res.out_channels, ctx, local_window, groups)
-                    blk.resnets[j] = _WithLocal(res, local.to(next(res.parameters()).device))
+                    new = (LocalFrameAttention(res.out_channels, ctx, local_window, groups) if local_window
+                           else ClipFrameAttention(res.out_channels, ctx, groups, head_dim))
+                    blk.resnets[j] = _WithLocal(res, new.to(next(res.parameters()).device))
     model._vcm_context = ctx  # noqa: SLF001  (found again by `clip_frames`)
     return ctx
 
@@ -185,7 +226,7 @@ def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_windo
 def vcm_parameter_names(model: nn.Module) -> list[str]:
     """Prefixes of the parameters VCM trains: the projections of the `attn1` layers it rewires
     and its local layers, where installed."""
-    local = [f"{n}." for n, m in model.named_modules() if isinstance(m, LocalFrameAttention)]
+    local = [f"{n}." for n, m in model.named_modules() if isinstance(m, (LocalFrameAttention, ClipFrameAttention))]
     return [f"{n}." for n in self_attention_layers(model, VCM_BLOCKS)] + local
 
 

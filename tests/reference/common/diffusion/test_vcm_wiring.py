@@ -120,3 +120,73 @@ def test_local_layers_start_as_the_acm_are_trained_and_are_causal():
     torch.testing.assert_close(pert[2][:2], ref[:2])  # a later frame never reaches an earlier one
     torch.testing.assert_close(pert[1][:1], ref[:1])
     assert (pert[0][1] - ref[1]).abs().max() > 1e-4  # the previous frame does
+
+
+def _slow_clip_layer(layer: vcm.ClipFrameAttention, h: torch.Tensor, frames: int) -> torch.Tensor:
+    """Token by token and head by head: softmax(q . k / sqrt(d)) over every token of every frame of
+    its clip (the paper's attention, written from its definition)."""
+    c, heads = h.shape[1], layer.heads
+    d = c // heads
+    q, k, v = layer.qkv(layer.norm(h)).chunk(3, dim=1)
+    out = torch.zeros_like(h)
+    for n in range(h.shape[0]):
+        clip = range(n - n % frames, n - n % frames + frames)
+        keys = torch.stack([k[m, :, y, x] for m in clip for y in range(h.shape[2]) for x in range(h.shape[3])])
+        vals = torch.stack([v[m, :, y, x] for m in clip for y in range(h.shape[2]) for x in range(h.shape[3])])
+        for y in range(h.shape[2]):
+            for x in range(h.shape[3]):
+                for e in range(heads):
+                    s = slice(e * d, (e + 1) * d)
+                    w = torch.softmax(keys[:, s] @ q[n, s, y, x] / math.sqrt(d), dim=0)
+                    out[n, s, y, x] = w @ vals[:, s]
+    return h + layer.out(out)
+
+
+def test_clip_layer_matches_slow_reference():
+    torch.manual_seed(0)
+    layer = vcm.ClipFrameAttention(8, vcm.ClipContext(3), groups=2, head_dim=4)
+    with torch.no_grad():  # a trained layer: the zero output projection would hide everything
+        layer.out.weight.normal_(0, 0.5)
+        layer.out.bias.normal_(0, 0.1)
+        h = torch.randn(6, 8, 3, 4)  # 2 clips x 3 frames, a frame that is not square
+        torch.testing.assert_close(layer(h), _slow_clip_layer(layer, h, 3), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="whole heads"):
+        vcm.ClipFrameAttention(8, vcm.ClipContext(3), groups=2, head_dim=3)
+
+
+THREE = core.CoreConfig(resolution=16, channels=(8, 16, 16), attention=(False, False, True), head_dim=8,
+                        embed_dim=16, norm_groups=4, prediction="epsilon")
+
+
+@pytest.mark.parametrize("levels, where", [(1, {"unet.down_blocks.1", "unet.up_blocks.1"}),
+                                           (2, {"unet.down_blocks.0", "unet.down_blocks.1", "unet.up_blocks.1",
+                                                "unet.up_blocks.2"})])
+def test_clip_layers_go_to_the_coarsest_levels_without_attention_start_as_the_acm_and_link_a_clip(levels, where):
+    """`small`'s shape (attention at the coarsest of three levels): levels=1 puts the layers at the
+    middle level (down block 1, up block 1), 2 at both finer ones; the model starts as without them;
+    once trained, every frame of a clip reaches every other (the paper's attention is not causal)
+    and no other clip."""
+    plain, clip = core.build_model(THREE, control=False, seed=0).eval(), core.build_model(THREE, control=False, seed=0).eval()
+    vcm.install_vcm(plain)
+    vcm.install_vcm(clip, levels=levels, seed=2)
+    found = {n.rsplit(".resnets.", 1)[0] for n, m in clip.named_modules() if isinstance(m, vcm.ClipFrameAttention)}
+    assert found == where
+    names = vcm.vcm_parameter_names(clip)
+    assert sum(p.numel() for p in core.trainable(clip, names)) > sum(
+        p.numel() for p in core.trainable(plain, vcm.vcm_parameter_names(plain)))
+    torch.testing.assert_close(_perturbed_outputs(plain, 3)[0], _perturbed_outputs(clip, 3)[0])
+    with torch.no_grad():
+        for m in clip.modules():
+            if isinstance(m, vcm.ClipFrameAttention):
+                m.out.weight.normal_(0, 0.3)
+    ref, *pert = _perturbed_outputs(clip, 3)
+    assert (pert[2][0] - ref[0]).abs().max() > 1e-4  # a later frame reaches an earlier one
+    assert (pert[0][2] - ref[2]).abs().max() > 1e-4
+    g = torch.Generator().manual_seed(0)
+    x, t, c = torch.randn(4, 3, 16, 16, generator=g), torch.full((4,), 500), torch.rand(4, 3, 16, 16, generator=g)
+    x2 = x.clone()
+    x2[0] += 1.0
+    with torch.no_grad(), vcm.clip_frames(clip, 2):
+        torch.testing.assert_close(clip(x, t, c)[2:], clip(x2, t, c)[2:])  # clip 2 never sees clip 1
+    with pytest.raises(ValueError, match="exclude each other"):
+        vcm.install_vcm(core.build_model(THREE, control=False, seed=0), local_window=3, levels=1)

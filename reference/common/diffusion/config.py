@@ -217,6 +217,10 @@ class DiffusionConfig:
     # The VCM's training crop (model-space pixels; -1: `train_crop`'s; 0: whole frames, what
     # sampling sees: its attention then spans the tokens of whole frames, not a crop's quarter).
     vcm_crop: int = -1
+    # The VCM's loss weights (-1: `snr_gamma`'s; 0: uniform; else min-SNR-gamma). Min-SNR weights a v
+    # target's x0 error by min(SNR, gamma): near 0 at the noisiest steps, where sampling from pure
+    # noise decides a frame's colours and where the first frame has the most to tell.
+    vcm_snr_gamma: float = -1.0
     # Train on random square crops of this size (model-space pixels; 0: whole frames), one crop
     # box per frame (ACM) or per clip (VCM). The UNet is convolutional, so it samples whole
     # frames; a crop costs (crop / size)^2 of a frame (SR3 and Palette train on crops too).
@@ -260,7 +264,7 @@ WHOLE_UNET_LR = 1e-4
 
 #: The VCM's own settings, which mean nothing without it: a frame-by-frame method keeps their
 #: defaults (its config, cache key and filed rows do not follow the VCM's).
-VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_levels", "vcm_crop")
+VCM_ONLY = ("clip_frames", "vcm_keys", "vcm_local", "vcm_levels", "vcm_crop", "vcm_snr_gamma")
 
 
 def frame_by_frame(config: DiffusionConfig) -> DiffusionConfig:

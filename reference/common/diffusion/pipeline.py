@@ -76,6 +76,8 @@ def adapted(config: DiffusionConfig, pretrained_conditioning: str) -> DiffusionC
                          f"({config.acm_steps}); the decay follows at least one constant-rate step")
     if config.clip_frames < 1:
         raise ValueError(f"clip_frames {config.clip_frames}: expected >= 1")
+    if config.vcm_snr_gamma < 0 and config.vcm_snr_gamma != -1:
+        raise ValueError(f"vcm_snr_gamma {config.vcm_snr_gamma}: expected -1 (snr_gamma's), 0 (uniform) or > 0")
     if config.vcm_crop < -1:
         raise ValueError(f"vcm_crop {config.vcm_crop}: expected -1 (train_crop's), 0 (whole frames) or a crop size")
     if isinstance(config, AdditionsConfig):

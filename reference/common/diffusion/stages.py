@@ -202,8 +202,10 @@ class Stages:
                **({"keys": c.vcm_keys} if c.vcm_keys != "clip" else {}),
                **({"local": c.vcm_local} if c.vcm_local else {}),
                **({"levels": c.vcm_levels} if c.vcm_levels else {}),
-               **({"crop": c.vcm_crop} if c.vcm_crop >= 0 else {})}
+               **({"crop": c.vcm_crop} if c.vcm_crop >= 0 else {}),
+               **({"snr_gamma": c.vcm_snr_gamma} if c.vcm_snr_gamma >= 0 else {})}
         crop = c.train_crop if c.vcm_crop < 0 else c.vcm_crop
+        gamma = self.gamma if c.vcm_snr_gamma < 0 else c.vcm_snr_gamma
 
         def vcm_loss(net, g, part):
             rows = []
@@ -214,7 +216,7 @@ class Stages:
             idx = torch.tensor(rows, device=d.z0.device)  # [B, F]
             z, k = train.crops(g, crop, d.z0[idx], d.cond[idx])
             with vcm.clip_frames(vmodel, f_clip):
-                return train.clip_denoise_loss(net, self.sched, z, k, g, part=part, snr_gamma=self.gamma)
+                return train.clip_denoise_loss(net, self.sched, z, k, g, part=part, snr_gamma=gamma)
 
         self.run("vcm", vmodel, params, vcm_loss, c.vcm_steps, c.vcm_lr, key)
         core.trainable(vmodel, [])

@@ -405,3 +405,28 @@ def test_vcm_trains_on_its_own_crop(tiny, tmp_path, monkeypatch, vcm_crop, want)
         assert all(k["crop"] == vcm_crop for k in vcm_keys)
     with pytest.raises(ValueError, match="vcm_crop"):
         Skyeyes(dataclasses.replace(TINY, vcm_crop=-2), tmp_path / "bad")
+
+
+@pytest.mark.parametrize("vcm_snr_gamma, want", [(-1.0, 5.0), (0.0, 0.0), (2.0, 2.0)])
+def test_vcm_loss_weights_are_its_own(tiny, tmp_path, monkeypatch, vcm_snr_gamma, want):
+    """`vcm_snr_gamma` weights the VCM's loss (-1: `snr_gamma`'s; 0: uniform) and leaves the ACM's;
+    the VCM stage's key names it only when it is set."""
+    from reference.common.diffusion import stages, train
+
+    seen = {"acm": set(), "vcm": set()}
+    real_acm, real_vcm = train.denoise_loss, train.clip_denoise_loss
+    monkeypatch.setattr(train, "denoise_loss", lambda *a, **k: (seen["acm"].add(k["snr_gamma"]), real_acm(*a, **k))[1])
+    monkeypatch.setattr(train, "clip_denoise_loss",
+                        lambda *a, **k: (seen["vcm"].add(k["snr_gamma"]), real_vcm(*a, **k))[1])
+    keys = []
+    real_ckpt = stages.stage_ckpt
+    monkeypatch.setattr(stages, "stage_ckpt", lambda stage, key, steps: (keys.append((stage, key)),
+                                                                          real_ckpt(stage, key, steps))[1])
+    core_cfg = dataclasses.replace(TINY.core, conditioning="concat", residual=True, residual_scale=2.0)
+    _run(Skyeyes, tiny, tmp_path / "run", core=core_cfg, snr_gamma=5.0, vcm_snr_gamma=vcm_snr_gamma)
+    assert seen["acm"] == {5.0}
+    assert seen["vcm"] == {want}  # 0: `loss_weight`'s uniform weights
+    vcm_keys = [k for s, k in keys if s == "vcm"]
+    assert vcm_keys and all(k.get("snr_gamma") == (None if vcm_snr_gamma < 0 else vcm_snr_gamma) for k in vcm_keys)
+    with pytest.raises(ValueError, match="vcm_snr_gamma"):
+        Skyeyes(dataclasses.replace(TINY, vcm_snr_gamma=-2.0), tmp_path / "bad")

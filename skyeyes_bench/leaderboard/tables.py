@@ -113,7 +113,10 @@ def training_budget(config) -> str:
     parts.append(acm)
     if c.get("mixed_precision") in _PRECISION:
         parts.append(_PRECISION[c["mixed_precision"]])
-    parts.append(f"VCM {c.get('vcm_steps')} steps at batch {c.get('vcm_batch')}" if c.get("vcm") else "no VCM")
+    vcm = f"VCM {c.get('vcm_steps')} steps at batch {c.get('vcm_batch')}"
+    if c.get("vcm_snr_gamma") == 0:  # its own loss weights (older configs lack the field: the ACM's)
+        vcm += ", uniform loss weights"
+    parts.append(vcm if c.get("vcm") else "no VCM")
     return ", ".join(parts)
 
 

@@ -438,6 +438,9 @@ def test_each_row_says_its_kind_what_it_runs_and_its_budget(board, tmp_path):
     assert training_budget(cfgs["blurry"]) == ("ACM 12000 steps (rate decaying over the last 3000) at batch 16 on "
                                                "32-px crops, bf16, VCM 3000 steps at batch 1")
     assert training_budget(cfgs["blurry-twin"]) == "ACM 3000 steps at batch 16 on 32-px crops, fp32, no VCM"
+    assert training_budget({**cfgs["blurry"], "vcm_snr_gamma": 0.0}).endswith("VCM 3000 steps at batch 1, uniform "
+                                                                              "loss weights")
+    assert training_budget({**cfgs["blurry"], "vcm_snr_gamma": -1.0}) == training_budget(cfgs["blurry"])
     assert training_budget({"iterations": 500}) == training_budget(None) == ""
     # blurry: the paper's method id, but its config says it is beyond the paper and what it runs;
     # blurry-twin: the ablation's id with a legacy config; sharp: the floor's id, no config at all

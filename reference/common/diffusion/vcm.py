@@ -101,7 +101,28 @@ def self_attention_layers(model: nn.Module, prefixes: tuple[str, ...] | None = N
             if n.endswith("attn1") and (prefixes is None or n.startswith(prefixes))}
 
 
-class LocalFrameAttention(nn.Module):
+class _FrameLayer(nn.Module):
+    """What the VCM's new layers share: a group norm, 1x1 q, k, v projections and a 1x1 output
+    projection that starts at zero (the model starts as the ACM), over a batch of clips of
+    `ctx.frames` frames."""
+
+    def __init__(self, channels: int, ctx: ClipContext, groups: int):
+        super().__init__()
+        self.ctx = ctx
+        self.norm = nn.GroupNorm(groups, channels, eps=1e-6)
+        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
+        self.out = nn.Conv2d(channels, channels, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def qkv_of(self, h: torch.Tensor):
+        """h [B*F, C, H, W] -> (F, q, k, v), each [B*F, C, H, W]."""
+        f = self.ctx.frames
+        assert h.shape[0] % f == 0, f"batch {h.shape[0]} is not a whole number of {f}-frame clips"
+        return (f, *self.qkv(self.norm(h)).chunk(3, dim=1))
+
+
+class LocalFrameAttention(_FrameLayer):
     """Attention of each token over the previous frame's `window` x `window` neighbourhood of its
     position and its own token (the first frame of a clip: its own token alone), for the UNet's
     finer levels, which have no self-attention to rewire: a learned, local correspondence that can
@@ -110,21 +131,14 @@ class LocalFrameAttention(nn.Module):
     Control-A-Video's temporal layers start so too)."""
 
     def __init__(self, channels: int, ctx: ClipContext, window: int, groups: int):
-        super().__init__()
         if window < 1 or window % 2 == 0:
             raise ValueError(f"VCM local window {window}: expected an odd number >= 1")
-        self.ctx, self.window = ctx, window
-        self.norm = nn.GroupNorm(groups, channels, eps=1e-6)
-        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
-        self.out = nn.Conv2d(channels, channels, 1)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        super().__init__(channels, ctx, groups)
+        self.window = window
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:  # [B*F, C, H, W]
         bf, c, hh, ww = h.shape
-        f = self.ctx.frames
-        assert bf % f == 0, f"batch {bf} is not a whole number of {f}-frame clips"
-        q, k, v = self.qkv(self.norm(h)).chunk(3, dim=1)  # [B*F, C, H, W]
+        f, q, k, v = self.qkv_of(h)
         r = self.window
         prev = [_previous(x.view(bf // f, f, c, hh, ww)).reshape(bf, c, hh, ww) for x in (k, v)]
         kn, vn = (F.unfold(x, r, padding=r // 2).view(bf, c, r * r, hh * ww) for x in prev)  # [B*F, C, r*r, HW]
@@ -140,7 +154,7 @@ class LocalFrameAttention(nn.Module):
         return h + self.out(out)
 
 
-class ClipFrameAttention(nn.Module):
+class ClipFrameAttention(_FrameLayer):
     """The paper's spatial-temporal attention (every token of a clip over every token of its F
     frames) as a new layer, for the UNet's levels that have no self-attention to rewire: at `small`
     the UNet attends at its coarsest level only, where SD1.5 (the paper's) attends at three of its
@@ -148,23 +162,17 @@ class ClipFrameAttention(nn.Module):
     as the ACM (as `LocalFrameAttention`)."""
 
     def __init__(self, channels: int, ctx: ClipContext, groups: int, head_dim: int):
-        super().__init__()
         if channels % head_dim:
             raise ValueError(f"VCM clip layer: {channels} channels are not whole heads of {head_dim}")
-        self.ctx, self.heads = ctx, channels // head_dim
-        self.norm = nn.GroupNorm(groups, channels, eps=1e-6)
-        self.qkv = nn.Conv2d(channels, 3 * channels, 1)
-        self.out = nn.Conv2d(channels, channels, 1)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        super().__init__(channels, ctx, groups)
+        self.heads = channels // head_dim
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:  # [B*F, C, H, W]
         bf, c, hh, ww = h.shape
-        f = self.ctx.frames
-        assert bf % f == 0, f"batch {bf} is not a whole number of {f}-frame clips"
+        f, *qkv = self.qkv_of(h)
         b, n, d = bf // f, self.heads, c // self.heads
         q, k, v = (x.reshape(b, f, n, d, hh * ww).permute(0, 2, 1, 4, 3).reshape(b, n, f * hh * ww, d)
-                   for x in self.qkv(self.norm(h)).chunk(3, dim=1))  # [B, heads, F*HW, d]: a clip's tokens
+                   for x in qkv)  # [B, heads, F*HW, d]: a clip's tokens
         out = F.scaled_dot_product_attention(q, k, v)
         out = out.view(b, n, f, hh * ww, d).permute(0, 2, 1, 4, 3).reshape(bf, c, hh, ww)
         return h + self.out(out)

@@ -68,6 +68,7 @@ def test_gpu_training_shape_applies_on_cuda_only_and_yields_to_set(one_gpu):
     assert {k: getattr(gpu, k) for k in want} == want
     # the same frames seen as the CPU preset's ACM, in fewer steps
     assert gpu.acm_steps * gpu.acm_batch == PRESETS["small"].acm_steps * PRESETS["small"].acm_batch
+    assert gpu.vcm_steps * gpu.vcm_batch == PRESETS["small"].vcm_steps * PRESETS["small"].vcm_batch  # and clips
     assert applied == ["device=cuda", *(f"{k}={v}" for k, v in want.items())]
     # "auto" resolves to CUDA here, so the same shape; a --set field is the user's
     auto, _ = Skyeyes.configure("small", ["acm_steps=5000"])

@@ -93,10 +93,10 @@ stage() {  # stage NAME SECONDS_LIMIT CMD...: run, time, record "name seconds rc
   return $rc
 }
 
-summary() {  # summary MEMLOG RUN...: each run's stage seconds, devices, lanes and scores, and peak memory, as JSON
+summary() {  # summary MODE MEMLOG RUN...: each run's stage seconds, devices, lanes and scores, and peak memory, as JSON
   python3 - "$@" <<'EOF'
 import glob, json, sys
-mem, runs = sys.argv[1], sys.argv[2:]
+mode, mem, runs = sys.argv[1], sys.argv[2], sys.argv[3:]
 
 
 def one(run):
@@ -122,8 +122,8 @@ def one(run):
     return out
 
 
-seeds = any("/seeds/" in r for r in runs)  # seeds mode: every run by name (<method>-seed-<s>)
-out = {"runs": {r.split("/seeds/")[-1].replace("/", "-"): one(r) for r in runs}} if seeds else one(runs[0])
+# seeds mode: every run by name (<method>-seed-<s>, from $W/seeds/<method>/seed-<s>)
+out = {"runs": {r.split("/seeds/")[-1].replace("/", "-"): one(r) for r in runs}} if mode == "seeds" else one(runs[0])
 try:
     out["peak_gpu_memory_mb"] = max(int(x) for x in open(mem).read().split() if x.strip().isdigit())
 except (OSError, ValueError):
@@ -144,10 +144,10 @@ handback() {  # copy what the jobs wrote so far into $OUT (a rename, so no half 
   local f cur n
   for f in stages.tsv jobs.log; do [ -f "$W/$f" ] && cp "$W/$f" "$OUT/$f.part" && mv "$OUT/$f.part" "$OUT/$f"; done
   if [ "$(cat "$W/mode" 2>/dev/null)" = seeds ]; then
-    summary "$W/gpumem.log" "$W"/seeds/*/seed-* > "$OUT/seeds-summary.json.part" 2>/dev/null \
+    summary seeds "$W/gpumem.log" "$W"/seeds/*/seed-* > "$OUT/seeds-summary.json.part" 2>/dev/null \
       && mv "$OUT/seeds-summary.json.part" "$OUT/seeds-summary.json"
   else
-    summary "$W/gpumem.log" "$W/skyeyes-small" > "$OUT/skyeyes-small-summary.json.part" 2>/dev/null \
+    summary small "$W/gpumem.log" "$W/skyeyes-small" > "$OUT/skyeyes-small-summary.json.part" 2>/dev/null \
       && mv "$OUT/skyeyes-small-summary.json.part" "$OUT/skyeyes-small-summary.json"
   fi
   # one packed submission a call (a call hands back at most 64 MiB): the one this call took, else

@@ -213,7 +213,6 @@ def assemble(out, seeds: list[int] | None = None, *, force: bool = False) -> dic
     if len(ss) < 2:
         raise UserError(f"{out}: {len(ss)} seed-<s>/results.json found, expected 2 or more (each seed's run scored "
                         f"into {out}/seed-<s>/results.json)")
-    check_seeds_out(out, force)
     docs = []
     for i, s in enumerate(ss):
         path = out / f"seed-{s}" / "results.json"
@@ -229,6 +228,6 @@ def assemble(out, seeds: list[int] | None = None, *, force: bool = False) -> dic
                                 f"(seed {ss[0]}'s): the seeds of one row share method, protocol, dataset and split")
     (_, doc, features), *_ = docs
     doc["seeds"] = seeds_block(ss, [f"seed-{s}/results.json" for s in ss], [d for _, d, _ in docs])
-    check_seeds_out(out, force)  # again at the point of writing: another run may have written it since
+    check_seeds_out(out, force)  # at the point of writing: another run may have written it since its runs began
     write_results(out / "results.json", doc, features)
     return doc

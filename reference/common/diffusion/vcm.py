@@ -181,7 +181,7 @@ class ClipFrameAttention(_FrameLayer):
 class _WithLocal(nn.Module):
     """A resnet of the UNet followed by a `LocalFrameAttention` (or `ClipFrameAttention`) on its output."""
 
-    def __init__(self, resnet: nn.Module, local: LocalFrameAttention):
+    def __init__(self, resnet: nn.Module, local: _FrameLayer):
         super().__init__()
         self.resnet, self.local = resnet, local
 
@@ -217,8 +217,9 @@ def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_windo
     proc = ClipSelfAttnProcessor(ctx)
     for m in layers.values():
         m.set_processor(proc)
-    head_dim = next(iter(layers.values())).to_q.out_features // next(iter(layers.values())).heads
     if local_window or levels:
+        first = next(iter(layers.values()))
+        head_dim = first.to_q.out_features // first.heads  # the clip layers' heads are the UNet's
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             for _, blk in _plain_blocks(model, levels or None):
@@ -233,8 +234,8 @@ def install_vcm(model: nn.Module, ctx: ClipContext | None = None, *, local_windo
 
 def vcm_parameter_names(model: nn.Module) -> list[str]:
     """Prefixes of the parameters VCM trains: the projections of the `attn1` layers it rewires
-    and its local layers, where installed."""
-    local = [f"{n}." for n, m in model.named_modules() if isinstance(m, (LocalFrameAttention, ClipFrameAttention))]
+    and its new layers (local or clip), where installed."""
+    local = [f"{n}." for n, m in model.named_modules() if isinstance(m, _FrameLayer)]
     return [f"{n}." for n in self_attention_layers(model, VCM_BLOCKS)] + local
 
 

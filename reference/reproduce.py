@@ -10,7 +10,7 @@ work/<key>/            stage cache, key = sha256(method, config, seed, dataset m
     scenes/<scene>/    fitted model checkpoint (model.pt, written atomically) + fit.json
     renders/<scene>/ground/NNNNNN.png, renders/timings.json   rendered frames, reused on resume
 submission/            the submission (SubmissionWriter)
-results.json           evaluate(...) of the submission
+results.json           evaluate(...) of the submission (a finished run asked again reuses it: `scored`)
 ```
 
 With several seeds (`run_seeds`, `reproduce --seeds N`) each seed s is such a folder,
@@ -147,6 +147,49 @@ def _on_ray(address: str):
         yield
 
 
+def scored(out: Path, ds) -> dict | None:
+    """`out`/results.json when it is the score of this run's finished submission, else None.
+
+    Called once `check_out` has found `out`'s config.json to be this run's (the same cache key:
+    method, config, seed, dataset and code), so a results.json there scored this run unless the
+    submission's frames are not the ones it scored (written again since and rendered anew, or
+    any missing: the hashes of the frames dataset `ds` expects, against the results'), or the
+    protocol or the tool changed (their sha256 and version there differ from here's).
+    So is a metric reported unavailable there for want of weights that are here now. Such a file
+    is reused rather than scored again: a run of several seeds resumed after its first seed does
+    not spend the scoring time again."""
+    from skyeyes_bench import __version__
+    from skyeyes_bench.protocol import load_protocol
+    from skyeyes_bench.results import read_results
+    from skyeyes_bench.scoring.run import frame_hashes, frames_digest
+
+    res_path = out / "results.json"
+    if not res_path.is_file():
+        return None
+    try:
+        res, _ = read_results(res_path)
+        protocol = load_protocol(res["protocol"]["ref"])
+        theirs = res["submission"]["frames_sha256"]
+    except (UserError, KeyError, TypeError):
+        return None  # unreadable or of another format: score again
+    same = (protocol.sha256 == res["protocol"]["sha256"]
+            and (res.get("tool") or {}).get("version") == __version__
+            and res.get("shard") is None
+            and not _computable_now(protocol, res)
+            and frames_digest(frame_hashes(out / "submission", ds)) == theirs)
+    return res if same else None
+
+
+def _computable_now(protocol, res: dict) -> bool:
+    """Whether a metric `res` reports unavailable needs an extractor whose weights are here now
+    (fetched since): scoring again gives it."""
+    from skyeyes_bench.scoring.inputs import missing_weights
+
+    gone = [m.name for m in protocol.metrics
+            if m.extractor and (res["metrics"].get(m.name) or {}).get("status") == "unavailable"]
+    return bool(gone) and not set(gone) <= set(missing_weights(protocol))
+
+
 def _score(sub_dir: Path, root: Path, out: Path, ray: str | None, progress: bool) -> dict:
     """`evaluate` of the submission into `out` (replaced); with `ray`, as shards on the running Ray."""
     from skyeyes_bench.batch import Job, evaluate_batch
@@ -193,6 +236,12 @@ def run(method: str, preset: str = "smoke", data=None, out=None, seed: int = 0, 
             shutil.rmtree(work)
         outputfiles.write_json(out / "config.json", record)
         log.info("reproduce %s (preset %s) on %s; stage cache %s", method, preset, ds.name, work)
+        res = None if force else scored(out, ds)
+        if res is not None:  # this run finished and was scored: nothing left to do
+            log.info("%s already scores this run's submission (the same cache key, frames, protocol and tool "
+                     "version): reused; --force runs it again", out / "results.json")
+            print(f"{format_summary(res)}\nresults: {out / 'results.json'}")
+            return res if _main_process() else {}
         m = cls(config, work / "method", seed=seed, progress=progress)
         m.jobs = default_jobs(m) if jobs is None else jobs
         log.info("scene fits: %s", "Ray tasks (--ray)" if ray is not None else f"{m.jobs} worker process(es) (--jobs)")

@@ -13,7 +13,8 @@ def register(sub) -> None:
         description="Run a reference method end to end: data (SynthTown by default), fit on each test "
         "scene's aerial views, render its ground cameras, write a submission, evaluate it, print the "
         "summary and leave results.json in --out. Stages are cached by content hash under --out, so an "
-        "interrupted run resumes where it stopped: run the same command again. An --out holding another "
+        "interrupted run resumes where it stopped: run the same command again (a finished one prints its "
+        "results.json, not scored again unless its frames, the protocol or the tool changed). An --out holding another "
         "run's outputs (another method, config, seed, dataset or code: its config.json says) is refused "
         "unless --force.")
     p.add_argument("--method", required=True, help="reference method id (e.g. sugar, gaussians3d, skyeyes)")

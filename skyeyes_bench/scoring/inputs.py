@@ -123,6 +123,16 @@ def missing_metrics(protocol, ds, scenes: list[str]) -> dict[str, dict]:
     """The metrics of `protocol` known before any scoring not to be computable on the `scenes` of
     `ds`: an extractor whose weight files are missing or wrong, a depth layer the dataset lacks.
     {name: {"reason", "fix"}}, the words the results would report them with."""
+    out = missing_weights(protocol)
+    depth_based = sequence_metrics()
+    depth = [m.name for m in protocol.metrics if m.name in depth_based and m.name not in out]
+    out.update(missing_depth(ds, scenes, depth))
+    return out
+
+
+def missing_weights(protocol) -> dict[str, dict]:
+    """The metrics of `protocol` whose extractor's weight files are missing or wrong here:
+    {name: {"reason", "fix"}}."""
     from ..metrics import MetricUnavailable
     from ..metrics.extractors import get_extractor
 
@@ -133,9 +143,6 @@ def missing_metrics(protocol, ds, scenes: list[str]) -> dict[str, dict]:
                 get_extractor(m.extractor).require()  # the weights' sha256, memoised: no network is loaded
             except MetricUnavailable as e:
                 out[m.name] = {"reason": e.reason, "fix": e.fix}
-    depth_based = sequence_metrics()
-    depth = [m.name for m in protocol.metrics if m.name in depth_based and m.name not in out]
-    out.update(missing_depth(ds, scenes, depth))
     return out
 
 

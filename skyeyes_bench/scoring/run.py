@@ -95,7 +95,7 @@ def _score(req: ScoringRequest, held: contextlib.ExitStack) -> dict[str, Any]:
     with timed_stage(timing, "validate_s"):
         manifest, protocol, ds, seq_ids, frames = _open(req, held)
     # Each submitted frame is hashed once: for this part's records and for the whole-submission digest.
-    sub_sha = {frame_relpath(sc, f): _sha_or_missing(req.sub / frame_relpath(sc, f)) for sc, f in expected_frames(ds)}
+    sub_sha = frame_hashes(req.sub, ds)
     run = ScoringRun(sub=req.sub, ds=ds, protocol=protocol, seq_ids=seq_ids, frames=frames, sub_sha=sub_sha,
                      device=req.device, progress=req.progress, timing=timing)
     doc = _partial_doc(run, manifest, req.shard)
@@ -159,7 +159,7 @@ def _partial_doc(run: ScoringRun, manifest: dict, shard: tuple[int, int] | None)
                     "official_resolution": f"{protocol.data.width}x{protocol.data.height}"},
         "submission": {"path": str(run.sub.resolve()), **{k: manifest.get(k) for k in (
             "method", "method_version", "protocol", "created", "timings", "peak_memory_mb", "hardware", "config")},
-            "frames_sha256": lines_digest([f"{rel} {sha}\n" for rel, sha in run.sub_sha.items()])},
+            "frames_sha256": frames_digest(run.sub_sha)},
         "shard": {"index": shard[0], "count": shard[1]} if shard else None,
     }
 
@@ -171,6 +171,17 @@ def _refuse_missing(doc: dict, run: ScoringRun, shard) -> None:
     if gone:
         raise MissingMetrics(run.protocol.ref, {n: {"reason": m.get("reason", ""), "fix": m.get("fix", "")}
                                                 for n, m in gone.items()})
+
+
+def frame_hashes(sub: Path, ds) -> dict[str, str]:
+    """Relative path -> sha256 of every frame dataset `ds` expects in submission folder `sub`
+    ("missing" where there is none), in `expected_frames` order."""
+    return {frame_relpath(sc, f): _sha_or_missing(Path(sub) / frame_relpath(sc, f)) for sc, f in expected_frames(ds)}
+
+
+def frames_digest(sub_sha: dict[str, str]) -> str:
+    """The whole submission's digest over `frame_hashes` (results' `submission.frames_sha256`)."""
+    return lines_digest([f"{rel} {sha}\n" for rel, sha in sub_sha.items()])
 
 
 def _sha_or_missing(path: Path) -> str:

@@ -126,6 +126,73 @@ def test_end_to_end_smoke_and_resume(synthtown_smoke, tmp_path):
     assert 0 < reused <= sub2["timings"]["fit_s"] + sub2["timings"]["render_s"]
 
 
+def test_a_scored_run_is_reused_and_scored_again_only_when_something_changed(synthtown_smoke, tmp_path, monkeypatch):
+    """A finished run asked again returns its results.json without scoring (a run of several seeds
+    resumed after its first seed); a changed or missing frame, protocol hash or tool version,
+    weights fetched for a metric reported unavailable, or --force scores again."""
+    import reference.reproduce as rp
+    from builders.weights import link_real_weights, missing_reason
+    from skyeyes_bench import imagefiles
+    from skyeyes_bench.metrics.extractors import get_extractor
+
+    calls = []
+    score = rp._score
+    monkeypatch.setattr(rp, "_score", lambda *a, **k: calls.append(1) or score(*a, **k))
+    out = tmp_path / "mf"
+    res_file = out / "results.json"
+    args = ["reproduce", "--method", "mean-frame", "--preset", "smoke", "--data", str(synthtown_smoke), "--out",
+            str(out), "--quiet"]
+    run_cli(*args)
+    assert len(calls) == 1
+    first = json.loads(res_file.read_text())
+    # the isolated cache has no extractor weights: LPIPS, FID, FVD and the like are unavailable
+    assert first["metrics"]["lpips"]["status"] == "unavailable"
+
+    def edit(**kv):
+        """A change of results.json: each `a__b=v` sets doc[a][b] = v."""
+        def change():
+            doc = json.loads(res_file.read_text())
+            for path, v in kv.items():
+                *head, last = path.split("__")
+                d = doc
+                for k in head:
+                    d = d[k]
+                d[last] = v
+            res_file.write_text(json.dumps(doc))
+        return change
+
+    def rescored(change) -> bool:
+        change()
+        before, n = res_file.read_bytes(), len(calls)
+        _, text, err = run_cli(*args)
+        if len(calls) == n:  # reused: untouched, its summary printed
+            assert res_file.read_bytes() == before and "reused" in err and "psnr" in text
+        return len(calls) == n + 1
+
+    assert not rescored(lambda: None)
+    assert not rescored(lambda: None)
+    # a frame of the submission other than the one scored (a rewrite interrupted before its score)
+    frame = sorted((out / "submission").rglob("*.png"))[3]
+    img = imagefiles.read_image(frame)
+    assert rescored(lambda: imagefiles.write_image(frame, 1.0 - img))
+    assert np.array_equal(imagefiles.read_image(frame), img)  # the submission written again from the renders
+    assert rescored(frame.unlink)  # a missing frame
+    assert rescored(edit(protocol__sha256="0" * 64))
+    assert rescored(edit(tool__version="0.0.0"))
+    assert not rescored(lambda: None)
+    n = len(calls)
+    run_cli(*args, "--force")
+    assert len(calls) == n + 1
+    assert json.loads(res_file.read_text())["metrics"] == first["metrics"]  # every score the first one
+    lpips = get_extractor("lpips-alex-v0.1").files
+    if missing_reason(*lpips):  # the real weights are not on this machine (CI has them)
+        return
+    # LPIPS' weights fetched since: the run is scored again and LPIPS computed
+    assert rescored(lambda: link_real_weights(*lpips))
+    assert json.loads(res_file.read_text())["metrics"]["lpips"]["status"] == "ok"
+    assert not rescored(lambda: None)
+
+
 def test_an_out_of_another_run_is_refused_without_force(synthtown_smoke, tmp_path, monkeypatch):
     out = tmp_path / "run"
     base = ["reproduce", "--data", str(synthtown_smoke), "--out", str(out), "--quiet"]

@@ -79,8 +79,8 @@ def compare(a, b, *, out=None, progress: bool = False) -> dict[str, Any]:
         "bootstrap_interval", "p_a_better_bootstrap" and the Student-t summary "bayes"; see
         docs/evaluate.md. `cmp.get("warnings")`: lines worth saying (a damaged features sidecar).
         When both files come from `reproduce --seeds N`, `cmp["seeds"]` names their seeds and
-        `cmp["metrics"][name]["seeds"]` holds Welch's t on the seeds' values ("advantage", "se",
-        "df", "interval", "verdict"); when only one does, `cmp["seeds"]["note"]` says so.
+        `cmp["metrics"][name]["seeds"]` holds a t test on the seeds' values ("test": "paired" by seed
+        when both ran the same seeds, else "welch"; "advantage", "se", "df", "interval", "verdict"); when only one does, `cmp["seeds"]["note"]` says so.
 
     Raises:
         skyeyes_bench.UserError: a file that is not a results file, or results that cannot be compared.

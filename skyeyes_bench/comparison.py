@@ -310,8 +310,9 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
     clusters there is no interval and no P(better) ("too few scenes (K=2)"). Per-frame metrics
     also get the Student-t summary of per-cluster differences (`bayes_summary`; its `estimand`
     says what it describes). When both results carry a `seeds` block (`reproduce --seeds N`),
-    each compared metric also gets Welch's t on the seeds' headline values (`seeds.seed_test`,
-    under `metrics[m]["seeds"]`; `out["seeds"]` names the seeds, or says that only one has them).
+    each compared metric also gets a t test on the seeds' headline values (`seeds.seed_test`: paired
+    by seed when both ran the same seeds, else Welch's; under `metrics[m]["seeds"]`); `out["seeds"]` names the seeds,
+    or says that only one has them.
 
     `names`: how messages name A and B (`compare` passes the two files).
     `sidecars`: instead of `feats_a`, `feats_b`, a function giving both (each None where absent),
@@ -357,7 +358,7 @@ def compare_results(a: dict, b: dict, feats_a: dict | None = None, feats_b: dict
             _compare_metric(out, name, ma, a, b, features, protocol, st, unit, k, few, counts, order, cl_of_seq,
                             steps, burn)
             bar.update(1)
-    add_seed_tests(out, a, b, files, st.interval)  # runs of several seeds (`reproduce --seeds N`): Welch's t
+    add_seed_tests(out, a, b, files, st.interval)  # runs of several seeds (`reproduce --seeds N`)
     return out
 
 

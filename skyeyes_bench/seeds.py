@@ -3,9 +3,11 @@ check when the file is read, and `compare`'s seed test.
 
 The board's intervals resample scenes: they say how much a value depends on which scenes were
 drawn, not on how a network happened to train. A run of N seeds keeps each seed's headline value
-per metric; two such runs are compared by Welch's t on those values (unequal variances, the
-Welch-Satterthwaite degrees of freedom), a test of the seed means that says whether their
-difference exceeds the spread between seeds. Pure functions on results documents, and
+per metric; two such runs are compared by a t test of the seed means that says whether their
+difference exceeds the spread between seeds: paired by seed when both ran the same seeds (the
+difference within each seed, n - 1 degrees of freedom: an ablation that shares a stage seed by
+seed, as `skyeyes` and `skyeyes-no-vcm` share the ACM, holds that stage's randomness fixed), else
+Welch's (unequal variances, the Welch-Satterthwaite degrees of freedom). Pure functions on results documents, and
 `assemble`, which writes a folder's block: `reproduce --seeds` calls it after its runs, and
 `skyeyes-bench seeds DIR` where the seeds ran apart (other machines, Slurm array tasks, a GPU) and
 each was scored by `evaluate --out DIR/seed-<s>/results.json`.
@@ -30,11 +32,16 @@ import numpy as np
 from . import fields
 from .stats import advantage, higher_is_better
 
-#: What the seed test reports (in compare's JSON beside its numbers).
+#: What the seed test reports (in compare's JSON beside its numbers): Welch's where A and B ran
+#: different seeds, paired where they ran the same ones.
+_SEED_TEST_END = ("; 'exceeds the seed spread' when the interval excludes 0. It describes how the networks "
+                  "happened to train, not which scenes were drawn (the resampling interval above)")
 SEED_TEST = ("difference of the seed means of each metric's headline value (advantage of A: > 0 means A is better), "
              "its standard error sqrt(sd_A^2/n_A + sd_B^2/n_B) and a Welch t interval (Welch-Satterthwaite degrees "
-             "of freedom); 'exceeds the seed spread' when the interval excludes 0. It describes how the networks "
-             "happened to train, not which scenes were drawn (the resampling interval above)")
+             "of freedom)" + _SEED_TEST_END)
+SEED_TEST_PAIRED = ("A and B ran the same seeds: the advantage of A within each seed (> 0 means A is better), their "
+                    "mean (the difference of the seed means), its standard error sd_d/sqrt(n) and a paired t "
+                    "interval (n - 1 degrees of freedom)" + _SEED_TEST_END)
 EXCEEDS, WITHIN = "exceeds the seed spread", "within the seed spread"
 
 
@@ -104,27 +111,37 @@ def check_block(where: str, block) -> None:
                 fields.fail(at + f".values[{j}]'", "expected a number, got NaN")
 
 
-def seed_test(va: list[float], vb: list[float], metric: str, level: float) -> dict:
-    """Welch's t on per-seed values va [n_A], vb [n_B] (n >= 2 each) of `metric`: the advantage of
-    A's seed mean (> 0: A better, `stats.advantage`), its standard error, the Welch-Satterthwaite
-    degrees of freedom, the `level` interval and the verdict."""
+def seed_test(va: list[float], vb: list[float], metric: str, level: float, paired: bool = False) -> dict:
+    """A t test on per-seed values va [n_A], vb [n_B] (n >= 2 each) of `metric`: the advantage of
+    A's seed mean (> 0: A better, `stats.advantage`), its standard error, degrees of freedom, the
+    `level` interval and the verdict. Welch's (`test` "welch"), or with `paired` (va[s] and vb[s]
+    of the same seed s, n_A = n_B) the one-sample t of the per-seed advantages (`test` "paired",
+    their values in `differences`)."""
     from scipy.stats import t as student_t
 
     a, b = spread(va), spread(vb)
-    out = {"status": "ok", "n_a": len(va), "n_b": len(vb), "a_mean": a["mean"], "b_mean": b["mean"],
-           "a_sd": a["sd"], "b_sd": b["sd"], "level": level}
+    out = {"status": "ok", "test": "paired" if paired else "welch", "n_a": len(va), "n_b": len(vb),
+           "a_mean": a["mean"], "b_mean": b["mean"], "a_sd": a["sd"], "b_sd": b["sd"], "level": level}
     if a["sd"] is None or b["sd"] is None:
         return {**out, "status": "skipped", "note": "a seed's value is infinite: no seed spread"}
     adv = float(advantage(np.array([a["mean"]]), np.array([b["mean"]]), metric)[0])
-    va_n, vb_n = a["sd"] ** 2 / len(va), b["sd"] ** 2 / len(vb)  # squared standard errors of the two means
-    se = math.sqrt(va_n + vb_n)
+    if paired:
+        assert len(va) == len(vb), (va, vb)
+        d = advantage(np.asarray(va, float), np.asarray(vb, float), metric)
+        adv, sd_d = float(np.mean(d)), statistics.stdev(d.tolist())
+        se, df = sd_d / math.sqrt(len(d)), float(len(d) - 1)
+        out["differences"] = d.tolist()
+    else:
+        va_n, vb_n = a["sd"] ** 2 / len(va), b["sd"] ** 2 / len(vb)  # squared standard errors of the two means
+        se = math.sqrt(va_n + vb_n)
+        den = va_n ** 2 / (len(va) - 1) + vb_n ** 2 / (len(vb) - 1)
+        df = se ** 4 / den if den > 0 else float(len(va) + len(vb) - 2)  # den underflows only for sd ~ 1e-160
     out.update(advantage=adv, se=se, higher_is_better=higher_is_better(metric))
-    if se == 0:  # every seed of A alike, and of B: the difference is exact
+    if se == 0:  # the difference is exact: every seed alike in A and in B (paired: every seed's difference alike)
         out.update(df=None, interval=[adv, adv], verdict=EXCEEDS if adv != 0 else WITHIN,
-                   note="no spread between the seeds of either run: the interval is the difference itself")
+                   note=("every seed's difference the same" if paired else "no spread between the seeds of "
+                         "either run") + ": the interval is the difference itself")
         return out
-    den = va_n ** 2 / (len(va) - 1) + vb_n ** 2 / (len(vb) - 1)
-    df = se ** 4 / den if den > 0 else float(len(va) + len(vb) - 2)  # den underflows only for sd ~ 1e-160
     half = float(student_t.ppf(0.5 + level / 2, df)) * se
     lo, hi = adv - half, adv + half
     out.update(df=df, interval=[lo, hi], verdict=EXCEEDS if lo > 0 or hi < 0 else WITHIN)
@@ -134,7 +151,8 @@ def seed_test(va: list[float], vb: list[float], metric: str, level: float) -> di
 def add_seed_tests(out: dict, a: dict, b: dict, names: tuple[str, str], level: float) -> None:
     """Into the comparison `out` (`comparison.compare_results`) of results `a` and `b`: when both
     carry a `seeds` block, `out["seeds"]` (both runs' seeds, the test) and per compared metric
-    `out["metrics"][m]["seeds"]` (`seed_test`); when only one does, `out["seeds"]` says so in
+    `out["metrics"][m]["seeds"]` (`seed_test`: paired when both ran the same seeds in the same
+    order, else Welch's); when only one does, `out["seeds"]` says so in
     its `note`; when neither, nothing."""
     blocks = [d.get("seeds") for d in (a, b)]
     if blocks == [None, None]:
@@ -142,8 +160,9 @@ def add_seed_tests(out: dict, a: dict, b: dict, names: tuple[str, str], level: f
     for name, blk in zip(names, blocks):
         if blk is not None:
             check_block(name, blk)
+    paired = None not in blocks and blocks[0]["seeds"] == blocks[1]["seeds"]
     out["seeds"] = {"a": blocks[0] and blocks[0]["seeds"], "b": blocks[1] and blocks[1]["seeds"],
-                    "test": SEED_TEST, "level": level}
+                    "test": SEED_TEST_PAIRED if paired else SEED_TEST, "level": level}
     if None in blocks:
         has, lacks = (("A", "B"), names) if blocks[0] is not None else (("B", "A"), names[::-1])
         n = len((blocks[0] or blocks[1])["seeds"])
@@ -158,7 +177,7 @@ def add_seed_tests(out: dict, a: dict, b: dict, names: tuple[str, str], level: f
             r["seeds"] = {"status": "skipped", "note": f"{name} not scored in every seed of "
                           f"{'A' if name not in ma else 'B'}"}
             continue
-        r["seeds"] = seed_test(ma[name]["values"], mb[name]["values"], name, level)
+        r["seeds"] = seed_test(ma[name]["values"], mb[name]["values"], name, level, paired=paired)
 
 
 #: A seed's folder inside a folder of several seeds.

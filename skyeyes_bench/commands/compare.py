@@ -16,8 +16,9 @@ def register(sub) -> None:
                        "95% HDI. Below 5 clusters: no interval and no P(better) ('too few scenes'). Set metrics "
                        "use the replicates stored in the results; the .features.npz sidecars are read only for "
                        "older results without them (absent: those metrics are skipped, and said so). When both "
-                       "files come from runs of several seeds (reproduce --seeds N), each metric also gets Welch's t "
-                       "on the seeds' values: does the difference exceed the spread between seeds? A progress "
+                       "files come from runs of several seeds (reproduce --seeds N), each metric also gets a t test "
+                       "on the seeds' values (paired by seed when both ran the same seeds, else Welch's): does "
+                       "the difference exceed the spread between seeds? A progress "
                        "bar appears on a terminal when it takes more than 2 s.")
     p.add_argument("a", metavar="A.json", help="results of method A")
     p.add_argument("b", metavar="B.json", help="results of method B")
@@ -72,7 +73,8 @@ def _print_seeds(m: dict) -> None:
     df = "" if t["df"] is None else f", df {t['df']:.3g}"
     print(f"         seeds: A {_fmt(t['a_mean'])} sd {_fmt(t['a_sd'])} (n={t['n_a']}), B {_fmt(t['b_mean'])} sd "
           f"{_fmt(t['b_sd'])} (n={t['n_b']}); advantage {_fmt(t['advantage'])} se {_fmt(t['se'])}, "
-          f"{int(t['level'] * 100)}% Welch [{_fmt(lo)}, {_fmt(hi)}]{df}: {t['verdict']}")
+          f"{int(t['level'] * 100)}% {'paired t' if t['test'] == 'paired' else 'Welch'} [{_fmt(lo)}, {_fmt(hi)}]{df}: "
+          f"{t['verdict']}")
 
 
 def run(args) -> int:
@@ -95,7 +97,8 @@ def run(args) -> int:
     if seeds is not None:
         print(f"  seeds: {seeds['note']}" if seeds.get("note") else
               f"  seeds: A {_seed_list(seeds['a'])}, B {_seed_list(seeds['b'])}; each metric's 'seeds' line: the "
-              f"advantage of the seed means, {int(seeds['level'] * 100)}% Welch t interval, and whether it exceeds "
+              f"advantage of the seed means, {int(seeds['level'] * 100)}% "
+              f"{'paired t (the same seeds)' if seeds['a'] == seeds['b'] else 'Welch t'} interval, and whether it exceeds "
               f"the spread between seeds")
     for name, m in res["metrics"].items():
         if m["status"] != "ok":

@@ -1,7 +1,8 @@
 """Issue 57: runs of several seeds (`reproduce --seeds N`). The `seeds` block's spread, `compare`'s
-seed test (Welch's t on the seeds' headline values) on synthetic results with a known answer,
-both ways, its interval against scipy's `ttest_ind(equal_var=False).confidence_interval()`, the
-block's checks when a file is read, and the API returning what the command prints."""
+seed test on synthetic results with a known answer, both ways: Welch's t on the seeds' headline
+values against scipy's `ttest_ind(equal_var=False).confidence_interval()` where A and B ran other
+seeds, the paired t against `ttest_rel(...).confidence_interval()` where they ran the same ones;
+the block's checks when a file is read, and the API returning what the command prints."""
 
 import json
 import math
@@ -21,6 +22,12 @@ from skyeyes_bench.seeds import EXCEEDS, WITHIN, seed_test, spread
 #: A three seeds, B three ("far") or four ("near").
 FAR = {"psnr": ([20.0, 20.1, 19.9], [18.0, 18.1, 17.9]), "fid": ([50.0, 51.0, 49.0], [60.0, 61.5, 58.5])}
 NEAR = {"psnr": ([20.0, 20.5, 19.5], [19.9, 20.4, 19.4, 19.9]), "fid": ([50.0, 53.0, 47.0], [51.0, 54.0, 48.0, 51.0])}
+#: The same seeds in A and B, each seed moving both runs alike (a shared stage): "steady", A better
+#: by 0.2 dB (FID 1) in every seed give or take 0.05 (0.2) against a spread of 2 dB (10) between
+#: seeds, which the paired test sees (interval ~ [0.08, 0.32]) and Welch's does not; "mixed", the
+#: per-seed advantages change sign.
+STEADY = {"psnr": ([20.0, 22.0, 18.0], [19.8, 21.75, 17.85]), "fid": ([50.0, 60.0, 40.0], [51.0, 61.2, 40.8])}
+MIXED = {"psnr": ([20.0, 22.0, 18.0], [19.7, 22.2, 17.9]), "fid": ([50.0, 60.0, 40.0], [51.0, 59.0, 40.5])}
 
 
 def _block(values: dict, seeds: list[int]) -> dict:
@@ -95,12 +102,40 @@ def test_seed_test_against_scipy(metric, case, verdict):
     assert got["interval"] == pytest.approx([got["advantage"] - half, got["advantage"] + half], rel=1e-12)
 
 
+def _scipy_paired_interval(va, vb, metric: str) -> tuple[float, float]:
+    """The paired t's 95% interval of the advantage of A by scipy."""
+    if metric == "fid":
+        va, vb = vb, va
+    ci = sps.ttest_rel(va, vb).confidence_interval(0.95)
+    return float(ci.low), float(ci.high)
+
+
+@pytest.mark.parametrize("metric", ["psnr", "fid"])
+@pytest.mark.parametrize("case, paired, welch", [(STEADY, EXCEEDS, WITHIN), (MIXED, WITHIN, WITHIN)])
+def test_paired_seed_test_against_scipy(metric, case, paired, welch):
+    va, vb = case[metric]
+    got = seed_test(va, vb, metric, 0.95, paired=True)
+    assert got["test"] == "paired" and got["df"] == len(va) - 1
+    assert got["interval"] == pytest.approx(list(_scipy_paired_interval(va, vb, metric)), rel=1e-9, abs=1e-12)
+    sign = 1 if metric == "psnr" else -1
+    d = sign * (np.array(va) - np.array(vb))
+    assert got["differences"] == pytest.approx(d.tolist(), rel=1e-12)
+    assert got["advantage"] == pytest.approx(d.mean(), rel=1e-12)
+    assert got["se"] == pytest.approx(np.std(d, ddof=1) / math.sqrt(len(d)), rel=1e-12)
+    assert got["verdict"] == paired
+    # the same values unpaired: Welch's, whose spread between seeds hides a steady advantage
+    assert seed_test(va, vb, metric, 0.95)["verdict"] == welch
+
+
 def test_seed_test_without_spread():
     """Deterministic methods (mean-frame): sd 0 in both; the difference is exact."""
     assert seed_test([1.0, 1.0], [1.0, 1.0], "psnr", 0.95)["verdict"] == WITHIN
     got = seed_test([2.0, 2.0], [1.0, 1.0], "psnr", 0.95)
     assert (got["verdict"], got["interval"], got["df"]) == (EXCEEDS, [1.0, 1.0], None)
     assert seed_test([math.inf, 30.0], [20.0, 21.0], "psnr", 0.95)["status"] == "skipped"
+    # paired: every seed's difference the same, however far apart the seeds
+    got = seed_test([20.0, 25.0], [19.0, 24.0], "psnr", 0.95, paired=True)
+    assert (got["verdict"], got["interval"], got["df"]) == (EXCEEDS, [1.0, 1.0], None)
 
 
 @pytest.mark.parametrize("case, verdict", [(FAR, EXCEEDS), (NEAR, WITHIN)])
@@ -109,7 +144,7 @@ def test_compare_of_two_seed_runs(world, tmp_path, case, verdict):
     against A flips the advantage and its interval; the API returns what `compare --json` prints."""
     vals = {m: v for m, v in case.items()}
     a, b = _files(world, tmp_path, _block({m: v[0] for m, v in vals.items()}, [0, 1, 2]),
-                  _block({m: v[1] for m, v in vals.items()}, list(range(len(vals["psnr"][1])))))
+                  _block({m: v[1] for m, v in vals.items()}, list(range(10, 10 + len(vals["psnr"][1])))))
     _, out, _ = run_cli("compare", str(a), str(b), "--json")
     res = json.loads(out)
     assert res == sb.compare(a, b)  # the API: the same seed block
@@ -134,6 +169,33 @@ def test_compare_of_two_seed_runs(world, tmp_path, case, verdict):
     assert lines[i + 1].lstrip().startswith("seeds: A ") and lines[i + 1].endswith(verdict), lines[i + 1]
     assert "95% Welch [" in lines[i + 1]
     assert "seeds: A 3 seeds (0, 1, 2), B " in text
+
+
+@pytest.mark.parametrize("case, verdict", [(STEADY, EXCEEDS), (MIXED, WITHIN)])
+def test_compare_of_runs_of_the_same_seeds_is_paired(world, tmp_path, case, verdict):
+    """A and B of the same seeds: each metric's test is the paired t (scipy's interval), which
+    finds a steady advantage that the spread between seeds hides from Welch's, and finds none
+    where the per-seed advantages change sign; renumbering B's seeds makes it Welch's again."""
+    a, b = _files(world, tmp_path, _block({m: v[0] for m, v in case.items()}, [0, 1, 2]),
+                  _block({m: v[1] for m, v in case.items()}, [0, 1, 2]))
+    res = sb.compare(a, b)
+    assert "paired" in res["seeds"]["test"]
+    for metric, (va, vb) in case.items():
+        t = res["metrics"][metric]["seeds"]
+        assert t["test"] == "paired" and t["verdict"] == verdict
+        assert t["interval"] == pytest.approx(list(_scipy_paired_interval(va, vb, metric)), rel=1e-9)
+    _, text, _ = run_cli("compare", str(a), str(b))
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.lstrip().startswith("psnr "))
+    assert "95% paired t [" in lines[i + 1] and lines[i + 1].endswith(verdict), lines[i + 1]
+    assert "paired t (the same seeds)" in text
+    a, b = _files(world, tmp_path, _block({m: v[0] for m, v in case.items()}, [0, 1, 2]),
+                  _block({m: v[1] for m, v in case.items()}, [3, 4, 5]))
+    res = sb.compare(a, b)
+    for metric, (va, vb) in case.items():
+        t = res["metrics"][metric]["seeds"]
+        assert t["test"] == "welch" and t["verdict"] == WITHIN
+        assert t["interval"] == pytest.approx(list(_scipy_interval(va, vb, metric)), rel=1e-9)
 
 
 def test_compare_when_one_or_neither_ran_seeds(world, tmp_path):

@@ -99,7 +99,7 @@ def kind_problems(page: Path, drv) -> list[str]:
         "function (u) { return u.dataset.key === key; })[0]; "
         "return [key, Array.from(t.tHead.rows[0].cells).map(function (c) { return c.textContent.trim(); }), "
         "Array.from(t.tBodies[0].rows).map(function (r) { return Array.from(r.cells).map("
-        "function (c) { return c.textContent.trim(); }); }), "
+        "function (c, j) { return j === 0 && c.dataset.v !== undefined ? c.dataset.v : c.textContent.trim(); }); }), "
         "list ? Array.from(list.querySelectorAll('li b')).map(function (b) { return b.textContent.trim(); }) "
         ": null]; })")
     problems = []

@@ -41,7 +41,8 @@ def _value(t: Table, i: int, key: str):
     """What a cell of column `key` in row `i` shows, as plain data (equal data: equal cells)."""
     r = t.rows[i]
     if key in t.metrics:
-        return r.values.get(key), r.intervals.get(key), r.no_interval.get(key), i in t.best.get(key, [])
+        return (r.values.get(key), r.intervals.get(key), r.no_interval.get(key), i in t.best.get(key, []),
+                r.seeds.get(key))
     return {"method": lambda: r.method, "kind": lambda: r.kind, "version": lambda: r.version,
             "run": lambda: (r.run_s, r.fit_s, r.render_s), "hardware": lambda: (r.hardware, r.hardware_added),
             "peak": lambda: r.peak_mb}[key]()

@@ -57,9 +57,9 @@ def fmt(m: str, v: float | None, decimals: int | None = None) -> str:
     return f"{v:.{DIGITS[m] if decimals is None else decimals}f}"
 
 
-def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str]:
-    """(`value`, `[lower, upper]` or `(why no interval)` or '', then for a run of several seeds
-    `; N seeds: mean ± sd`), the reason (input text) through `escape`."""
+def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str, str]:
+    """(`value`, `[lower, upper]` or `(why no interval)` or '', and for a run of several seeds
+    `mean ± sd` over them or ''), the reason (input text) through `escape`."""
     r = t.rows[i]
     if m in r.intervals:
         lo, hi = r.intervals[m]
@@ -68,16 +68,31 @@ def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str]:
         sub = f"({escape(r.no_interval[m])})"
     else:
         sub = ""
+    spread = ""
     if m in r.seeds and r.values.get(m) is not None:
-        mean, sd, n = r.seeds[m]
-        spread = f"{n} seeds: {fmt(m, mean)} ± {fmt(m, sd) if sd is not None else 'n/a'}"
-        sub = f"{sub}; {spread}" if sub else spread
-    return fmt(m, r.values.get(m)), sub
+        mean, sd, _ = r.seeds[m]
+        spread = f"{fmt(m, mean)} ± {fmt(m, sd) if sd is not None else 'n/a'}"
+    return fmt(m, r.values.get(m)), sub, spread
+
+
+def n_seeds(r) -> int:
+    """How many training seeds row `r` ran (0: one run, no `seeds` block)."""
+    return max((n for _, _, n in r.seeds.values()), default=0)
 
 
 def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:
-    """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through `escape`."""
-    return " ".join(p for p in cell_parts(t, i, m, escape) if p)
+    """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through
+    `escape`; for a run of several seeds then `; N seeds: mean ± sd`."""
+    value, sub, spread = cell_parts(t, i, m, escape)
+    if spread:
+        spread = f"{n_seeds(t.rows[i])} seeds: {spread}"
+        sub = f"{sub}; {spread}" if sub else spread
+    return " ".join(p for p in (value, sub) if p)
+
+
+#: Under a table with a row of several seeds (the page puts the spread on a line of its own).
+SEEDS_NOTE = ("A row of several training seeds (reproduce --seeds N) shows its first seed's value and interval; "
+              "under them the mean ± sd over its seeds")
 
 
 def one_sided(t: Table) -> dict[str, str]:
@@ -347,11 +362,12 @@ def _md_code(text: str) -> str:
     return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts)).replace("**Bold**", "<b>Bold</b>")
 
 
-def _value_cell(text: str, sub: str = "", v: str = "", cls: str = "") -> str:
-    """A table cell: `text` over `sub` in small type (both already escaped), `v` the sort key."""
+def _value_cell(text: str, sub: str = "", v: str = "", cls: str = "", spread: str = "") -> str:
+    """A table cell: `text` over `sub` over `spread` in small type (all already escaped), `v` the
+    sort key."""
     attr = f' class="{cls}"' if cls else ""
-    sub = f"<small>{sub}</small>" if sub else ""
-    return f'<td{attr} data-v="{v}">{text}{sub}</td>'
+    small = "".join(f"<small>{x}</small>" for x in (sub, spread) if x)
+    return f'<td{attr} data-v="{v}">{text}{small}</td>'
 
 
 def _measured_cell(t: Table, i: int, c: Column) -> str:
@@ -359,15 +375,16 @@ def _measured_cell(t: Table, i: int, c: Column) -> str:
     e, r = html.escape, t.rows[i]
     extra = [] if c.core else ["extra"]
     if c.key == "method":
-        return f'<td data-v="{e(r.method)}">{e(r.method)}</td>'
+        n = n_seeds(r)
+        return _value_cell(e(r.method), f"{n} seeds" if n else "", e(r.method))
     if c.key == "kind":  # its exact form is what the page check and tests look for
         return f'<td class="kind" data-v="{e(label(r.kind))}">{e(label(r.kind))}</td>'
     if c.key in t.metrics:
         best = i in t.best.get(c.key, [])
-        value, sub = cell_parts(t, i, c.key, e)
+        value, sub, spread = cell_parts(t, i, c.key, e)
         mark = f" {DAGGER}" if best and c.key in t.not_credible else ""
         return _value_cell(e(value) + mark, sub, _sort_value(r.values.get(c.key)),
-                           " ".join(["best"] * best + extra))
+                           " ".join(["best"] * best + extra), spread)
     if c.key == "run":
         sub = f"({num(r.fit_s)} + {num(r.render_s)})" if r.run_s is not None else ""
         return _value_cell(num(r.run_s), sub, _sort_value(r.run_s), " ".join(extra))
@@ -386,6 +403,8 @@ def _measured_table_html(t: Table) -> list[str]:
     cols, same = choose_columns(t)
     text, link = legend(t)
     out = [f'<p class="legend">{e(text)} (<a href="{e(BIAS_DOC)}">{e(link)}</a>).</p>']
+    if any(r.seeds for r in t.rows):
+        out.append(f'<p class="legend">{e(SEEDS_NOTE)}.</p>')
     hidden = [c for c in cols if not c.core]
     if hidden:
         box = f"cols-{t.file_key}"

@@ -236,7 +236,8 @@ def test_check_holds_a_row_committed_by_hand_to_what_add_checks(board, tmp_path,
 
 def test_a_row_of_several_seeds_shows_their_spread(board, tmp_path):
     """A results file of `reproduce --seeds N` keeps its first seed's value and interval in the
-    cell and adds `N seeds: mean ± sd` (numpy's mean and sample sd of the seed values)."""
+    cell and adds `N seeds: mean ± sd` (numpy's mean and sample sd of the seed values); the page
+    puts the spread on a line of its own."""
     import numpy as np
 
     lb = _fresh(board, tmp_path)
@@ -255,7 +256,14 @@ def test_a_row_of_several_seeds_shows_their_spread(board, tmp_path):
     assert f"{psnr:.2f} [" in row and want in row, row
     twin = next(ln for ln in (lb / "README.md").read_text().splitlines() if ln.startswith("| blurry-twin |"))
     assert "seeds:" not in twin
-    assert want in (lb / "index.html").read_text()
+    # the page: the spread on a line of its own under the interval, the seeds' count under the
+    # method's name, and a line above the table saying what the spread is
+    page = (lb / "index.html").read_text()
+    spread = f"{np.mean(vals):.2f} ± {np.std(vals, ddof=1):.2f}"
+    assert f"</small><small>{spread}</small></td>" in page and want not in page
+    assert '<td data-v="blurry">blurry<small>3 seeds</small></td>' in page
+    assert '<td data-v="blurry-twin">blurry-twin</td>' in page
+    assert page.count("mean ± sd over its seeds") == 1
     run_cli("leaderboard", "--root", str(lb), "--check")
 
 

@@ -75,17 +75,12 @@ def cell_parts(t: Table, i: int, m: str, escape=lambda x: x) -> tuple[str, str, 
     return fmt(m, r.values.get(m)), sub, spread
 
 
-def n_seeds(r) -> int:
-    """How many training seeds row `r` ran (0: one run, no `seeds` block)."""
-    return max((n for _, _, n in r.seeds.values()), default=0)
-
-
 def cell(t: Table, i: int, m: str, escape=lambda x: x) -> str:
     """`value [lower, upper]`, or `value (why no interval)` with the reason (input text) through
     `escape`; for a run of several seeds then `; N seeds: mean ± sd`."""
     value, sub, spread = cell_parts(t, i, m, escape)
     if spread:
-        spread = f"{n_seeds(t.rows[i])} seeds: {spread}"
+        spread = f"{t.rows[i].n_seeds} seeds: {spread}"
         sub = f"{sub}; {spread}" if sub else spread
     return " ".join(p for p in (value, sub) if p)
 
@@ -375,8 +370,7 @@ def _measured_cell(t: Table, i: int, c: Column) -> str:
     e, r = html.escape, t.rows[i]
     extra = [] if c.core else ["extra"]
     if c.key == "method":
-        n = n_seeds(r)
-        return _value_cell(e(r.method), f"{n} seeds" if n else "", e(r.method))
+        return _value_cell(e(r.method), f"{r.n_seeds} seeds" if r.n_seeds else "", e(r.method))
     if c.key == "kind":  # its exact form is what the page check and tests look for
         return f'<td class="kind" data-v="{e(label(r.kind))}">{e(label(r.kind))}</td>'
     if c.key in t.metrics:

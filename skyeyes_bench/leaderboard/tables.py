@@ -44,6 +44,11 @@ class Row:
     components: list[str] = field(default_factory=list)  # measured: the parts its method runs (`kinds`)
 
     @property
+    def n_seeds(self) -> int:
+        """How many training seeds the row ran (0: one run, no `seeds` block)."""
+        return max((n for _, _, n in self.seeds.values()), default=0)
+
+    @property
     def name(self) -> str:
         """The filed name: `results/<name>.json` (also its frames folder)."""
         return self.source[: -len(".json")] if self.source.endswith(".json") else self.source

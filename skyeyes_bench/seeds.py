@@ -7,8 +7,8 @@ per metric; two such runs are compared by a t test of the seed means that says w
 difference exceeds the spread between seeds: paired by seed when both ran the same seeds (the
 difference within each seed, n - 1 degrees of freedom: an ablation that shares a stage seed by
 seed, as `skyeyes` and `skyeyes-no-vcm` share the ACM, holds that stage's randomness fixed), else
-Welch's (unequal variances, the Welch-Satterthwaite degrees of freedom). Pure functions on results documents, and
-`assemble`, which writes a folder's block: `reproduce --seeds` calls it after its runs, and
+Welch's (unequal variances, the Welch-Satterthwaite degrees of freedom). Pure functions on results
+documents, and `assemble`, which writes a folder's block: `reproduce --seeds` calls it after its runs, and
 `skyeyes-bench seeds DIR` where the seeds ran apart (other machines, Slurm array tasks, a GPU) and
 each was scored by `evaluate --out DIR/seed-<s>/results.json`.
 

@@ -94,11 +94,12 @@ def run(args) -> int:
     if res["too_few"]:
         print(f"  {res['too_few']}: no intervals and no P(A better) (they need at least 5 {unit}s)")
     seeds = res.get("seeds")
+    from ..seeds import SEED_TEST_PAIRED  # the test `add_seed_tests` chose, not chosen again here
     if seeds is not None:
         print(f"  seeds: {seeds['note']}" if seeds.get("note") else
               f"  seeds: A {_seed_list(seeds['a'])}, B {_seed_list(seeds['b'])}; each metric's 'seeds' line: the "
               f"advantage of the seed means, {int(seeds['level'] * 100)}% "
-              f"{'paired t (the same seeds)' if seeds['a'] == seeds['b'] else 'Welch t'} interval, and whether it exceeds "
+              f"{'paired t (the same seeds)' if seeds['test'] == SEED_TEST_PAIRED else 'Welch t'} interval, and whether it exceeds "
               f"the spread between seeds")
     for name, m in res["metrics"].items():
         if m["status"] != "ok":

@@ -124,14 +124,14 @@ def seed_test(va: list[float], vb: list[float], metric: str, level: float, paire
            "a_mean": a["mean"], "b_mean": b["mean"], "a_sd": a["sd"], "b_sd": b["sd"], "level": level}
     if a["sd"] is None or b["sd"] is None:
         return {**out, "status": "skipped", "note": "a seed's value is infinite: no seed spread"}
-    adv = float(advantage(np.array([a["mean"]]), np.array([b["mean"]]), metric)[0])
-    if paired:
+    if paired:  # the mean of the per-seed advantages (the same number as the advantage of the means)
         assert len(va) == len(vb), (va, vb)
         d = advantage(np.asarray(va, float), np.asarray(vb, float), metric)
         adv, sd_d = float(np.mean(d)), statistics.stdev(d.tolist())
         se, df = sd_d / math.sqrt(len(d)), float(len(d) - 1)
         out["differences"] = d.tolist()
     else:
+        adv = float(advantage(np.array([a["mean"]]), np.array([b["mean"]]), metric)[0])
         va_n, vb_n = a["sd"] ** 2 / len(va), b["sd"] ** 2 / len(vb)  # squared standard errors of the two means
         se = math.sqrt(va_n + vb_n)
         den = va_n ** 2 / (len(va) - 1) + vb_n ** 2 / (len(vb) - 1)

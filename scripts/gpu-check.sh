@@ -33,7 +33,7 @@
 # skyeyes-small-summary.json and up to 4 tar parts: one packed submission a call, the next one not
 # yet handed back.
 # `seeds` (issue 57: the seed spread of the paper's VCM ablation) runs, for each seed of SEEDS
-# (default "1 2"), each method of SEED_METHODS (default "skyeyes skyeyes-no-vcm": one stage cache,
+# (default "0 1 2 3 4": the GPU rows' own seeds), each method of SEED_METHODS (default "skyeyes skyeyes-no-vcm": one stage cache,
 # so a seed's ACM is trained once for both) at `small` on CUDA, one after the other, and packs each
 # submission as it ends (name <method>-seed-<s>); seeds-summary.json holds every run's stages and
 # timings. Scored here, each into its row's seed folder, then combined:
@@ -59,7 +59,7 @@ GPU_TESTS=${GPU_TESTS:-1}
 BENCH=${BENCH:-1}               # time the ACM step eager and compiled first; small takes the faster
 COMPILE_MODE=${COMPILE_MODE-reduce-overhead}
 BENCH_ARGS=${BENCH_ARGS:---steps 100 --warmup 20 --frames 16}
-SEEDS=${SEEDS:-1 2}             # seeds mode: the seeds, and the methods run for each
+SEEDS=${SEEDS:-0 1 2 3 4}       # seeds mode: the seeds, and the methods run for each
 SEED_METHODS=${SEED_METHODS:-skyeyes skyeyes-no-vcm}
 mkdir -p "$OUT" "$W"
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1

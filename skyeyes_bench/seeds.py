@@ -16,7 +16,8 @@ Block (`results.json["seeds"]`):
 
 ```
 {"seeds": [0, 1, 2], "results": ["seed-0/results.json", ...],   # beside this file
- "metrics": {name: {"values": [v_0, v_1, v_2], "mean", "sd", "min", "max"}}}
+ "metrics": {name: {"values": [v_0, v_1, v_2], "mean", "sd", "min", "max"}},
+ "hardware": ["AMD EPYC (2 cores)", ...]}                       # only where the seeds' machines differ
 ```
 """
 
@@ -65,8 +66,21 @@ def seeds_block(seeds: list[int], results: list[str], docs: list[dict]) -> dict:
     status ok in every seed, with its headline `value` from each."""
     assert len(seeds) == len(results) == len(docs) >= 2, (seeds, results)
     names = [n for n in docs[0]["metrics"] if all(d["metrics"].get(n, {}).get("status") == "ok" for d in docs)]
-    return {"seeds": list(seeds), "results": list(results),
-            "metrics": {n: spread([d["metrics"][n]["value"] for d in docs]) for n in names}}
+    block = {"seeds": list(seeds), "results": list(results),
+             "metrics": {n: spread([d["metrics"][n]["value"] for d in docs]) for n in names}}
+    machines = [machine(d) for d in docs]
+    if len(set(machines)) > 1:  # seeds run apart on other machines: said, since the row shows the first one's
+        block["hardware"] = machines
+    return block
+
+
+def machine(doc: dict) -> str:
+    """A results document's hardware in a few words: its GPU, else its CPU and cores ("unknown"
+    where the run recorded none)."""
+    hw = (doc.get("submission") or {}).get("hardware") or {}
+    if hw.get("gpu"):
+        return str(hw["gpu"])
+    return f"{hw['cpu']} ({hw.get('cores', '?')} cores)" if hw.get("cpu") else "unknown"
 
 
 def format_spread(block: dict, method: str | None = None) -> str:
@@ -81,6 +95,10 @@ def format_spread(block: dict, method: str | None = None) -> str:
     for name, m in block["metrics"].items():
         lines.append(f"  {name:<8} mean {g(m['mean'])}  sd {g(m['sd'])}  {g(m['min'])}..{g(m['max'])}  "
                      f"[{', '.join(map(g, m['values']))}]")
+    if block.get("hardware"):
+        ran = ", ".join(f"seed {s} on {h}" for s, h in zip(block["seeds"], block["hardware"]))
+        lines.append(f"note: the seeds ran on different machines ({ran}); the spread includes the drift between "
+                     f"them, and a board row shows seed {block['seeds'][0]}'s hardware")
     return "\n".join(lines)
 
 
@@ -97,6 +115,11 @@ def check_block(where: str, block) -> None:
     if len(block["results"]) != n:
         fields.fail(f"{where}: field 'seeds.results'", f"expected {n} results files (one per seed), got "
                     f"{len(block['results'])}")
+    if "hardware" in block:
+        fields.conform(where, block["hardware"], [str], "seeds.hardware")
+        if len(block["hardware"]) != n:
+            fields.fail(f"{where}: field 'seeds.hardware'", f"expected {n} machines (one per seed), got "
+                        f"{len(block['hardware'])}")
     for i, rel in enumerate(block["results"]):  # a path a reader may open: it stays beside the file
         fields.rel_path(f"{where}: field 'seeds.results[{i}]'", rel, "a seed's results file, relative to this one")
     for name, m in block["metrics"].items():

@@ -230,9 +230,9 @@ def test_a_bad_seeds_block_is_one_line(world, tmp_path, edit, field, why):
     assert err.count("\n") == 1 and "Traceback" not in err and str(a) in err and f"'{field}'" in err and why in err, err
 
 
-def _seed_copy(world, folder, key: str, seed: int, psnr_shift: float = 0.0):
+def _seed_copy(world, folder, key: str, seed: int, psnr_shift: float = 0.0, hardware: dict | None = None):
     """results `key` (a or b) as folder/seed-<seed>/results.json with its sidecar; PSNR's headline
-    value moved by `psnr_shift` (a seed that trained differently)."""
+    value moved by `psnr_shift` (a seed that trained differently); `hardware`: the run's machine."""
     import shutil
 
     tmp, _ = world
@@ -240,6 +240,8 @@ def _seed_copy(world, folder, key: str, seed: int, psnr_shift: float = 0.0):
     d.mkdir(parents=True)
     doc = json.loads((tmp / f"{key}.json").read_text())
     doc["metrics"]["psnr"]["value"] += psnr_shift
+    if hardware is not None:
+        doc["submission"]["hardware"] = hardware
     (d / "results.json").write_text(json.dumps(doc))
     shutil.copyfile(tmp / doc["features"]["file"], d / doc["features"]["file"])
     return doc
@@ -255,7 +257,7 @@ def test_seeds_command_combines_seeds_run_apart(world, tmp_path):
     block = top.pop("seeds")
     sidecar, want = top.pop("features"), dict(docs[0])
     assert sidecar["sha256"] == want.pop("features")["sha256"]  # the same features, named after the new file
-    assert top == want and block["seeds"] == [0, 2, 5]
+    assert top == want and block["seeds"] == [0, 2, 5] and "hardware" not in block  # one machine: nothing to say
     assert block["results"] == ["seed-0/results.json", "seed-2/results.json", "seed-5/results.json"]
     values = [docs[s]["metrics"]["psnr"]["value"] for s in (0, 2, 5)]
     got = block["metrics"]["psnr"]
@@ -266,6 +268,24 @@ def test_seeds_command_combines_seeds_run_apart(world, tmp_path):
                           "--json")
     assert json.loads(again)["seeds"]["a"] == [0, 2, 5]
     assert run_cli("seeds", str(tmp_path / "row"))[0] == 0  # its own earlier file is replaced
+
+
+def test_seeds_run_on_different_machines_are_said(world, tmp_path):
+    """Seeds from two machines (CPU runs and a GPU's): the block names each seed's machine and the
+    summary says the spread includes the drift between them; a bad `hardware` field is one line."""
+    cpu = {"cpu": "AMD EPYC", "cores": 2, "gpu": None}
+    for s, hw in ((0, cpu), (1, cpu), (3, {"cpu": "Intel Xeon", "cores": 16, "gpu": "NVIDIA H200"})):
+        _seed_copy(world, tmp_path / "row", "a", s, hardware=hw)
+    code, text, _ = run_cli("seeds", str(tmp_path / "row"))
+    block = json.loads((tmp_path / "row" / "results.json").read_text())["seeds"]
+    assert code == 0 and block["hardware"] == ["AMD EPYC (2 cores)", "AMD EPYC (2 cores)", "NVIDIA H200"]
+    assert "seed 3 on NVIDIA H200" in text and "different machines" in text, text
+    blk = _block({m: v[0] for m, v in FAR.items()}, [0, 1, 2])
+    blk["hardware"] = ["AMD EPYC (2 cores)", "NVIDIA H200"]  # one machine short
+    (tmp_path / "bad").mkdir()
+    a, b = _files(world, tmp_path / "bad", blk, None)
+    _, _, err = run_cli("compare", str(a), str(b), check=2)
+    assert err.count("\n") == 1 and "'seeds.hardware'" in err and "expected 3 machines" in err, err
 
 
 @pytest.mark.parametrize("layout, why", [

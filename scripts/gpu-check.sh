@@ -33,8 +33,8 @@
 # skyeyes-small-summary.json and up to 4 tar parts: one packed submission a call, the next one not
 # yet handed back.
 # `seeds` (issue 57: the seed spread of the paper's VCM ablation) runs, for each seed of SEEDS
-# (default "0 1 2 3 4": the GPU rows' own seeds), each method of SEED_METHODS (default "skyeyes skyeyes-no-vcm": one stage cache,
-# so a seed's ACM is trained once for both) at `small` on CUDA, one after the other, and packs each
+# (default "0 1 2 3 4": the GPU rows' own seeds), each method of SEED_METHODS (default "skyeyes
+# skyeyes-no-vcm": one stage cache, so a seed's ACM is trained once for both) at `small` on CUDA, one after the other, and packs each
 # submission as it ends (name <method>-seed-<s>); seeds-summary.json holds every run's stages and
 # timings. Scored here, each into its row's seed folder, then combined:
 #   cat skyeyes-seed-1.tar.part-* | tar -x -C gpu/skyeyes/seed-1/

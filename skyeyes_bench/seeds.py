@@ -68,19 +68,12 @@ def seeds_block(seeds: list[int], results: list[str], docs: list[dict]) -> dict:
     names = [n for n in docs[0]["metrics"] if all(d["metrics"].get(n, {}).get("status") == "ok" for d in docs)]
     block = {"seeds": list(seeds), "results": list(results),
              "metrics": {n: spread([d["metrics"][n]["value"] for d in docs]) for n in names}}
-    machines = [machine(d) for d in docs]
+    from .leaderboard.tables import format_hardware  # the board's Hardware column, word for word
+
+    machines = [format_hardware((d.get("submission") or {}).get("hardware")) or "unknown" for d in docs]
     if len(set(machines)) > 1:  # seeds run apart on other machines: said, since the row shows the first one's
         block["hardware"] = machines
     return block
-
-
-def machine(doc: dict) -> str:
-    """A results document's hardware in a few words: its GPU, else its CPU and cores ("unknown"
-    where the run recorded none)."""
-    hw = (doc.get("submission") or {}).get("hardware") or {}
-    if hw.get("gpu"):
-        return str(hw["gpu"])
-    return f"{hw['cpu']} ({hw.get('cores', '?')} cores)" if hw.get("cpu") else "unknown"
 
 
 def format_spread(block: dict, method: str | None = None) -> str:
